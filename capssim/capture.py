@@ -1,0 +1,339 @@
+"""The capture folder: what simulate and render write, and what reconstruct and evaluate read.
+
+Layout (README "Capture folder format")::
+
+    CAPTURE/
+      meta.json        geometry, CFA, DoFP layout, 16 homographies, PSF, sensor, seed, source
+      caps_raw.tiff    (4, H, W)   aperture n behind a polarizer at 45*n deg, RGGB
+      dofp_raw.tiff    (2H, 2W)    DoFP colour-polarization mosaic (optional)
+      gt.tiff          (12, 2H, 2W) float32 ground truth (optional)
+      recon/NAME.tiff  (12, 2H, 2W) float32, one per method, and recon/NAME.json
+
+Raw frames are float32 on [0, 1] for ``sensor.model == "none"``, else uint16 DN with
+``sensor.black_level`` and ``sensor.white_level``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import platform
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from capssim import __version__
+from capssim.conventions import (
+    BAYER_OFFSETS,
+    BAYER_SITES,
+    COLOURS,
+    LR_IMAGE_CHANNELS,
+    N_APERTURES,
+    N_CHANNELS,
+    N_LR_IMAGES,
+    POLARIZER_ANGLES_DEG,
+    SR_FACTOR,
+    BAYER_SITE_COLOUR,
+    dofp_layout,
+    dofp_layout_name,
+)
+from capssim.errors import CaptureFormatError, InputError
+from capssim.homography import lr_homographies
+from capssim.imageio import atomic_directory, atomic_write_json, read_tiff, write_tiff
+from capssim.sensor import Sensor, sensor_from_meta
+
+log = logging.getLogger(__name__)
+
+SCHEMA = "capssim.capture"
+SCHEMA_VERSION = 1
+CAPTURE_KINDS = ("simulated", "rendered", "real")
+
+
+def software_versions() -> dict:
+    import torch
+
+    versions = {"capssim": __version__, "python": platform.python_version(), "numpy": np.__version__,
+                "torch": torch.__version__}
+    for mod in ("mitsuba", "drjit"):
+        try:
+            import importlib.metadata as md
+
+            versions[mod] = md.version(mod)
+        except Exception:  # not installed
+            pass
+    return versions
+
+
+def build_meta(*, kind: str, hr_shape: tuple[int, int], aperture_homographies: np.ndarray, psf: dict,
+               sensor: Sensor, dofp_layout_spec="sony", extinction_ratio: float | None = None,
+               seed: int | None = None, source: dict | None = None, extra: dict | None = None,
+               has_gt: bool = True, has_dofp: bool = True) -> dict:
+    """The ``meta.json`` dictionary of a capture (schema version 1)."""
+    if kind not in CAPTURE_KINDS:
+        raise InputError("kind", kind, f"one of {CAPTURE_KINDS}")
+    hh, ww = (int(v) for v in hr_shape)
+    hn = np.asarray(aperture_homographies, dtype=np.float64)
+    hm = lr_homographies(hn)
+    cell = dofp_layout(dofp_layout_spec)
+    lr = []
+    for m in range(N_LR_IMAGES):
+        n, q = divmod(m, 4)
+        lr.append({
+            "index": m, "aperture": n, "polarizer_deg": POLARIZER_ANGLES_DEG[n], "bayer_site": BAYER_SITES[q],
+            "colour": COLOURS[BAYER_SITE_COLOUR[q]], "channel": LR_IMAGE_CHANNELS[m],
+            "bayer_offset_rowcol": list(BAYER_OFFSETS[q]), "homography": hm[m].tolist(),
+        })
+    meta = {
+        "schema": SCHEMA,
+        "schema_version": SCHEMA_VERSION,
+        "kind": kind,
+        "geometry": {"hr_height": hh, "hr_width": ww, "raw_height": hh // 2, "raw_width": ww // 2,
+                     "sub_height": hh // 4, "sub_width": ww // 4, "sr_factor": SR_FACTOR,
+                     "n_apertures": N_APERTURES},
+        "conventions": {"channel_order": "c = 3*p + k, p over (0,45,90,135) deg, k over (R,G,B)",
+                        "homography_coordinates": "(x=col, y=row), pixel centres on integers",
+                        "homography_direction": "HR reference pixel -> target pixel"},
+        "cfa": "RGGB",
+        "polarizer_angles_deg": list(POLARIZER_ANGLES_DEG),
+        "extinction_ratio": extinction_ratio,
+        "dofp_layout": [list(r) for r in cell],
+        "dofp_layout_name": dofp_layout_name(cell),
+        "aperture_homographies": hn.tolist(),
+        "lr_images": lr,
+        "psf": psf,
+        "sensor": sensor.to_meta(),
+        "files": {"caps_raw": "caps_raw.tiff"},
+        "seed": seed,
+        "source": source or {},
+        "software": software_versions(),
+    }
+    if has_dofp:
+        meta["files"]["dofp_raw"] = "dofp_raw.tiff"
+    if has_gt:
+        meta["files"]["gt"] = "gt.tiff"
+    if extra:
+        meta.update(extra)
+    return meta
+
+
+def _require(meta: dict, key: str, where: str = "meta.json"):
+    if key not in meta:
+        raise CaptureFormatError(f"{where}: missing key {key!r}. See README 'Capture folder format'.")
+    return meta[key]
+
+
+def validate_meta(meta: dict) -> None:
+    """Raise :class:`CaptureFormatError` naming the first problem in a ``meta.json`` dict."""
+    if meta.get("schema") != SCHEMA:
+        raise CaptureFormatError(f"meta.json: schema is {meta.get('schema')!r}; expected {SCHEMA!r}.")
+    version = meta.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise CaptureFormatError(f"meta.json: schema_version {version!r} is not supported; expected {SCHEMA_VERSION}.")
+    geo = _require(meta, "geometry")
+    for key in ("hr_height", "hr_width", "raw_height", "raw_width"):
+        _require(geo, key, "meta.json geometry")
+    if geo["hr_height"] != 2 * geo["raw_height"] or geo["hr_width"] != 2 * geo["raw_width"]:
+        raise CaptureFormatError("meta.json geometry: hr size must be twice the raw size.")
+    if geo["raw_height"] % 2 or geo["raw_width"] % 2:
+        raise CaptureFormatError("meta.json geometry: raw height and width must be even (RGGB cells).")
+    hn = np.asarray(_require(meta, "aperture_homographies"), dtype=np.float64)
+    if hn.shape != (N_APERTURES, 3, 3) or not np.all(np.isfinite(hn)):
+        raise CaptureFormatError(f"meta.json: aperture_homographies must be 4 finite 3x3 matrices; got shape {hn.shape}.")
+    lr = _require(meta, "lr_images")
+    if len(lr) != N_LR_IMAGES:
+        raise CaptureFormatError(f"meta.json: lr_images must list 16 images; got {len(lr)}.")
+    for m, entry in enumerate(lr):
+        h = np.asarray(_require(entry, "homography", f"meta.json lr_images[{m}]"), dtype=np.float64)
+        if h.shape != (3, 3) or not np.all(np.isfinite(h)):
+            raise CaptureFormatError(f"meta.json lr_images[{m}].homography must be a finite 3x3 matrix.")
+        if entry.get("channel", LR_IMAGE_CHANNELS[m]) != LR_IMAGE_CHANNELS[m]:
+            raise CaptureFormatError(f"meta.json lr_images[{m}].channel is {entry.get('channel')}; "
+                                     f"the convention m = 4n + q gives {LR_IMAGE_CHANNELS[m]}.")
+    _require(meta, "sensor")
+    _require(meta, "files")
+    try:
+        dofp_layout(meta.get("dofp_layout", "sony"))
+    except InputError as exc:
+        raise CaptureFormatError(f"meta.json dofp_layout: {exc}") from exc
+
+
+@dataclass
+class Capture:
+    """A capture in memory. ``caps_raw`` ``(4, H, W)``; ``dofp_raw`` ``(2H, 2W)``; ``gt`` ``(12, 2H, 2W)``."""
+
+    meta: dict
+    caps_raw: np.ndarray
+    dofp_raw: np.ndarray | None = None
+    gt: np.ndarray | None = None
+    path: Path | None = field(default=None, compare=False)
+
+    # geometry --------------------------------------------------------------------------
+    @property
+    def hr_shape(self) -> tuple[int, int]:
+        g = self.meta["geometry"]
+        return int(g["hr_height"]), int(g["hr_width"])
+
+    @property
+    def raw_shape(self) -> tuple[int, int]:
+        g = self.meta["geometry"]
+        return int(g["raw_height"]), int(g["raw_width"])
+
+    @property
+    def sensor(self) -> Sensor:
+        return sensor_from_meta(self.meta["sensor"])
+
+    @property
+    def dofp_layout(self):
+        return dofp_layout(self.meta.get("dofp_layout", "sony"))
+
+    @property
+    def extinction_ratio(self) -> float | None:
+        return self.meta.get("extinction_ratio")
+
+    def aperture_homographies(self) -> np.ndarray:
+        return np.asarray(self.meta["aperture_homographies"], dtype=np.float64)
+
+    def true_lr_homographies(self) -> np.ndarray:
+        """``(16, 3, 3)`` stored HR reference -> sub-image homographies."""
+        return np.asarray([e["homography"] for e in self.meta["lr_images"]], dtype=np.float64)
+
+    def psf_kernel(self) -> np.ndarray:
+        from capssim.operators.blur import psf_kernel_from_spec
+
+        return psf_kernel_from_spec(self.meta.get("psf"))
+
+    # data ------------------------------------------------------------------------------
+    def caps_float(self) -> np.ndarray:
+        """``(4, H, W)`` float32 raw frames on [0, 1] full scale."""
+        return self.sensor.to_float(self.caps_raw)
+
+    def caps_saturated(self) -> np.ndarray:
+        return self.sensor.saturation_mask(self.caps_raw)
+
+    def lr_images(self) -> tuple[np.ndarray, np.ndarray]:
+        """The 16 Bayer sub-images ``(16, H/2, W/2)`` float32 and their saturation masks (paper 3.1)."""
+        h, w = self.raw_shape
+        split = lambda a: a.reshape(N_APERTURES, h // 2, 2, w // 2, 2).transpose(0, 2, 4, 1, 3).reshape(N_LR_IMAGES, h // 2, w // 2)
+        return np.ascontiguousarray(split(self.caps_float())), np.ascontiguousarray(split(self.caps_saturated()))
+
+    def dofp_float(self) -> np.ndarray:
+        if self.dofp_raw is None:
+            raise CaptureFormatError(f"{self.path or 'capture'}: no dofp_raw.tiff in this capture.")
+        return self.sensor.to_float(self.dofp_raw)
+
+    def dofp_saturated(self) -> np.ndarray:
+        if self.dofp_raw is None:
+            raise CaptureFormatError(f"{self.path or 'capture'}: no dofp_raw.tiff in this capture.")
+        return self.sensor.saturation_mask(self.dofp_raw)
+
+
+def _check_array(name: str, arr: np.ndarray, shape: tuple, sensor: Sensor) -> None:
+    if arr.shape != shape:
+        raise CaptureFormatError(f"{name}: shape {arr.shape}, but meta.json geometry says {shape}.")
+    if sensor.model == "none":
+        if arr.dtype != np.float32:
+            raise CaptureFormatError(f"{name}: dtype {arr.dtype}; a capture with sensor 'none' stores float32.")
+        if not np.all(np.isfinite(arr)):
+            raise CaptureFormatError(f"{name}: holds NaN or inf values.")
+    elif arr.dtype != np.uint16:
+        raise CaptureFormatError(f"{name}: dtype {arr.dtype}; a capture with sensor {sensor.model!r} stores uint16 DN.")
+
+
+def write_capture(path, capture: Capture, *, overwrite: bool = False) -> Path:
+    """Write a capture folder atomically (built under a temporary name, then renamed)."""
+    validate_meta(capture.meta)
+    hh, ww = capture.hr_shape
+    h, w = capture.raw_shape
+    sensor = capture.sensor
+    _check_array("caps_raw", capture.caps_raw, (N_APERTURES, h, w), sensor)
+    if capture.dofp_raw is not None:
+        _check_array("dofp_raw", capture.dofp_raw, (hh, ww), sensor)
+    if capture.gt is not None and capture.gt.shape != (N_CHANNELS, hh, ww):
+        raise CaptureFormatError(f"gt: shape {capture.gt.shape}; expected {(N_CHANNELS, hh, ww)}.")
+    with atomic_directory(path, overwrite=overwrite) as tmp:
+        write_tiff(tmp / "caps_raw.tiff", capture.caps_raw)
+        if capture.dofp_raw is not None:
+            write_tiff(tmp / "dofp_raw.tiff", capture.dofp_raw)
+        if capture.gt is not None:
+            write_tiff(tmp / "gt.tiff", capture.gt.astype(np.float32))
+        atomic_write_json(tmp / "meta.json", capture.meta)
+    capture.path = Path(path)
+    return Path(path)
+
+
+def read_meta(path) -> dict:
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError("capture", str(path), "an existing capture folder (with meta.json)",
+                         "Create one with 'capssim simulate' or 'capssim render'.")
+    meta_path = path / "meta.json"
+    if not meta_path.is_file():
+        raise CaptureFormatError(f"{path}: no meta.json; this is not a capture folder. See README 'Capture folder format'.")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise CaptureFormatError(f"{meta_path}: corrupt JSON ({exc}).") from exc
+    validate_meta(meta)
+    return meta
+
+
+def read_capture(path, *, load_gt: bool = True, require_gt: bool = False) -> Capture:
+    """Read and check a capture folder. ``require_gt`` makes a missing ``gt.tiff`` an error."""
+    path = Path(path)
+    meta = read_meta(path)
+    files = meta["files"]
+    sensor = sensor_from_meta(meta["sensor"])
+    geo = meta["geometry"]
+    hh, ww, h, w = geo["hr_height"], geo["hr_width"], geo["raw_height"], geo["raw_width"]
+
+    def load(key):
+        name = files.get(key)
+        if name is None:
+            return None
+        if not (path / name).is_file():
+            raise CaptureFormatError(f"{path}: meta.json lists {name} but the file is missing.")
+        return read_tiff(path / name, argument=f"{path.name}/{name}")
+
+    caps = load("caps_raw")
+    if caps is None:
+        raise CaptureFormatError(f"{path}: meta.json files has no caps_raw entry.")
+    _check_array("caps_raw.tiff", caps, (N_APERTURES, h, w), sensor)
+    dofp = load("dofp_raw")
+    if dofp is not None:
+        _check_array("dofp_raw.tiff", dofp, (hh, ww), sensor)
+    gt = None
+    if load_gt or require_gt:
+        if "gt" not in files or not (path / files["gt"]).is_file():
+            if require_gt:
+                raise CaptureFormatError(f"{path}: no gt.tiff; scoring needs the ground truth. "
+                                         "Captures from a real camera cannot be scored.")
+        else:
+            gt = load("gt")
+            if gt.shape != (N_CHANNELS, hh, ww):
+                raise CaptureFormatError(f"{path}/gt.tiff: shape {gt.shape}; expected {(N_CHANNELS, hh, ww)}.")
+            gt = gt.astype(np.float32, copy=False)
+    return Capture(meta=meta, caps_raw=caps, dofp_raw=dofp, gt=gt, path=path)
+
+
+# -- reconstruction outputs -------------------------------------------------------------------
+def write_reconstruction(capture_path, method: str, image: np.ndarray, record: dict) -> tuple[Path, Path]:
+    """Write ``recon/METHOD.tiff`` (float32 ``(12, 2H, 2W)``) and ``recon/METHOD.json`` atomically."""
+    capture_path = Path(capture_path)
+    meta = read_meta(capture_path)
+    shape = (N_CHANNELS, meta["geometry"]["hr_height"], meta["geometry"]["hr_width"])
+    image = np.asarray(image)
+    if image.shape != shape:
+        raise InputError("image", f"shape {image.shape}", f"shape {shape}")
+    if not np.all(np.isfinite(image)):
+        raise InputError("image", f"{int(np.sum(~np.isfinite(image)))} NaN/inf values", "a finite reconstruction")
+    out_dir = capture_path / "recon"
+    tiff, js = out_dir / f"{method}.tiff", out_dir / f"{method}.json"
+    write_tiff(tiff, image.astype(np.float32))
+    atomic_write_json(js, record)
+    return tiff, js
+
+
+def list_reconstructions(capture_path) -> list[str]:
+    d = Path(capture_path) / "recon"
+    return sorted(p.stem for p in d.glob("*.tiff")) if d.is_dir() else []

@@ -1,0 +1,114 @@
+"""Homographies between the HR reference grid, each aperture and each Bayer sub-image.
+
+All matrices act on ``(x=col, y=row, 1)``. Three frames matter:
+
+* HR reference: the ground-truth grid ``2H x 2W`` (the 0 deg aperture at twice its resolution).
+* aperture-HR: aperture n's own grid at twice its resolution. Its raw pixel ``(i, j)``
+  integrates aperture-HR pixels ``2i..2i+1, 2j..2j+1``. ``H_n`` maps HR reference -> aperture-HR.
+  The reference aperture has ``H_0 = I`` by definition.
+* sub-image: Bayer site q of aperture n, ``H/2 x W/2``. Sub-image pixel ``(u, v)`` is raw pixel
+  ``(2u + oy, 2v + ox)``, centred at aperture-HR ``(4u + 2oy + 0.5, 4v + 2ox + 0.5)``.
+
+The capture stores, for each of the 16 images ``m = 4n + q``, ``H_m = S_q @ H_n``: HR
+reference -> that image's own pixel coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from capssim.conventions import BAYER_OFFSETS, N_APERTURES
+from capssim.errors import InputError
+
+
+def sub_image_matrix(q: int) -> np.ndarray:
+    """``S_q``: aperture-HR coordinates -> Bayer sub-image q pixel coordinates."""
+    oy, ox = BAYER_OFFSETS[q]
+    return np.array([[0.25, 0.0, -(2 * ox + 0.5) / 4], [0.0, 0.25, -(2 * oy + 0.5) / 4], [0.0, 0.0, 1.0]])
+
+
+def raw_matrix() -> np.ndarray:
+    """Aperture-HR coordinates -> raw pixel coordinates (raw pixel centres at ``2i + 0.5``)."""
+    return np.array([[0.5, 0.0, -0.25], [0.0, 0.5, -0.25], [0.0, 0.0, 1.0]])
+
+
+def lr_homographies(aperture_homographies) -> np.ndarray:
+    """``(16, 3, 3)``: ``H_{4n+q} = S_q @ H_n`` from the four aperture homographies ``(4, 3, 3)``."""
+    h = np.asarray(aperture_homographies, dtype=np.float64)
+    if h.shape != (N_APERTURES, 3, 3):
+        raise InputError("aperture_homographies", f"shape {h.shape}", "shape (4, 3, 3)")
+    return np.stack([sub_image_matrix(q) @ h[n] for n in range(N_APERTURES) for q in range(4)])
+
+
+def aperture_from_lr(lr_homographies_) -> np.ndarray:
+    """``(16, 3, 3)``: ``S_q^-1 @ H_m``, the aperture-HR warp implied by each image's homography."""
+    h = np.asarray(lr_homographies_, dtype=np.float64)
+    if h.shape != (16, 3, 3):
+        raise InputError("lr_homographies", f"shape {h.shape}", "shape (16, 3, 3)")
+    return np.stack([np.linalg.inv(sub_image_matrix(m % 4)) @ h[m] for m in range(16)])
+
+
+def similarity(shift_xy=(0.0, 0.0), rotation_deg: float = 0.0, scale: float = 1.0,
+               center_xy=(0.0, 0.0)) -> np.ndarray:
+    """Rotation by ``rotation_deg`` (counter-clockwise on the display, i.e. towards -row)
+    and scale about ``center_xy``, then a shift; maps input -> output coordinates."""
+    cx, cy = center_xy
+    t = math.radians(rotation_deg)
+    c, s = scale * math.cos(t), scale * math.sin(t)
+    # y points down, so a display-CCW rotation is (x, y) -> (c x + s y, -s x + c y)
+    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    to_c = np.array([[1.0, 0.0, -cx], [0.0, 1.0, -cy], [0.0, 0.0, 1.0]])
+    back = np.array([[1.0, 0.0, cx + shift_xy[0]], [0.0, 1.0, cy + shift_xy[1]], [0.0, 0.0, 1.0]])
+    return back @ rot @ to_c
+
+
+def random_aperture_homographies(rng: np.random.Generator, hr_shape: tuple[int, int], *,
+                                 shift_max_px: float = 2.0, rotation_max_deg: float = 0.5,
+                                 scale_max: float = 0.005) -> tuple[np.ndarray, list[dict]]:
+    """Random similarity per aperture (uniform ranges), the reference aperture 0 = identity.
+
+    ``shift_max_px`` is in HR pixels; rotation and scale act about the image centre.
+    Returns ``(4, 3, 3)`` HR reference -> aperture-HR, and the drawn parameters.
+    """
+    for arg, v in (("shift_max_px", shift_max_px), ("rotation_max_deg", rotation_max_deg), ("scale_max", scale_max)):
+        if not (v >= 0 and math.isfinite(v)):
+            raise InputError(arg, v, "a finite number >= 0")
+    h, w = hr_shape
+    center = ((w - 1) / 2.0, (h - 1) / 2.0)
+    mats, params = [np.eye(3)], [{"shift_xy_px": [0.0, 0.0], "rotation_deg": 0.0, "scale": 1.0}]
+    for _ in range(1, N_APERTURES):
+        shift = rng.uniform(-shift_max_px, shift_max_px, size=2)
+        rot = float(rng.uniform(-rotation_max_deg, rotation_max_deg))
+        scale = 1.0 + float(rng.uniform(-scale_max, scale_max))
+        mats.append(similarity(shift, rot, scale, center))
+        params.append({"shift_xy_px": [float(shift[0]), float(shift[1])], "rotation_deg": rot, "scale": scale})
+    return np.stack(mats), params
+
+
+def apply_homography(h, xy: np.ndarray) -> np.ndarray:
+    """Map points ``(..., 2)`` of ``(x, y)`` through ``h``."""
+    xy = np.asarray(xy, dtype=np.float64)
+    pts = np.concatenate([xy, np.ones((*xy.shape[:-1], 1))], axis=-1) @ np.asarray(h).T
+    return pts[..., :2] / pts[..., 2:3]
+
+
+def registration_error_hr_px(estimated, true, hr_shape: tuple[int, int], *, step: int = 8,
+                             margin: int = 0) -> np.ndarray:
+    """Per-image registration error in HR pixels: for ``(K, 3, 3)`` stacks of HR reference ->
+    sub-image homographies, the mean distance between where the two map a grid of HR
+    reference points, converted to HR pixels (one sub-image pixel = 4 HR pixels).
+
+    Returns shape ``(K,)``.
+    """
+    est = np.asarray(estimated, dtype=np.float64).reshape(-1, 3, 3)
+    tru = np.asarray(true, dtype=np.float64).reshape(-1, 3, 3)
+    h, w = hr_shape
+    ys, xs = np.meshgrid(np.arange(margin, h - margin, step), np.arange(margin, w - margin, step), indexing="ij")
+    pts = np.stack([xs.ravel(), ys.ravel()], axis=-1).astype(np.float64)
+    errs = []
+    for he, ht in zip(est, tru):
+        d = apply_homography(he, pts) - apply_homography(ht, pts)
+        errs.append(4.0 * float(np.mean(np.hypot(d[:, 0], d[:, 1]))))
+    return np.asarray(errs)

@@ -1,0 +1,245 @@
+"""File input/output with clear errors and atomic writes (temp file, then rename).
+
+Nothing a user wrote is ever half-written: files go to ``NAME.tmp-XXXX`` next to the
+target and are renamed into place; folders are built under a temporary name and renamed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from capssim.conventions import POLARIZER_ANGLES_DEG
+from capssim.errors import InputError
+
+log = logging.getLogger(__name__)
+
+GT_IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
+
+
+# -- atomic writing -------------------------------------------------------------------------
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _tmp_sibling(path: Path) -> Path:
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    os.close(fd)
+    os.chmod(name, 0o666 & ~_umask())
+    return Path(name)
+
+
+def check_output_free(path: str | os.PathLike, *, overwrite: bool = False, argument: str = "output") -> Path:
+    """Fail early (before any work) if ``path`` exists and ``overwrite`` is not set."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise InputError(argument, f"existing path {str(path)!r}", "a path that does not exist yet",
+                         "Choose another -o/--output, or pass --overwrite to replace it.")
+    if path.exists() and not path.is_dir():
+        raise InputError(argument, f"existing file {str(path)!r}", "a folder path")
+    return path
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def atomic_write_json(path: str | os.PathLike, obj) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, (np.bool_,)):
+        return bool(o)
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+def write_tiff(path: str | os.PathLike, array: np.ndarray) -> None:
+    """Write a TIFF atomically (zlib-compressed, deterministic bytes)."""
+    import tifffile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = _tmp_sibling(path)
+    try:
+        tifffile.imwrite(tmp, np.ascontiguousarray(array), compression="zlib", photometric="minisblack",
+                         metadata=None, software=None)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write an RGB (H, W, 3) or grey (H, W) image; floats are taken as [0, 1]."""
+    import cv2
+
+    img = np.asarray(image)
+    if np.issubdtype(img.dtype, np.floating):
+        img = np.round(np.clip(np.nan_to_num(img), 0, 1) * 255).astype(np.uint8)
+    if img.ndim == 3:
+        img = img[..., ::-1]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise OSError(f"could not encode PNG for {path}")
+    atomic_write_bytes(path, buf.tobytes())
+
+
+@contextlib.contextmanager
+def atomic_directory(path: str | os.PathLike, *, overwrite: bool = False) -> Iterator[Path]:
+    """Build a folder under a temporary name; rename it to ``path`` only if the block succeeds.
+
+    An existing ``path`` is an error unless ``overwrite``; then it is replaced only after
+    the new folder is complete.
+    """
+    path = check_output_free(path, overwrite=overwrite)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    os.chmod(tmp, 0o777 & ~_umask())
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    old = None
+    if path.exists():
+        old = path.parent / f".{path.name}.old-{os.getpid()}"
+        os.replace(path, old)
+    os.replace(tmp, path)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+# -- reading --------------------------------------------------------------------------------
+def read_tiff(path: str | os.PathLike, *, argument: str = "path") -> np.ndarray:
+    import tifffile
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(argument, str(path), "an existing TIFF file")
+    try:
+        return tifffile.imread(path)
+    except Exception as exc:  # tifffile raises many kinds
+        raise InputError(argument, f"unreadable TIFF {str(path)!r} ({exc})", "a valid TIFF file") from exc
+
+
+def read_image(path: str | os.PathLike, *, argument: str = "path") -> tuple[np.ndarray, int]:
+    """Read a PNG/TIFF as stored: ``(H, W)`` or ``(H, W, C)`` RGB order, plus its bit depth."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(argument, str(path), "an existing image file")
+    if path.suffix.lower() in (".tif", ".tiff"):
+        img = read_tiff(path, argument=argument)
+    else:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise InputError(argument, f"unreadable image {str(path)!r}", "a valid PNG or TIFF file")
+        if img.ndim == 3:
+            img = img[..., :3][..., ::-1] if img.shape[2] >= 3 else img
+    if img.dtype == np.uint8:
+        bits = 8
+    elif img.dtype == np.uint16:
+        bits = 16
+    elif np.issubdtype(img.dtype, np.floating):
+        bits = 0
+    else:
+        raise InputError(argument, f"{str(path)!r} of dtype {img.dtype}", "8-bit, 16-bit or float images")
+    return np.ascontiguousarray(img), bits
+
+
+def _normalise(img: np.ndarray, bits: int) -> np.ndarray:
+    if bits == 0:
+        return img.astype(np.float32)
+    return (img.astype(np.float64) / (2**bits - 1)).astype(np.float32)
+
+
+def read_gt_scene(path: str | os.PathLike) -> tuple[np.ndarray, dict]:
+    """Ground truth ``(12, H, W)`` float32 on [0, 1] plus a description of the source.
+
+    ``path`` is a folder with ``0.png 45.png 90.png 135.png`` (8- or 16-bit RGB, TIFF also
+    accepted), or a 12-channel float TIFF shaped ``(12, H, W)`` or ``(H, W, 12)``.
+    """
+    path = Path(path)
+    if path.is_dir():
+        images, depths, files = [], set(), []
+        for angle in POLARIZER_ANGLES_DEG:
+            found = [path / f"{angle}{s}" for s in GT_IMAGE_SUFFIXES if (path / f"{angle}{s}").is_file()]
+            if not found:
+                raise InputError("gt", f"folder {str(path)!r} without {angle}.png",
+                                 "a folder holding 0.png 45.png 90.png 135.png (or .tif/.tiff)")
+            img, bits = read_image(found[0], argument="gt")
+            if img.ndim != 3 or img.shape[2] != 3:
+                raise InputError("gt", f"{found[0].name} with shape {img.shape}", "an RGB image (H, W, 3)")
+            images.append(img)
+            depths.add(bits)
+            files.append(found[0].name)
+        shapes = {im.shape for im in images}
+        if len(shapes) != 1:
+            raise InputError("gt", f"images of different sizes {sorted(shapes)}", "four images of one size")
+        if len(depths) != 1:
+            raise InputError("gt", f"mixed bit depths {sorted(depths)}", "four images of one bit depth (8 or 16)")
+        bits = depths.pop()
+        stack = np.stack([_normalise(im, bits) for im in images])  # (4, H, W, 3)
+        gt = np.ascontiguousarray(stack.transpose(0, 3, 1, 2).reshape(12, *stack.shape[1:3]))
+        info = {"type": "polarizer-images", "path": str(path), "files": files, "bit_depth": bits}
+    elif path.is_file():
+        arr, bits = read_image(path, argument="gt")
+        if arr.ndim == 3 and arr.shape[0] == 12:
+            gt = arr
+        elif arr.ndim == 3 and arr.shape[2] == 12:
+            gt = np.moveaxis(arr, 2, 0)
+        else:
+            raise InputError("gt", f"{str(path)!r} with shape {arr.shape}",
+                             "a 12-channel TIFF shaped (12, H, W) or (H, W, 12)")
+        gt = np.ascontiguousarray(_normalise(gt, bits))
+        info = {"type": "tiff-12ch", "path": str(path), "bit_depth": bits}
+    else:
+        raise InputError("gt", str(path), "an existing folder of four polarizer images or a 12-channel TIFF")
+    if not np.all(np.isfinite(gt)):
+        raise InputError("gt", f"{int(np.sum(~np.isfinite(gt)))} NaN/inf values", "finite values")
+    return gt, info
+
+
+def centre_crop(image: np.ndarray, size: int | tuple[int, int]) -> np.ndarray:
+    """Centred crop of the last two axes to ``size`` (int for square)."""
+    h, w = image.shape[-2:]
+    ch, cw = (size, size) if isinstance(size, int) else size
+    if ch > h or cw > w or ch <= 0 or cw <= 0:
+        raise InputError("crop", f"{ch}x{cw}", f"a size between 1 and the image size {h}x{w}")
+    top, left = (h - ch) // 2, (w - cw) // 2
+    return np.ascontiguousarray(image[..., top:top + ch, left:left + cw])

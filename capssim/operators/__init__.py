@@ -1,0 +1,32 @@
+"""Torch linear operators of the camera model, each with an exact adjoint."""
+
+from capssim.operators.analyzer import Analyzer, ChannelMix, ChannelSelect, analyzer_matrix
+from capssim.operators.base import (
+    Adjoint,
+    Composition,
+    LinearOperator,
+    Reshape,
+    Stack,
+    adjointness_error,
+    operator_norm_estimate,
+)
+from capssim.operators.blur import Convolve, airy_psf_kernel, gaussian_psf_kernel, psf_kernel_from_spec
+from capssim.operators.camera import (
+    caps_raw_operator,
+    dofp_raw_operator,
+    lr_channel_matrix,
+    lr_observation_operator,
+    lr_sampling_operator,
+)
+from capssim.operators.cfa import BayerMosaic, BayerSplit, ChannelSample, DoFPMosaic
+from capssim.operators.sampling import Decimation, IntegrateDecimate, PixelIntegration
+from capssim.operators.warp import Warp, warp_image
+
+__all__ = [
+    "Adjoint", "Analyzer", "BayerMosaic", "BayerSplit", "ChannelMix", "ChannelSample", "ChannelSelect",
+    "Composition", "Convolve", "Decimation", "DoFPMosaic", "IntegrateDecimate", "LinearOperator",
+    "PixelIntegration", "Reshape", "Stack", "Warp", "adjointness_error", "airy_psf_kernel", "analyzer_matrix",
+    "caps_raw_operator", "dofp_raw_operator", "gaussian_psf_kernel", "lr_channel_matrix",
+    "lr_observation_operator", "lr_sampling_operator", "operator_norm_estimate", "psf_kernel_from_spec",
+    "warp_image",
+]

@@ -1,0 +1,122 @@
+"""The one observation model of CAPS and of the DoFP camera (paper eq. 9-11).
+
+Simulation, rendering post-processing and every reconstruction build their operators
+here, so a bug cannot hide behind a matching bug elsewhere.
+
+CAPS raw frames (eq. 9), for the 12-channel HR image ``x`` of shape ``(12, 2H, 2W)``::
+
+    raw = Bayer( IntegrateDecimate_2( Blur_psf( Warp_{H_n}( Analyzer(x) ) ) ) )   -> (4, H, W)
+
+Low-resolution image m = 4n + q (eq. 11, ``M_m``), for its channel's HR image::
+
+    y_m = Decimate_2^{(oy_q, ox_q)}( IntegrateDecimate_2( Blur_psf( Warp_{S_q^-1 H_m}(x_c(m)) ) ) )  -> (h, w)
+
+with ``h = H/2``; ``BayerSplit(raw)`` equals the 16 ``y_m`` exactly when
+``H_m = S_q @ H_n`` (a test pins this).
+
+DoFP raw frame (same total pixel count ``4HW``, pixel pitch = HR pitch)::
+
+    dofp = DoFPMosaic_layout( Analyzer_ER( Blur_psf(x) ) )                          -> (2H, 2W)
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import numpy as np
+
+from capssim.conventions import LR_IMAGE_CHANNELS, N_APERTURES, N_CHANNELS, N_LR_IMAGES, POLARIZER_ANGLES_DEG, BAYER_OFFSETS
+from capssim.errors import InputError
+from capssim.homography import aperture_from_lr
+from capssim.operators.analyzer import Analyzer, ChannelMix, analyzer_matrix
+from capssim.operators.base import Composition, Reshape
+from capssim.operators.blur import Convolve
+from capssim.operators.cfa import BayerMosaic, DoFPMosaic
+from capssim.operators.sampling import Decimation, IntegrateDecimate
+from capssim.operators.warp import Warp
+
+
+def _check_hr_shape(hr_shape) -> tuple[int, int]:
+    hh, ww = (int(v) for v in hr_shape)
+    if hh < 8 or ww < 8 or hh % 4 or ww % 4:
+        raise InputError("hr_shape", (hh, ww), "height and width >= 8 and divisible by 4",
+                         "Crop the ground truth to a multiple of 4 (e.g. --crop).")
+    return hh, ww
+
+
+def caps_raw_operator(hr_shape, aperture_homographies, psf_kernel, *,
+                      angles_deg: Sequence[int] = POLARIZER_ANGLES_DEG,
+                      extinction_ratio: float | None = None) -> Composition:
+    """``(12, 2H, 2W) -> (4, H, W)``: the four RGGB raw frames of the camera array (eq. 9).
+
+    ``aperture_homographies`` ``(4, 3, 3)`` map HR reference -> aperture-HR coordinates.
+    """
+    hh, ww = _check_hr_shape(hr_shape)
+    h = np.asarray(aperture_homographies, dtype=np.float64)
+    n = len(angles_deg)
+    if h.shape != (n, 3, 3):
+        raise InputError("aperture_homographies", f"shape {h.shape}", f"shape ({n}, 3, 3)")
+    ops = [
+        Analyzer(hh, ww, angles_deg=angles_deg, extinction_ratio=extinction_ratio),
+        Warp(h, 3, (hh, ww)),
+        Convolve(psf_kernel, (n, 3, hh, ww)),
+        IntegrateDecimate(2, (n, 3, hh, ww)),
+        BayerMosaic((n, 3, hh // 2, ww // 2)),
+    ]
+    return Composition(ops, name="caps_raw")
+
+
+def lr_sampling_operator(hr_shape, lr_homographies, psf_kernel) -> Composition:
+    """``M``: ``(16, 2H, 2W) -> (16, H/2, W/2)``; slice m is ``M_m`` applied to slice m (eq. 11).
+
+    ``lr_homographies`` ``(16, 3, 3)`` map HR reference -> each sub-image's pixel coordinates.
+    """
+    hh, ww = _check_hr_shape(hr_shape)
+    h = np.asarray(lr_homographies, dtype=np.float64)
+    if h.shape != (N_LR_IMAGES, 3, 3):
+        raise InputError("lr_homographies", f"shape {h.shape}", "shape (16, 3, 3)")
+    g = aperture_from_lr(h)
+    offsets = [BAYER_OFFSETS[m % 4] for m in range(N_LR_IMAGES)]
+    ops = [
+        Reshape((N_LR_IMAGES, hh, ww), (N_LR_IMAGES, 1, hh, ww)),
+        Warp(g, 1, (hh, ww)),
+        Convolve(psf_kernel, (N_LR_IMAGES, 1, hh, ww)),
+        IntegrateDecimate(2, (N_LR_IMAGES, 1, hh, ww)),
+        Decimation(2, (N_LR_IMAGES, 1, hh // 2, ww // 2), offsets),
+        Reshape((N_LR_IMAGES, 1, hh // 4, ww // 4), (N_LR_IMAGES, hh // 4, ww // 4)),
+    ]
+    return Composition(ops, name="lr_sampling")
+
+
+def lr_channel_matrix(*, extinction_ratio: float | None = None) -> np.ndarray:
+    """``(16, 12)``: what each low-resolution image sees of the 12 channels (analyzer + colour)."""
+    full = analyzer_matrix(POLARIZER_ANGLES_DEG, extinction_ratio=extinction_ratio)  # (12, 12), row 3n+k
+    return np.stack([full[LR_IMAGE_CHANNELS[m]] for m in range(N_LR_IMAGES)])
+
+
+def lr_observation_operator(hr_shape, lr_homographies, psf_kernel, *,
+                            extinction_ratio: float | None = None) -> Composition:
+    """``(12, 2H, 2W) -> (16, H/2, W/2)``: all 16 Bayer sub-images from the 12-channel image."""
+    hh, ww = _check_hr_shape(hr_shape)
+    mix = ChannelMix(lr_channel_matrix(extinction_ratio=extinction_ratio), hh, ww)
+    return Composition([mix, lr_sampling_operator(hr_shape, lr_homographies, psf_kernel)], name="lr_observation")
+
+
+def dofp_raw_operator(hr_shape, psf_kernel, *, layout="sony", extinction_ratio: float | None = None) -> Composition:
+    """``(12, 2H, 2W) -> (2H, 2W)``: the DoFP colour-polarization mosaic with the same optics."""
+    hh, ww = _check_hr_shape(hr_shape)
+    ops = [Convolve(psf_kernel, (N_CHANNELS, hh, ww))]
+    if extinction_ratio is not None and not np.isinf(extinction_ratio):
+        ops.append(ChannelMix(analyzer_matrix(POLARIZER_ANGLES_DEG, extinction_ratio=extinction_ratio), hh, ww))
+    ops.append(DoFPMosaic(hh, ww, layout=layout))
+    return Composition(ops, name="dofp_raw")
+
+
+__all__ = [
+    "N_APERTURES",
+    "caps_raw_operator",
+    "dofp_raw_operator",
+    "lr_channel_matrix",
+    "lr_observation_operator",
+    "lr_sampling_operator",
+]

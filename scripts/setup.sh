@@ -1,0 +1,36 @@
+#!/usr/bin/env bash
+# Idempotent set-up: a virtual environment in .venv with everything capssim needs.
+#  - torch==2.13.0 first (a CPU build is cached on the project machines; a bare 'torch' pulls GBs)
+#  - the project and its test extras, editable
+#  - libllvm19 for Mitsuba's LLVM variants where apt can install it; otherwise capssim falls back
+#    to the scalar variants with a one-line notice.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${VENV:-.venv}
+PY=${PYTHON:-python3}
+stamp="$VENV/.capssim-installed"
+want="$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -d' ' -f1)"
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
+  exit 0
+fi
+if [ ! -x "$VENV/bin/python" ]; then
+  "$PY" -m venv "$VENV"
+fi
+"$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
+"$VENV/bin/python" -m pip install -q "torch==2.13.0"
+"$VENV/bin/python" -m pip install -q -e ".[test]"
+
+if ! ls /usr/lib/*/libLLVM.so.19* /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1; then
+  SUDO=""
+  if [ "$(id -u)" != "0" ] && command -v sudo >/dev/null 2>&1 && sudo -n true 2>/dev/null; then SUDO="sudo -n"; fi
+  if [ "$(id -u)" = "0" ] || [ -n "$SUDO" ]; then
+    export DEBIAN_FRONTEND=noninteractive
+    ($SUDO apt-get install -y -q libllvm19 >/dev/null 2>&1 \
+      || ($SUDO apt-get update -q >/dev/null 2>&1 && $SUDO apt-get install -y -q libllvm19 >/dev/null 2>&1)) \
+      || echo "capssim setup: libllvm19 could not be installed; rendering will use Mitsuba's scalar variants (slower)."
+  else
+    echo "capssim setup: no root to install libllvm19; rendering will use Mitsuba's scalar variants (slower)."
+  fi
+fi
+echo "$want" > "$stamp"
+echo "capssim setup: ready in $VENV"
