@@ -1,1 +1,1 @@
-"""scenes"""
+"""The scene library: one module per scene, each describing geometry, materials, depth and purpose."""

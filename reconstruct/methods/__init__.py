@@ -1,0 +1,1 @@
+"""One module per reconstruction method; each registers itself with ``@register_method``."""

@@ -1,0 +1,187 @@
+"""The reconstruction-method registry and its dispatcher (colour-science style).
+
+A method is one function in one file under ``reconstruct/methods/``, registered with
+:func:`register_method`::
+
+    @register_method("dofp-bilinear", input_kind="dofp", description="...", reference="...")
+    def dofp_bilinear(capture: Capture, *, context: RunContext) -> MethodOutput: ...
+
+:func:`reconstruct` looks the name up, runs it, checks the output (shape, finite) and
+returns a :class:`MethodOutput` with the wall time of every stage. ``run_method`` also
+writes ``recon/NAME.tiff`` and ``recon/NAME.json`` into the capture folder.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import pkgutil
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+import torch
+
+from capssim.capture import Capture, read_capture, write_reconstruction
+from capssim.errors import CaptureFormatError, InputError, UnknownNameError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class StageTimer:
+    """Wall time per named stage, in seconds; synchronizes CUDA so GPU time is counted."""
+
+    device: torch.device = torch.device("cpu")
+    stages: dict[str, float] = field(default_factory=dict)
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        if self.device.type == "cuda":
+            torch.cuda.synchronize(self.device)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            if self.device.type == "cuda":
+                torch.cuda.synchronize(self.device)
+            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
+
+
+@dataclass
+class RunContext:
+    """What every method receives besides the capture."""
+
+    device: torch.device
+    timer: StageTimer
+    options: dict = field(default_factory=dict)
+    true_warps: bool = False
+    progress: Callable[[int, int, str], None] | None = None
+
+    def report(self, done: int, total: int, message: str = "") -> None:
+        if self.progress is not None:
+            self.progress(done, total, message)
+
+
+@dataclass
+class MethodOutput:
+    """A method's result: ``image`` ``(12, 2H, 2W)`` float32 and what it records."""
+
+    image: np.ndarray
+    params: dict = field(default_factory=dict)
+    history: list[dict] = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class MethodSpec:
+    name: str
+    function: Callable[..., MethodOutput]
+    input_kind: str  # "caps" or "dofp"
+    description: str
+    reference: str
+    module: str
+
+
+_METHODS: dict[str, MethodSpec] = {}
+_LOADED = False
+
+
+def register_method(name: str, *, input_kind: str, description: str, reference: str):
+    """Decorator registering a reconstruction function under ``name``."""
+    if input_kind not in ("caps", "dofp"):
+        raise ValueError(f"input_kind must be 'caps' or 'dofp', got {input_kind!r}")
+
+    def wrap(fn):
+        if name in _METHODS and _METHODS[name].function is not fn:
+            raise ValueError(f"method {name!r} is registered twice ({_METHODS[name].module} and {fn.__module__})")
+        _METHODS[name] = MethodSpec(name, fn, input_kind, description, reference, fn.__module__)
+        return fn
+
+    return wrap
+
+
+def _load_methods() -> None:
+    global _LOADED
+    if _LOADED:
+        return
+    import reconstruct.methods as pkg
+
+    for mod in pkgutil.iter_modules(pkg.__path__):
+        if not mod.name.startswith("_"):
+            importlib.import_module(f"{pkg.__name__}.{mod.name}")
+    _LOADED = True
+
+
+def available_methods() -> dict[str, MethodSpec]:
+    _load_methods()
+    return dict(sorted(_METHODS.items()))
+
+
+def get_method(name: str) -> MethodSpec:
+    methods = available_methods()
+    if name not in methods:
+        raise UnknownNameError("method", name, list(methods))
+    return methods[name]
+
+
+def resolve_device(device: str | torch.device = "cpu") -> torch.device:
+    """``cpu``, ``cuda`` (error if absent) or ``auto`` (cuda when present)."""
+    key = str(device).lower()
+    if key == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if key.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise InputError("device", device, "cpu, or cuda on a machine with a CUDA GPU", "Use --device cpu.")
+        return torch.device(key)
+    if key == "cpu":
+        return torch.device("cpu")
+    raise InputError("device", device, "one of cpu, cuda, auto")
+
+
+def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
+                progress: Callable[[int, int, str], None] | None = None, **options) -> tuple[MethodOutput, dict]:
+    """Run ``method`` on ``capture``; return its output and the record written to ``NAME.json``."""
+    spec = get_method(method)
+    dev = resolve_device(device)
+    if spec.input_kind == "dofp" and capture.dofp_raw is None:
+        raise CaptureFormatError(f"method {method!r} needs dofp_raw.tiff, which this capture lacks.")
+    timer = StageTimer(dev)
+    ctx = RunContext(device=dev, timer=timer, options=dict(options), true_warps=true_warps, progress=progress)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        out = spec.function(capture, context=ctx)
+    total = time.perf_counter() - t0
+    hh, ww = capture.hr_shape
+    image = np.asarray(out.image, dtype=np.float32)
+    if image.shape != (12, hh, ww):
+        raise RuntimeError(f"method {method!r} returned shape {image.shape}, expected {(12, hh, ww)}")
+    if not np.all(np.isfinite(image)):
+        raise RuntimeError(f"method {method!r} returned {int(np.sum(~np.isfinite(image)))} non-finite values")
+    out.image = image
+    record = {
+        "method": method,
+        "description": spec.description,
+        "reference": spec.reference,
+        "input": spec.input_kind,
+        "device": str(dev),
+        "true_warps": true_warps,
+        "options": options,
+        "params": out.params,
+        "wall_time_s": total,
+        "stages_s": dict(timer.stages),
+        "history": out.history,
+        **out.extra,
+    }
+    return out, record
+
+
+def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:
+    """Read a capture folder, reconstruct, write ``recon/METHOD.{tiff,json}``; return the record."""
+    capture = read_capture(capture_path, load_gt=False)
+    out, record = reconstruct(capture, method, **kwargs)
+    write_reconstruction(capture_path, method, out.image, record)
+    return record
