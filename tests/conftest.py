@@ -1,0 +1,42 @@
+"""Shared fixtures: the optional ../shared/data folder and small synthetic scenes."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED_DATA = Path(os.environ.get("CAPSSIM_SHARED_DATA", REPO.parent / "shared" / "data"))
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """``../shared/data``; tests using it skip cleanly when it is absent."""
+    if not (SHARED_DATA / "gt").is_dir():
+        pytest.skip(f"shared data not found at {SHARED_DATA}")
+    return SHARED_DATA
+
+
+def smooth_random_scene(size: int = 64, *, seed: int = 0, dolp_max: float = 0.6) -> np.ndarray:
+    """A ``(12, size, size)`` physically consistent scene (S0 >= |S1,S2|) with smooth texture."""
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(seed)
+    s0 = np.stack([gaussian_filter(rng.random((size, size)), 2.0) for _ in range(3)])
+    s0 = 0.2 + 0.6 * (s0 - s0.min()) / (np.ptp(s0) + 1e-12)
+    d = dolp_max * gaussian_filter(rng.random((size, size)), 4.0)
+    d = d / max(d.max(), 1e-12) * dolp_max
+    a = np.pi * gaussian_filter(rng.random((size, size)), 4.0) * 2
+    s1 = s0 * d * np.cos(2 * a)
+    s2 = s0 * d * np.sin(2 * a)
+    from capssim.polarization import twelve_from_stokes
+
+    return twelve_from_stokes(np.stack([s0, s1, s2])).astype(np.float32)
+
+
+@pytest.fixture
+def scene64() -> np.ndarray:
+    return smooth_random_scene(64)
