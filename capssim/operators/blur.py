@@ -106,21 +106,30 @@ class Convolve(LinearOperator):
         self.col_index = _replicate_index(w, self.pad[1], self.pad[1])
         self.is_identity = k.shape == (1, 1) and k[0, 0] == 1.0
 
+    def _grouped_kernel(self, like, n: int, *, flipped: bool = False):
+        # planes as channels of one grouped conv: much faster on CPU than a batch of 1-channel convs
+        k = self._const("kf" if flipped else "k", torch.flip(self.kernel, (2, 3)) if flipped else self.kernel, like)
+        return k.expand(n, 1, *k.shape[2:])
+
     def _forward(self, x):
         if self.is_identity:
             return x.clone()
         h, w = self.input_shape[-2:]
-        flat = x.reshape(-1, 1, h, w)
-        padded = flat.index_select(2, self._const("r", self.row_index, x))
-        padded = padded.index_select(3, self._const("c", self.col_index, x))
-        return F.conv2d(padded, self._const("k", self.kernel, x)).reshape(self.output_shape)
+        n = x.numel() // (h * w)
+        ph, pw = self.pad
+        padded = F.pad(x.reshape(1, n, h, w), (pw, pw, ph, ph), mode="replicate")
+        return F.conv2d(padded, self._grouped_kernel(x, n), groups=n).reshape(self.output_shape)
 
     def _adjoint(self, y):
         if self.is_identity:
             return y.clone()
         h, w = self.input_shape[-2:]
+        n = y.numel() // (h * w)
+        ph, pw = self.pad
         flat = y.reshape(-1, 1, h, w)
-        padded = F.conv_transpose2d(flat, self._const("k", self.kernel, y))
+        # conv_transpose2d(y, k) written as a full correlation with the flipped kernel
+        full = F.pad(y.reshape(1, n, h, w), (2 * pw, 2 * pw, 2 * ph, 2 * ph))
+        padded = F.conv2d(full, self._grouped_kernel(y, n, flipped=True), groups=n).reshape(n, 1, h + 2 * ph, w + 2 * pw)
         cols = flat.new_zeros(padded.shape[0], 1, padded.shape[2], w)
         cols.index_add_(3, self._const("c", self.col_index, y), padded)
         out = flat.new_zeros(padded.shape[0], 1, h, w)
