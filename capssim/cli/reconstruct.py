@@ -1,0 +1,126 @@
+"""``capssim reconstruct`` (run reconstruction methods on a capture) and
+``capssim reconstruct-benchmark`` (speed and memory of ``caps`` per stage)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+
+def parse_options(pairs: List[str]) -> dict:
+    """``KEY=VALUE`` strings -> dict (values stay strings; each method converts its own)."""
+    from capssim.errors import InputError
+
+    options = {}
+    for pair in pairs or []:
+        if "=" not in pair:
+            raise InputError("--option", repr(pair), "KEY=VALUE (e.g. --option c1=0.002)")
+        key, value = pair.split("=", 1)
+        key = key.strip()
+        if not key:
+            raise InputError("--option", repr(pair), "a non-empty KEY before '='")
+        options[key] = value.strip()
+    return options
+
+
+def expand_methods(names: List[str], capture_path: Path) -> list[str]:
+    """Resolve ``all`` (every method the capture has input for) and check each name."""
+    from capssim.capture import read_meta
+    from reconstruct.registry import available_methods, get_method
+
+    meta = read_meta(capture_path)
+    has_dofp = "dofp_raw" in meta.get("files", {})
+    out: list[str] = []
+    for name in names:
+        if name == "all":
+            out.extend(n for n, spec in available_methods().items()
+                       if spec.input_kind == "caps" or (spec.input_kind == "dofp" and has_dofp))
+        else:
+            get_method(name)  # UnknownNameError lists the valid names
+            out.append(name)
+    return list(dict.fromkeys(out))
+
+
+def reconstruct(
+    capture: Path = typer.Argument(..., help="Capture folder (from 'capssim simulate' or 'capssim render')."),
+    method: List[str] = typer.Option(["caps"], "--method", "-m",
+                                     help="Method name; repeat for several, or 'all'. "
+                                          "'capssim reconstruct --list' shows them."),
+    device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
+    iterations: Optional[int] = typer.Option(None, "--iterations", help="ADMM iterations (paper: 25)."),
+    true_warps: bool = typer.Option(False, "--true-warps",
+                                    help="Use the homographies stored in meta.json instead of estimating them."),
+    option: List[str] = typer.Option([], "--option", "-O", help="Method option KEY=VALUE (repeatable)."),
+    list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+) -> None:
+    """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from reconstruct.registry import available_methods, run_method
+
+    console = Console(stderr=True)
+    if list_methods:
+        for name, spec in available_methods().items():
+            typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}")
+        return
+    names = expand_methods(method, capture)
+    options = parse_options(option)
+    if iterations is not None:
+        options["iterations"] = iterations
+    rows = []
+    for name in names:
+        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                      TextColumn("{task.fields[message]}"), TimeElapsedColumn(), console=console,
+                      disable=not progress, transient=False) as bar:
+            task = bar.add_task(name, total=None, message="")
+
+            def report(done: int, total: int, message: str = "", task=task) -> None:
+                bar.update(task, completed=done, total=total, message=message)
+
+            record = run_method(capture, name, device=device, true_warps=true_warps, progress=report, **options)
+        reg = record.get("registration", {})
+        err = reg.get("error_hr_px_median")
+        rows.append((name, record["wall_time_s"], err))
+        stages = ", ".join(f"{k} {v:.2f}s" for k, v in record["stages_s"].items())
+        typer.echo(f"{name}: {record['wall_time_s']:.2f} s ({stages}) -> {capture / 'recon' / (name + '.tiff')}")
+        if err is not None:
+            typer.echo(f"  registration ({reg.get('source')}): median error {err:.4f} HR px, "
+                       f"max {reg.get('error_hr_px_max', float('nan')):.4f}")
+    if len(rows) > 1:
+        typer.echo("method                    wall time (s)")
+        for name, wall, _ in rows:
+            typer.echo(f"{name:24s}  {wall:10.2f}")
+
+
+def reconstruct_benchmark(
+    sizes: List[int] = typer.Option([256, 512, 1024], "--size", help="HR output size (repeatable)."),
+    devices: List[str] = typer.Option(["cpu", "cuda"], "--device",
+                                      help="Devices to time (cuda is skipped when absent)."),
+    iterations: int = typer.Option(25, "--iterations"),
+    repeats: int = typer.Option(1, "--repeats", help="Runs per size and device; the table shows the fastest."),
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth scene (default: ../shared/data/gt/qiu-kettle "
+                                                           "if present, else a synthetic scene)."),
+    estimated_warps: bool = typer.Option(False, "--estimated-warps",
+                                         help="Time registration too (needs reconstruct.registration)."),
+    as_json: Optional[Path] = typer.Option(None, "--json", help="Also write all measurements to this file."),
+) -> None:
+    """Wall time and peak memory per stage of 'caps' at the paper's defaults (prints tables)."""
+    from reconstruct.benchmark import format_tables, run_benchmark
+
+    results = run_benchmark(sizes=sizes, devices=devices, iterations=iterations, repeats=repeats, gt=gt,
+                            true_warps=not estimated_warps, log=lambda msg: typer.echo(msg, err=True))
+    typer.echo(format_tables(results))
+    if as_json is not None:
+        from capssim.imageio import atomic_write_json
+
+        atomic_write_json(as_json, results)
+        typer.echo(f"wrote {as_json}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("reconstruct")(reconstruct)
+    app.command("reconstruct-benchmark")(reconstruct_benchmark)
