@@ -1,0 +1,161 @@
+"""Nonlocal sparse tensor regularization (paper 3.3, section 4 steps 1-2, eq. 29)."""
+
+import numpy as np
+import pytest
+import torch
+
+from capssim.errors import InputError
+from reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, _box_sum, reference_positions, shrink_core
+
+
+def piecewise_scene(c=12, h=48, w=56, seed=0):
+    """Piecewise-smooth multichannel image: smooth ramps plus rectangles, channel gains differ."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
+    base = 0.3 + 0.2 * xx + 0.1 * yy
+    base = base + 0.25 * ((yy > 0.3) & (xx > 0.4)) - 0.15 * ((yy < 0.2) & (xx < 0.5))
+    gains = 0.6 + 0.4 * rng.random(c)
+    return torch.as_tensor(np.stack([g * base for g in gains]), dtype=torch.float64)
+
+
+def test_reference_positions_cover_any_size():
+    assert reference_positions(16, 8, 4).tolist() == [0, 4, 8]
+    assert reference_positions(18, 8, 4).tolist() == [0, 4, 8, 10]
+    assert reference_positions(8, 8, 4).tolist() == [0]
+    with pytest.raises(InputError):
+        reference_positions(6, 8, 4)
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 5, 8])
+def test_box_sum_exact(size):
+    x = torch.rand(7, 19, dtype=torch.float64)
+    for dim in (0, 1):
+        if x.shape[dim] >= size:
+            assert torch.allclose(_box_sum(x, size, dim=dim), x.unfold(dim, size, 1).sum(-1))
+
+
+def test_block_matching_equals_brute_force():
+    torch.manual_seed(1)
+    z = torch.rand(3, 20, 27, dtype=torch.float64)
+    prm = NLSTRParameters(block=4, stride=3, search_radius=3)
+    nl = NonlocalSparseTensor(tuple(z.shape), prm, dtype=torch.float64)
+    m = nl.match(z, 10)
+    nx = nl.ref_x.numel()
+    for yi, ry in enumerate(nl.ref_y.tolist()):
+        for xi, rx in enumerate(nl.ref_x.tolist()):
+            k = yi * nx + xi
+            ref = z[:, ry:ry + 4, rx:rx + 4]
+            dists = sorted(float(((ref - z[:, y:y + 4, x:x + 4]) ** 2).mean())
+                           for y in range(max(0, ry - 3), min(16, ry + 3) + 1)
+                           for x in range(max(0, rx - 3), min(23, rx + 3) + 1))[:10]
+            assert np.allclose(m.distances[k].tolist(), dists, atol=1e-12)
+            assert (m.pos_y[k, 0], m.pos_x[k, 0]) == (ry, rx)  # the reference itself first
+    assert torch.allclose(m.weights.sum(1), torch.ones(m.weights.shape[0], dtype=torch.float64))
+
+
+def test_group_gram_from_maps_equals_direct():
+    torch.manual_seed(2)
+    c, h, w, b = 4, 20, 22, 4
+    z = torch.rand(c, h, w, dtype=torch.float64)
+    nl = NonlocalSparseTensor((c, h, w), NLSTRParameters(block=b, stride=2, search_radius=2), dtype=torch.float64)
+    maps = nl._gram_maps(z)  # the whole image is one region
+    nx = w - b + 1
+    rng = np.random.default_rng(0)
+    pos = [(int(rng.integers(0, h - b + 1)), int(rng.integers(0, w - b + 1))) for _ in range(5)]
+    sums = sum(maps[y * nx + x] for y, x in pos)[None]
+    gram_hw, gram_c = nl._unpack(sums)
+    blocks = torch.stack([z[:, y:y + b, x:x + b].permute(1, 2, 0) for y, x in pos])  # (P, b, b, c)
+    direct_h = sum(blk.reshape(b, -1) @ blk.reshape(b, -1).T for blk in blocks)
+    direct_w = sum(blk.transpose(0, 1).reshape(b, -1) @ blk.transpose(0, 1).reshape(b, -1).T for blk in blocks)
+    direct_c = sum(blk.reshape(-1, c).T @ blk.reshape(-1, c) for blk in blocks)
+    assert torch.allclose(gram_hw[0], direct_h) and torch.allclose(gram_hw[1], direct_w)
+    assert torch.allclose(gram_c[0], direct_c)
+
+
+def test_mode_products_are_orthonormal_transforms():
+    torch.manual_seed(3)
+    k, b, c = 5, 8, 12
+    t = torch.rand(k, b, b, c, dtype=torch.float64)
+    ph = torch.linalg.qr(torch.randn(k, b, b, dtype=torch.float64))[0]
+    pw = torch.linalg.qr(torch.randn(k, b, b, dtype=torch.float64))[0]
+    pc = torch.linalg.qr(torch.randn(k, c, c, dtype=torch.float64))[0]
+    core = NonlocalSparseTensor._mode_products(t, ph, pw, pc, transpose=True)
+    ref = torch.einsum("kia,kjb,kcd,kijc->kabd", ph, pw, pc, t)  # C = R x1 Ph^T x2 Pw^T x3 Pc^T
+    assert torch.allclose(core, ref)
+    back = NonlocalSparseTensor._mode_products(core, ph, pw, pc, transpose=False)
+    assert torch.allclose(back, t)
+    assert torch.allclose(core.square().sum(), t.square().sum())
+
+
+def test_shrink_core_eq23():
+    alpha = torch.tensor([[1.0, 0.01, -0.5, 0.0]])
+    beta = torch.tensor([[1.0, 0.0, -0.2, 0.0]])
+    core, parts = shrink_core(alpha, beta, 0.002, 0.02)
+    # element-wise: t = c2/(a-b)^2, lam = c1/|a|, C = soft((2 t b + a)/(1 + 2t), lam/(1 + 2t))
+    t = 0.02 / ((alpha - beta) ** 2 + 1e-8)
+    lam = 0.002 / (alpha.abs() + 1e-8)
+    v = (2 * t * beta + alpha) / (1 + 2 * t)
+    expected = torch.sign(v) * torch.clamp(v.abs() - lam / (1 + 2 * t), min=0)
+    assert torch.allclose(core, expected)
+    assert core[0, 1] == 0 and core[0, 3] == 0          # small / zero coefficients are removed
+    assert abs(core[0, 0] - 1.0) < 0.01                 # large consistent coefficient kept
+    assert all(torch.isfinite(v) for v in parts.values())
+    core_b, _ = shrink_core(alpha, beta, 0.002, 0.02, adaptive="block")
+    assert torch.isfinite(core_b).all()
+
+
+def test_nlstr_reduces_noise_on_piecewise_smooth_image():
+    clean = piecewise_scene().float()
+    gen = torch.Generator().manual_seed(0)
+    noisy = clean + 0.03 * torch.randn(clean.shape, generator=gen)
+    nl = NonlocalSparseTensor(tuple(clean.shape), NLSTRParameters())
+    x, stats = nl.estimate(noisy, nl.match(noisy, 40))
+    mse_in = float((noisy - clean).square().mean())
+    mse_out = float((x - clean).square().mean())
+    assert mse_out < 0.25 * mse_in, (mse_in, mse_out)
+    assert 0 < stats["zero_fraction"] < 1
+
+
+@pytest.mark.parametrize("shape,prm", [((12, 36, 44), NLSTRParameters()),
+                                       ((12, 108, 116), NLSTRParameters()),
+                                       ((4, 21, 30), NLSTRParameters(stride=3)),
+                                       ((12, 8, 8), NLSTRParameters())])
+def test_sizes_not_multiple_of_block(shape, prm):
+    torch.manual_seed(4)
+    z = torch.rand(shape)
+    nl = NonlocalSparseTensor(shape, prm)
+    x, _ = nl.estimate(z, nl.match(z, 40))
+    assert x.shape == shape and torch.isfinite(x).all()
+    assert float((x - z).abs().mean()) < 0.2
+
+
+def test_strips_give_the_same_result():
+    # float64: in float32 the vectorized sums differ in the last bit between regions
+    gen = torch.Generator().manual_seed(1)
+    z = piecewise_scene(h=64, w=40) + 0.02 * torch.randn(12, 64, 40, generator=gen, dtype=torch.float64)
+    one = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_bytes=2**30), dtype=torch.float64)
+    many = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_bytes=1), dtype=torch.float64)
+    assert len(one.strips) == 1 and len(many.strips) > 3
+    m1, m2 = one.match(z, 20), many.match(z, 20)
+    assert torch.equal(m1.pos_y, m2.pos_y) and torch.equal(m1.pos_x, m2.pos_x)
+    x1, _ = one.estimate(z, m1)
+    x2, _ = many.estimate(z, m2)
+    assert torch.allclose(x1, x2, atol=1e-10)
+
+
+@pytest.mark.parametrize("value", [0.0, 1e-6, 0.5])
+def test_constant_images_stay_constant(value):
+    z = torch.full((12, 24, 24), value)
+    nl = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters())
+    x, _ = nl.estimate(z, nl.match(z, 40))
+    assert torch.isfinite(x).all()
+    assert torch.allclose(x, z, atol=1e-6 + 1e-4 * value)
+
+
+def test_parameter_validation():
+    with pytest.raises(InputError):
+        NonlocalSparseTensor((12, 16, 16), NLSTRParameters(block=8, stride=9))
+    with pytest.raises(InputError):
+        NonlocalSparseTensor((12, 6, 16), NLSTRParameters())
+    with pytest.raises(InputError):
+        NonlocalSparseTensor((12, 16, 16), NLSTRParameters(adaptive="bogus"))
