@@ -85,9 +85,10 @@ def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     k = torch.exp(-0.5 * (t / sigma) ** 2)
     k = k / k.sum()
     shape = x.shape
-    flat = x.reshape(-1, 1, shape[-2], shape[-1])
-    flat = F.conv2d(flat, k.view(1, 1, 1, -1), padding=(0, radius))
-    flat = F.conv2d(flat, k.view(1, 1, -1, 1), padding=(radius, 0))
+    n = max(1, x.numel() // (shape[-2] * shape[-1]))
+    flat = x.reshape(1, n, shape[-2], shape[-1])  # planes as groups: one fast grouped conv
+    flat = F.conv2d(flat, k.view(1, 1, 1, -1).expand(n, 1, 1, -1), padding=(0, radius), groups=n)
+    flat = F.conv2d(flat, k.view(1, 1, -1, 1).expand(n, 1, -1, 1), padding=(radius, 0), groups=n)
     return flat.reshape(shape)
 
 
