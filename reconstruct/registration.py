@@ -1,0 +1,252 @@
+"""Registration of the four apertures of a CAPS capture (paper section 3.1, "registration").
+
+Estimates, from the 16 Bayer sub-images alone, the homographies ``H_m`` (HR reference
+pixel -> sub-image m pixel, ``(x=col, y=row)``) that the reconstruction needs. The Bayer
+sub-pixel offsets are known, so only the three aperture warps ``H_1..H_3`` (HR reference
+-> aperture-HR) are estimated, against the 0 deg aperture; then ``H_{4n+q} = S_q @ H_n``
+(see :mod:`capssim.homography`).
+
+Method (it replaces the paper's feature clustering, Crab-HFP, which the issue allows):
+
+1. **Registration image per aperture.** The four RGGB sub-images of aperture n are put back
+   into its raw mosaic ``(H, W)`` and filtered with the 3x3 binomial kernel
+   ``[1 2 1; 2 4 2; 1 2 1] / 16``. On an RGGB mosaic this returns the luminance
+   ``(R + 2G + B) / 4`` of locally constant colour at every raw pixel, whatever its Bayer
+   phase, centred on that pixel: no demosaicking and no Bayer-phase bias between apertures.
+   Pixels whose 3x3 support holds a saturated sample are masked.
+2. **Registration** of apertures 1-3 to aperture 0 by :func:`reconstruct.registration_core.register_stack`:
+   phase-correlation candidates, then a coarse-to-fine refinement of a local-correlation
+   criterion (local gain and offset per window, so polarizer angle and colour do not matter)
+   plus the Stokes consistency ``I0 + I90 = I45 + I135`` on the finest levels, with
+   cubic-spline interpolation.
+
+Safeguards: constant / flat images, or frames too small for the model, fall back to the
+identity (or a smaller model) with a logged warning and a flag in ``diagnostics``; a poor
+final match is flagged ``unreliable``.
+
+Raw coordinates of aperture n relate to its aperture-HR coordinates by
+:func:`capssim.homography.raw_matrix`: ``H_n = R^-1 G_n R`` for the estimated raw-to-raw
+matrix ``G_n``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from capssim.conventions import BAYER_OFFSETS, N_APERTURES, N_LR_IMAGES
+from capssim.errors import InputError, UnknownNameError
+from capssim.homography import lr_homographies as lr_from_aperture
+from capssim.homography import raw_matrix
+from reconstruct.registration_core import MOTION_MODELS, noise_sigma, register_stack
+
+log = logging.getLogger(__name__)
+
+#: smallest raw side (pixels) for which each model is attempted; smaller frames use a smaller model
+MIN_RAW_SIDE = {"translation": 8, "euclidean": 16, "similarity": 16, "affine": 24, "homography": 32}
+
+
+@dataclass
+class RegistrationResult:
+    """What :func:`estimate_lr_homographies` returns.
+
+    ``lr_homographies`` ``(16, 3, 3)`` float64: HR reference pixel -> sub-image m pixel
+    (``m = 4n + q``), as stored in ``meta.json``. ``aperture_homographies`` ``(4, 3, 3)``:
+    HR reference -> aperture-HR (aperture 0 is the identity). ``diagnostics``: per aperture
+    the final local R^2 (``correlation``), fallbacks and flags; per pyramid level the
+    iterations and time; warnings; the total time.
+    """
+
+    lr_homographies: np.ndarray
+    aperture_homographies: np.ndarray
+    diagnostics: dict = field(default_factory=dict)
+
+
+def mosaic_from_sub_images(sub: torch.Tensor) -> torch.Tensor:
+    """``(16, h, w)`` Bayer sub-images ``m = 4n + q`` -> ``(4, 2h, 2w)`` RGGB raw mosaics."""
+    _, h, w = sub.shape
+    raw = sub.new_zeros(N_APERTURES, 2 * h, 2 * w)
+    for q, (oy, ox) in enumerate(BAYER_OFFSETS):
+        raw[:, oy::2, ox::2] = sub[q::4]
+    return raw
+
+
+def binomial_luminance(raw: torch.Tensor) -> torch.Tensor:
+    """``(B, H, W)`` RGGB mosaics -> ``(B, H, W)`` luminance ``(R + 2G + B) / 4`` (3x3 binomial filter).
+
+    The border is mirrored (row -1 = row 1: the same Bayer parity, so colours stay in place).
+    """
+    k = torch.tensor([1.0, 2.0, 1.0], dtype=raw.dtype, device=raw.device)
+    k = (k[:, None] * k[None, :]) / 16.0
+    x = F.pad(raw[:, None], (1, 1, 1, 1), mode="reflect")
+    return F.conv2d(x, k[None, None])[:, 0]
+
+
+# -- public API ----------------------------------------------------------------------------------------
+def _as_tensor(x, name: str, device) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        t = x.detach()
+    else:
+        arr = np.asarray(x)
+        if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == bool):
+            raise InputError(name, f"dtype {arr.dtype}", "a numeric array")
+        t = torch.from_numpy(np.ascontiguousarray(arr))
+    return t.to(device)
+
+
+def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str = "similarity",
+                             device="cpu", window_radius: int = 3, stokes_weight: float = 1.0,
+                             stokes_levels: int = 2, max_iterations: int = 60,
+                             min_correlation: float = 0.3) -> RegistrationResult:
+    """Estimate the 16 HR reference -> sub-image homographies from the 16 Bayer sub-images.
+
+    Parameters
+    ----------
+    lr_images
+        ``(16, h, w)`` float (numpy or torch), the Bayer sub-images ``m = 4n + q`` (n: aperture,
+        polarizer ``45 n`` deg; q over R, G1, G2, B), ``h = H/2`` of the raw ``H x W``.
+    hr_shape
+        ``(2H, 2W) = (4h, 4w)``: the HR reference grid.
+    saturated
+        optional ``(16, h, w)`` bool, True at clipped pixels (left out of the criterion).
+    model
+        motion model of each aperture: ``translation``, ``euclidean``, ``similarity``
+        (default; the paper's synthetic protocol), ``affine`` or ``homography``.
+    device
+        torch device for the computation (``cpu``, ``cuda``, a ``torch.device``).
+    window_radius
+        radius (pyramid-level pixels) of the local photometric-fit windows.
+    stokes_weight, stokes_levels
+        weight of the Stokes-consistency term and on how many of the finest pyramid levels it
+        is used (0 turns it off: pairwise local correlation only).
+    max_iterations
+        L-BFGS iterations per pyramid level.
+    min_correlation
+        below this final local R^2 an aperture is flagged unreliable (warning + flag).
+
+    Returns
+    -------
+    RegistrationResult
+        ``lr_homographies`` ``(16, 3, 3)`` (HR reference (x=col, y=row) -> sub-image pixel),
+        ``aperture_homographies`` ``(4, 3, 3)``, ``diagnostics``.
+    """
+    t_start = time.perf_counter()
+    if model not in MOTION_MODELS:
+        raise UnknownNameError("registration model", model, list(MOTION_MODELS))
+    dev = torch.device(device)
+    x = _as_tensor(lr_images, "lr_images", dev)
+    if x.ndim != 3 or x.shape[0] != N_LR_IMAGES:
+        raise InputError("lr_images", f"shape {tuple(x.shape)}", "shape (16, h, w): the Bayer sub-images m = 4n + q")
+    if not torch.is_floating_point(x):
+        raise InputError("lr_images", f"dtype {x.dtype}", "a float array (values on [0, 1] full scale)")
+    _, h, w = x.shape
+    try:
+        hh, ww = (int(v) for v in hr_shape)
+    except Exception as exc:
+        raise InputError("hr_shape", hr_shape, "a pair (2H, 2W) of ints") from exc
+    if (hh, ww) != (4 * h, 4 * w):
+        raise InputError("hr_shape", (hh, ww), f"(4h, 4w) = {(4 * h, 4 * w)} for sub-images of {h}x{w}")
+    if not bool(torch.isfinite(x).all()):
+        raise InputError("lr_images", f"{int((~torch.isfinite(x)).sum())} NaN/inf values", "finite values")
+    if saturated is not None:
+        sat = _as_tensor(saturated, "saturated", dev)
+        if tuple(sat.shape) != tuple(x.shape):
+            raise InputError("saturated", f"shape {tuple(sat.shape)}", f"shape {tuple(x.shape)} like lr_images")
+        sat = sat.to(torch.bool)
+    else:
+        sat = torch.zeros(x.shape, dtype=torch.bool, device=dev)
+    if not (stokes_weight >= 0 and np.isfinite(stokes_weight)):
+        raise InputError("stokes_weight", stokes_weight, "a finite number >= 0")
+    dtype = torch.float64
+    x = x.to(dtype)
+
+    diag: dict = {"method": "binomial luminance; phase correlation + pyramid local correlation "
+                            "+ Stokes consistency (cubic spline, L-BFGS)",
+                  "model_requested": model, "window_radius": window_radius, "stokes_weight": stokes_weight,
+                  "device": str(dev), "warnings": []}
+
+    def warn(msg):
+        log.warning(msg)
+        diag["warnings"].append(msg)
+
+    raw = mosaic_from_sub_images(x)
+    lum = binomial_luminance(raw)
+    raw_sat = mosaic_from_sub_images(sat.to(dtype))
+    valid = (F.max_pool2d(raw_sat[:, None], 3, stride=1, padding=1)[:, 0] <= 0).to(dtype)
+    rh, rw = raw.shape[1:]
+    diag["raw_shape"] = [rh, rw]
+
+    # the largest model (not larger than requested) that the frame size supports
+    order = ["translation", "euclidean", "similarity", "affine", "homography"]
+    used = None
+    for cand in reversed(order[: order.index(model) + 1]):
+        if cand == "euclidean" and model != "euclidean":
+            continue
+        if min(rh, rw) >= MIN_RAW_SIDE[cand]:
+            used = cand
+            break
+    if used != model:
+        warn(f"registration: raw frames of {rh}x{rw} px are too small for the {model!r} model; "
+             + (f"using {used!r}" if used else "using the identity"))
+    diag["model"] = used
+
+    sigma = noise_sigma(lum)
+    spread = lum.flatten(1).std(dim=1)
+    diag["noise_sigma"] = [float(v) for v in sigma]
+    diag["image_std"] = [float(v) for v in spread]
+    flat = (spread <= 1e-6) | (spread <= 0.5 * sigma) | (valid.flatten(1).mean(1) < 0.05)
+    per_ap = [{"aperture": n, "fallback": "none"} for n in range(N_APERTURES)]
+    per_ap[0]["fallback"] = "reference"
+    active = [n for n in range(1, N_APERTURES)]
+    if used is None:
+        for n in active:
+            per_ap[n]["fallback"] = "identity: frame too small"
+        active = []
+    elif bool(flat[0]):
+        warn("registration: the reference (0 deg) image is flat, constant or saturated; "
+             "using the identity for every aperture")
+        for n in active:
+            per_ap[n]["fallback"] = "identity: flat reference image"
+        active = []
+    else:
+        for n in list(active):
+            if bool(flat[n]):
+                warn(f"registration: aperture {n} ({45 * n} deg) image is flat, constant or saturated; "
+                     "using the identity for it")
+                per_ap[n]["fallback"] = "identity: flat image"
+                active.remove(n)
+
+    aperture = np.tile(np.eye(3), (N_APERTURES, 1, 1))
+    if active:
+        stokes = stokes_weight if len(active) == 3 else 0.0
+        if stokes_weight > 0 and stokes == 0.0:
+            warn("registration: the Stokes-consistency term needs all four apertures; using local correlation only")
+        reg = register_stack(lum[0], lum[active], ref_valid=valid[0], moving_valid=valid[active], model=used,
+                             window_radius=window_radius, stokes_weight=stokes, stokes_levels=stokes_levels,
+                             max_iterations=max_iterations)
+        rmat = raw_matrix()
+        rinv = np.linalg.inv(rmat)
+        for j, n in enumerate(active):
+            g = reg.matrices[j]
+            hn = rinv @ g @ rmat
+            if not np.all(np.isfinite(hn)) or abs(np.linalg.det(hn[:2, :2])) < 1e-6:
+                warn(f"registration: aperture {n} gave a degenerate warp; using the identity for it")
+                per_ap[n]["fallback"] = "identity: degenerate estimate"
+                continue
+            aperture[n] = hn / hn[2, 2]
+            per_ap[n]["correlation"] = float(reg.correlation[j])
+            per_ap[n]["params_raw_px"] = [float(v) for v in reg.params[j]]
+            if not float(reg.correlation[j]) >= min_correlation:
+                warn(f"registration: aperture {n} ({45 * n} deg) matches the reference poorly (local R^2 = "
+                     f"{float(reg.correlation[j]):.3f} < {min_correlation}); its warp is unreliable")
+                per_ap[n]["unreliable"] = True
+        diag["engine"] = reg.info
+    diag["apertures"] = per_ap
+    diag["time_s"] = time.perf_counter() - t_start
+    return RegistrationResult(lr_homographies=lr_from_aperture(aperture), aperture_homographies=aperture,
+                              diagnostics=diag)
