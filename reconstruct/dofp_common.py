@@ -368,7 +368,8 @@ def ri_bayer_demosaic(raw: torch.Tensor, *, eps: float, weight_floor: float, cli
     """RGGB ``(..., h, w)`` -> RGB ``(..., 3, h, w)`` by residual interpolation (Kiku et al. TIP 2016).
 
     Green by :func:`ri_green`; then R and B each by :func:`residual_interpolation` with the
-    full green as guide (11x11 MLRI windows, step-2 Laplacian, bilinear residuals).
+    full green as guide (11x11 MLRI windows, step-2 Laplacian, bilinear residuals), clipped to
+    ``[0, clip_max]``.
     """
     h, w = raw.shape[-2:]
     masks = bayer_masks(h, w, device=raw.device, dtype=raw.dtype)
@@ -377,8 +378,8 @@ def ri_bayer_demosaic(raw: torch.Tensor, *, eps: float, weight_floor: float, cli
     red = residual_interpolation(green, raw, masks[0], **kw)
     blue = residual_interpolation(green, raw, masks[2], **kw)
     # R/B sites keep their samples exactly (the bilinear residual restores them up to rounding)
-    red = torch.where(masks[0] > 0, raw, red)
-    blue = torch.where(masks[2] > 0, raw, blue)
+    red = torch.where(masks[0] > 0, raw, red.clamp(0.0, clip_max))
+    blue = torch.where(masks[2] > 0, raw, blue.clamp(0.0, clip_max))
     return torch.stack([red, green, blue], dim=-3)
 
 

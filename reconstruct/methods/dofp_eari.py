@@ -37,7 +37,8 @@ Numerical choices (where the descriptions are silent), each measured by
   any real texture's Laplacian energy (~1e-6 and up).
 * window weights ``1 / max(e_k, weight_floor)`` with ``weight_floor = 0.01``: the reference code's
   value on [0, 1] data, where it makes the weighting nearly uniform.
-* intermediate estimates are clipped to ``[0, max(1, max(M))]``.
+* intermediate estimates, and the output, are clipped to ``[0, max(1, max(M))]`` (the reference
+  code leaves the final residual step unclipped; negative intensities would make DoLP meaningless).
 * filters mirror-pad (``x[-k] = x[k]``), which keeps the mosaic phase at the borders; the
   reference code replicates the edge pixel. Only the outermost few pixels differ (outside the
   15-pixel frame that the benchmark metrics crop).
@@ -116,7 +117,8 @@ def demosaic_dofp_eari(mosaic, *, layout="sony", device: str | torch.device | No
         masks = polarization_masks(*x.shape, layout, device=x.device, dtype=x.dtype)  # (4, H, W)
         shape = (4, 3, *x.shape)
         out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None].expand(shape), **kw)
-        out = torch.where(masks[:, None] > 0, pol_rgb[None], out)  # lattice pixels keep their values
+        # clip the overshoot of the residual step; lattice pixels keep their values
+        out = torch.where(masks[:, None] > 0, pol_rgb[None], out.clamp(0.0, ceiling))
     return as_output(stack_12(out), mosaic)
 
 
