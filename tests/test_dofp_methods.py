@@ -13,11 +13,13 @@ from reconstruct.dofp_common import (angle_offsets, box_sum, check_mosaic, corre
                                      polarization_masks, split_submosaics)
 from reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
 from reconstruct.methods.dofp_eari import demosaic_dofp_eari
+from reconstruct.methods.dofp_igri2 import QuincunxRotation, demosaic_dofp_igri2
 
 LAYOUTS = ("sony", "0-45-135-90")
-METHODS = {"dofp-bilinear": demosaic_dofp_bilinear, "dofp-eari": demosaic_dofp_eari}
+METHODS = {"dofp-bilinear": demosaic_dofp_bilinear, "dofp-eari": demosaic_dofp_eari,
+           "dofp-igri2": demosaic_dofp_igri2}
 #: border bands (pixels) outside which each method is exact on linear ramps (measured, see tests)
-RAMP_BORDER = {"dofp-bilinear": 4, "dofp-eari": 40}
+RAMP_BORDER = {"dofp-bilinear": 4, "dofp-eari": 40, "dofp-igri2": 40}
 
 
 def mosaic_of(image12: np.ndarray, layout: str) -> np.ndarray:
@@ -122,6 +124,30 @@ def test_linear_ramps_are_exact_away_from_borders(method, layout):
     # ... and not exact just inside the band: the band is tight, not a loose bound
     near = np.abs(out - image)[:, b - 2:h - b + 2, b - 2:w - b + 2]
     assert near.max() > 1e-4
+
+
+def test_quincunx_rotation_is_a_bijection_onto_diagonal_neighbours():
+    h, w = 14, 18
+    x = torch.arange(h * w, dtype=torch.float64).reshape(h, w) + 1
+    for parity in (0, 1):
+        rot = QuincunxRotation(h, w, parity)
+        r = rot.rotate(x)
+        assert r.shape[1] % 2 == 0 and int((r != 0).sum()) == h * w // 2
+        back = rot.unrotate_into(torch.zeros_like(x), r)
+        on = ((torch.arange(h)[:, None] + torch.arange(w)[None]) % 2) == parity
+        assert torch.equal(back[on], x[on]) and torch.equal(back[~on], torch.zeros_like(back[~on]))
+        # rotated horizontal neighbours are image diagonal neighbours (down-right)
+        u, v = int(rot.u[5]), int(rot.v[5])
+        y0, x0 = int(rot.ys[5]), int(rot.xs[5])
+        assert r[u + 1, v] == x[y0 + 1, x0 + 1] and r[u, v - 1] == x[y0 + 1, x0 - 1]
+        # sites with u + v odd are the cell offsets (1, 1) / (1, 0): RGGB green sites
+        odd = (rot.u + rot.v) % 2 == 1
+        assert torch.all(rot.ys[odd] % 2 == 1) and torch.all(rot.ys[~odd] % 2 == 0)
+
+
+def test_igri2_needs_orthogonal_diagonals(scene64):
+    with pytest.raises(InputError, match="orthogonal angles on each diagonal"):
+        demosaic_dofp_igri2(mosaic_of(scene64, "0-90-45-135"), layout="0-90-45-135")
 
 
 def test_wrong_layout_is_not_exact():
