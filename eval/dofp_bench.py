@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[1]
 DEFAULT_GT_ROOT = REPO.parent / "shared" / "data" / "gt"
 DEFAULT_SCENES = ("qiu-kettle", "qiu-cellphonecases")
-DEFAULT_METHODS = ("dofp-bilinear", "dofp-eari", "dofp-igri2")
+DEFAULT_METHODS = ("dofp-bilinear", "dofp-eari")
 
 
 # -- Tokyo Tech / EARI metric definitions --------------------------------------------------------

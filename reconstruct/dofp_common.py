@@ -212,9 +212,9 @@ def normalized_interpolation(samples: torch.Tensor, mask: torch.Tensor, kernel) 
     Values on the lattice are kept exactly (the kernels put weight 1 on the centre and no weight
     on other lattice points within reach).
     """
-    mask = mask.to(samples.dtype).expand_as(samples)
+    mask = mask.to(samples.dtype)
     num = correlate(samples * mask, kernel, padding="zeros")
-    den = correlate(mask, kernel, padding="zeros")
+    den = correlate(mask, kernel, padding="zeros")  # broadcasts: computed once per distinct mask
     return num / den.clamp_min(torch.finfo(samples.dtype).tiny)
 
 
@@ -245,13 +245,15 @@ def mlri_tentative(guide: torch.Tensor, samples: torch.Tensor, mask: torch.Tenso
 
     All tensors ``(..., H, W)``; ``mask`` broadcastable. Returns ``(..., H, W)``.
     """
-    mask = mask.to(guide.dtype).expand_as(guide)
+    mask = mask.to(guide.dtype)  # kept unexpanded: box(mask) is shared by all images it broadcasts to
     g = guide
     s = samples * mask
     lap_g = correlate(g * mask, laplacian)
     lap_s = correlate(s, laplacian)
     box = lambda x: box_sum(x, radius_y, radius_x)
     count = box(mask).clamp_min(1.0)
+    if count.shape != g.shape:
+        count = count.expand_as(g)
     sum_g, sum_s = box(g * mask), box(s)
     a = (box(lap_g * lap_s * mask) / count) / (box(lap_g * lap_g * mask) / count + eps)
     b = (sum_s - a * sum_g) / count
@@ -344,8 +346,8 @@ def ri_green(raw: torch.Tensor, *, eps: float, weight_floor: float, clip_max: fl
     an X site is ``X + combined difference``; G sites keep their samples.
     """
     dif_h = _directional_green_difference(raw, eps=eps, weight_floor=weight_floor, clip_max=clip_max)
-    dif_v = _directional_green_difference(raw.transpose(-1, -2), eps=eps, weight_floor=weight_floor,
-                                          clip_max=clip_max).transpose(-1, -2)
+    dif_v = _directional_green_difference(raw.transpose(-1, -2).contiguous(), eps=eps, weight_floor=weight_floor,
+                                          clip_max=clip_max).transpose(-1, -2).contiguous()
     grad_h = box_sum(correlate(dif_h, ((1.0, 0.0, -1.0),)).abs(), 1, 1)
     grad_v = box_sum(correlate(dif_v, ((1.0,), (0.0,), (-1.0,))).abs(), 1, 1)
     w_west = 1.0 / (correlate(grad_h, ((1.0, 0.0, 0.0),)) ** 2 + direction_floor)

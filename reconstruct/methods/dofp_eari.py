@@ -120,7 +120,7 @@ def demosaic_dofp_eari(mosaic, *, layout="sony", device: str | torch.device | No
     with stage("polarization_ri"):
         masks = polarization_masks(*x.shape, layout, device=x.device, dtype=x.dtype)  # (4, H, W)
         shape = (4, 3, *x.shape)
-        out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None].expand(shape), **kw)
+        out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None], **kw)
         # clip the overshoot of the residual step; lattice pixels keep their values
         out = torch.where(masks[:, None] > 0, pol_rgb[None], out.clamp(0.0, ceiling))
     return as_output(stack_12(out), mosaic)

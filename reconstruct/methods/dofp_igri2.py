@@ -157,7 +157,7 @@ def demosaic_dofp_igri2(mosaic, *, layout="sony", device: str | torch.device | N
     with stage("polarization_ri"):
         masks = polarization_masks(*x.shape, layout, device=x.device, dtype=x.dtype)
         shape = (4, 3, *x.shape)
-        out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None].expand(shape), **kw)
+        out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None], **kw)
         out = torch.where(masks[:, None] > 0, pol_rgb[None], out.clamp(0.0, ceiling))
     return as_output(stack_12(out), mosaic)
 
