@@ -1,0 +1,94 @@
+"""``dofp-bilinear``: two-step bilinear demosaicking of a colour-polarization DoFP mosaic.
+
+Reference: the common baseline of colour-polarization demosaicking comparisons, as implemented
+in polanalyser (Maeda, ``polanalyser.demosaicing`` with ``COLOR_PolarRGB``) and used as
+"Bilinear" in Morimatsu et al., ICIP 2020 and Qiu et al., 2021:
+
+1. Colour. Split the mosaic ``(H, W)`` into its four polarizer sub-mosaics
+   ``mosaic[dr::2, dc::2]`` (``(H/2, W/2)`` each, one per angle; each is an RGGB Bayer image)
+   and demosaick each by bilinear interpolation: G from its 4 direct neighbours (kernel
+   ``[[0,1,0],[1,4,1],[0,1,0]]/4``), R and B from their 2 or 4 neighbours (kernel
+   ``[[1,2,1],[2,4,2],[1,2,1]]/4``).
+2. Polarization. Put each sub-mosaic's RGB back at its own lattice ``(2i + dr, 2j + dc)`` of the
+   full grid and fill the other three pixels of every 2x2 cell by bilinear interpolation of that
+   lattice (kernel ``[[1,2,1],[2,4,2],[1,2,1]]/4`` on the full grid).
+
+Both steps use normalized convolution (:func:`reconstruct.dofp_common.normalized_interpolation`),
+which equals the plain kernels in the interior and averages the available samples at the borders.
+Float end to end. Exactness: constant images are reproduced exactly everywhere; linear ramps are
+reproduced exactly except in a border band of 4 pixels (the bilinear kernels need both neighbours;
+``tests/test_dofp_methods.py`` checks this).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from capssim.capture import Capture
+from reconstruct.dofp_common import (KERNEL_BILINEAR_QUINCUNX, KERNEL_BILINEAR_RECT, angle_offsets, as_output,
+                                     bayer_masks, check_mosaic, normalized_interpolation, split_submosaics, stack_12)
+from reconstruct.registry import MethodOutput, RunContext, register_method
+
+REFERENCE = ("Two-step bilinear colour-polarization demosaicking: bilinear Bayer demosaicking of each polarizer "
+             "sub-mosaic, then bilinear interpolation of each polarizer lattice (polanalyser COLOR_PolarRGB; "
+             "'Bilinear' baseline of Morimatsu et al., ICIP 2020)")
+
+
+def bilinear_bayer(raw: torch.Tensor) -> torch.Tensor:
+    """Bilinear demosaicking of RGGB images: ``(..., h, w)`` -> ``(..., 3, h, w)``."""
+    h, w = raw.shape[-2:]
+    masks = bayer_masks(h, w, device=raw.device, dtype=raw.dtype)
+    red = normalized_interpolation(raw, masks[0], KERNEL_BILINEAR_RECT)
+    green = normalized_interpolation(raw, masks[1], KERNEL_BILINEAR_QUINCUNX)
+    blue = normalized_interpolation(raw, masks[2], KERNEL_BILINEAR_RECT)
+    return torch.stack([red, green, blue], dim=-3)
+
+
+def bilinear_polarization(sub_rgb: torch.Tensor, layout="sony") -> torch.Tensor:
+    """``(4 [angle], C, h, w)`` half-resolution images -> ``(4, C, 2h, 2w)`` full resolution.
+
+    Angle p's samples are placed at its lattice ``(2i + dr_p, 2j + dc_p)`` and the lattice is
+    filled by bilinear interpolation.
+    """
+    n, c, h, w = sub_rgb.shape
+    full = sub_rgb.new_zeros((n, c, 2 * h, 2 * w))
+    mask = sub_rgb.new_zeros((n, 1, 2 * h, 2 * w))
+    for p, (dr, dc) in enumerate(angle_offsets(layout)):
+        full[p, :, dr::2, dc::2] = sub_rgb[p]
+        mask[p, :, dr::2, dc::2] = 1
+    return normalized_interpolation(full, mask, KERNEL_BILINEAR_RECT)
+
+
+def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device | None = None, timer=None):
+    """Two-step bilinear demosaicking of a DoFP mosaic ``(H, W)`` -> ``(12, H, W)`` (``c = 3p + k``).
+
+    ``mosaic``: float numpy array or tensor on [0, 1], even sides >= 12. A numpy input gives a
+    float32 numpy result, a tensor input a tensor on the same (or the given) device. ``layout``:
+    the 2x2 polarizer cell (``'sony'``, ``'0-45-135-90'`` or ``[[a, b], [c, d]]`` degrees).
+    ``timer``: optional :class:`reconstruct.registry.StageTimer` to record the two stages.
+    """
+    from contextlib import nullcontext
+
+    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    x = check_mosaic(mosaic, device=device)
+    with stage("bayer_bilinear"):
+        sub_rgb = bilinear_bayer(split_submosaics(x, layout))  # (4, 3, H/2, W/2)
+    with stage("polarization_bilinear"):
+        out = stack_12(bilinear_polarization(sub_rgb, layout))
+    return as_output(out, mosaic)
+
+
+@register_method("dofp-bilinear", input_kind="dofp",
+                 description="DoFP colour-polarization camera, two-step bilinear demosaicking (Bayer, then polarization)",
+                 reference=REFERENCE)
+def dofp_bilinear(capture: Capture, *, context: RunContext) -> MethodOutput:
+    """Demosaick ``capture.dofp_float()`` with :func:`demosaic_dofp_bilinear`; layout from meta.json."""
+    with context.timer.stage("load"):
+        mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
+        n_saturated = int(capture.dofp_saturated().sum())
+    image = demosaic_dofp_bilinear(mosaic, layout=capture.dofp_layout, timer=context.timer)
+    with context.timer.stage("to_host"):
+        image = image.to("cpu", torch.float32).numpy()
+    return MethodOutput(image=image, params={"layout": [list(r) for r in capture.dofp_layout]},
+                        extra={"n_saturated_pixels": n_saturated,
+                               "saturation_handling": "none (interpolation uses saturated samples as they are)"})
