@@ -69,7 +69,8 @@ def render(
         None, "--geometry", help="Array parameter KEY=VALUE (repeatable): baseline_m, tilt_max_deg, roll_max_deg, "
                                  "focal_scale_max, converge."),
     planar: str = typer.Option("auto", "--planar", help="auto | on | off: render a planar scene once and warp."),
-    oversample: int = typer.Option(2, "--oversample", help="Finer render grid factor for the planar warp."),
+    oversample: Optional[int] = typer.Option(None, "--oversample",
+                                             help="Render grid factor for the planar warp (default 4, 2 above 512 px)."),
     extinction_ratio: Optional[float] = typer.Option(None, "--extinction-ratio",
                                                      help="Polarizer extinction ratio (default: ideal)."),
     camera: str = typer.Option("Nikon 5100 (NPL)", "--camera", help="Camera sensitivities (colour-science)."),
@@ -162,6 +163,55 @@ def scenes(
         typer.echo(f"{'':<{width}}  {'':<21}         for: {info.purpose}")
 
 
+def render_bench(
+    scenes_csv: str = typer.Option("siemens-star,aop-wheel,colorchecker,textured,materials,window-reflection,"
+                                   "water-glare,polarization-star,dolp-ramp", "--scenes",
+                                   help="Comma-separated scenes for the cost table."),
+    size: int = typer.Option(128, "--size", help="HR size."),
+    spp: Optional[int] = typer.Option(None, "--spp", help="Fixed spp per HR pixel (default: --target-noise)."),
+    target_noise: Optional[float] = typer.Option(None, "--target-noise", help="Monte-Carlo target (default 0.004)."),
+    measure: bool = typer.Option(False, "--measure-savings", help="Measure each choice's saving (slow)."),
+    warp_scene: Optional[str] = typer.Option(None, "--warp-accuracy",
+                                             help="Planar scene: raw error of the planar warp vs real renders."),
+    warp_spp: int = typer.Option(256, "--warp-spp", help="spp per HR pixel for --warp-accuracy."),
+    sampler_scene: Optional[str] = typer.Option(None, "--samplers",
+                                                help="Scene: RMS error of independent vs multijitter sampling."),
+) -> None:
+    """Benchmark tables for the rendering choices: cost per scene, planar-warp accuracy, sampler gain."""
+    from capssim.render import bench
+
+    names = [n.strip() for n in scenes_csv.split(",") if n.strip()]
+    if names:
+        typer.echo(f"render cost, {size} px HR ({'--spp ' + str(spp) if spp else 'target noise'}), "
+                   "time in render_capture")
+        rows = bench.scene_costs(names, size=size, spp=spp, target_noise=target_noise, measure=measure)
+        keys = sorted({k for r in rows for k in r if k.startswith("saved:")})
+        header = f"{'scene':<18} {'variant':<28} {'path':<13} {'spp':>5} {'render s':>9} {'wall s':>7}"
+        typer.echo(header + "".join(f" {k[6:]:>22}" for k in keys))
+        for r in rows:
+            line = (f"{r['scene']:<18} {r['variant']:<28} {r['path']:<13} {r['spp']:>5} {r['render_s']:>9.1f} "
+                    f"{r['wall_s']:>7.1f}")
+            for k in keys:
+                v = r.get(k)
+                line += f" {'-' if v is None or v[0] is None else f'{v[0]:+.1f}' + (' m' if 'measured' in v[1] else ' e'):>22}"
+            typer.echo(line)
+        typer.echo("saved seconds: m = measured by rendering the alternative (compile excluded), e = estimated")
+    if warp_scene:
+        typer.echo(f"\nplanar warp accuracy, {warp_scene}, {size} px, {warp_spp} spp, no PSF: raw frames of apertures "
+                   "1-3 against real per-aperture renders")
+        typer.echo(f"{'method':<42} {'rms':>9} {'rel. to mean':>13} {'MC noise':>9} {'s':>6}")
+        for r in bench.warp_accuracy(warp_scene, size=size, spp=warp_spp):
+            noise = "-" if r["mc_noise_rms"] is None else f"{r['mc_noise_rms']:.5f}"
+            secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
+            typer.echo(f"{r['method']:<42} {r['rms']:>9.5f} {r['relative']:>12.2%} {noise:>9} {secs:>6}")
+    if sampler_scene:
+        typer.echo(f"\nsampler, {sampler_scene} reference view, {size} px: RMS error against a 1024 spp render")
+        typer.echo(f"{'sampler':<12} {'spp':>5} {'rms error':>10}")
+        for r in bench.sampler_gain(sampler_scene, size=size):
+            typer.echo(f"{r['sampler']:<12} {r['spp']:>5} {r['rms_error']:>10.5f}")
+
+
 def register(app: typer.Typer) -> None:
     app.command("render")(render)
     app.command("scenes")(scenes)
+    app.command("render-bench")(render_bench)

@@ -60,13 +60,19 @@ PLANAR_PARALLAX_TOL_PX = 0.01
 DEFAULT_TARGET_NOISE = 0.004
 #: with sensor noise: this fraction of the sensor's noise at mid grey (MC adds <= 12% to the total)
 TARGET_NOISE_FRACTION_OF_SENSOR = 0.5
-PILOT_SPP = 4          # per render-grid pixel, two independent pilots (pooled into the reference view)
+PILOT_SPP_HR = 4       # two independent pilots of about this many samples per HR pixel (pooled into the GT)
 DEFAULT_MAX_SPP = 1024  # per HR ground-truth pixel
 FIXED_SPP_REFERENCE = 256  # what the target-noise rule is compared with
-DEFAULT_OVERSAMPLE = 2
-#: render time relative to the fastest variant on this backend, measured with
-#: ``capssim render --measure-savings`` (README "Rendering"); used to estimate variant savings
-VARIANT_RELATIVE_COST = {"mono": 1.0, "mono_polarized": 1.3, "spectral": 1.6, "spectral_polarized": 2.1}
+#: planar warp: the reference is rendered this much finer than the ground truth (auto: 4 up to
+#: ``OVERSAMPLE_4_MAX_SIZE``, else 2 to bound memory). Measured on siemens-star at 128 px, 256 spp
+#: (``capssim render-bench``): RMS raw error of the warped apertures against real per-aperture renders
+#: 4.0% of the mean at 1x, 1.1% at 2x, 0.30% at 4x (Monte-Carlo noise alone: 0.07-0.1%).
+OVERSAMPLE_4_MAX_SIZE = 512
+#: render time relative to the full spectral-polarized variant, measured with ``capssim render SCENE
+#: --size 128 --spp 64 --measure-savings`` (llvm, 2 busy cores; README "Rendering"): siemens-star
+#: (mono) 1/2.25, aop-wheel (mono_polarized) 1/1.04, colorchecker (spectral) 1/1.10. Used only to
+#: estimate the variant saving when it is not measured; scene-dependent.
+VARIANT_RELATIVE_COST = {"mono": 0.45, "mono_polarized": 0.96, "spectral": 0.91, "spectral_polarized": 1.0}
 
 
 @dataclass
@@ -173,7 +179,7 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
                    target_noise: float | None = None, record_timing: bool = True,
                    progress: Callable[[str, int, int], None] | None = None, psf: dict | None = None,
                    extinction_ratio: float | None = None, planar: str = "auto",
-                   oversample: int = DEFAULT_OVERSAMPLE, camera: str = DEFAULT_CAMERA,
+                   oversample: int | None = None, camera: str = DEFAULT_CAMERA,
                    max_spp: int = DEFAULT_MAX_SPP, measure_savings: bool = False) -> Capture:
     """Render library scene ``scene`` through the CAPS array and the DoFP camera.
 
@@ -181,7 +187,8 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     ground-truth pixel (``None``: from ``target_noise``, the RMS Monte-Carlo std wanted in
     the 12-channel ground truth on [0, 1] full scale; default 0.004 without sensor noise,
     half the sensor's mid-grey noise with it). ``sensor`` ``None`` is noiseless. ``planar``:
-    ``auto`` (scene flag + measured parallax), ``on`` or ``off``. ``psf``: optical PSF spec
+    ``auto`` (scene flag + measured parallax), ``on`` or ``off``; ``oversample``: the planar
+    warp's render grid factor (``None``: 4 up to 512 px, else 2). ``psf``: optical PSF spec
     (``meta.json`` style, default Gaussian sigma 0.5 HR px). ``progress(stage, done, total)``
     is called as rays finish. With ``record_timing=False`` ``meta.json`` holds no wall times
     (byte-identical regeneration); they are on ``capture.render_timing`` either way.
@@ -206,9 +213,9 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     psf_radius = kernel.shape[0] // 2
     if planar not in ("auto", "on", "off"):
         raise InputError("planar", planar, "'auto', 'on' or 'off'")
-    k = int(oversample)
+    k = (4 if size <= OVERSAMPLE_4_MAX_SIZE else 2) if oversample is None else oversample
     if k not in (1, 2, 3, 4):
-        raise InputError("oversample", oversample, "1, 2, 3 or 4")
+        raise InputError("oversample", oversample, "1, 2, 3 or 4 (or None for automatic)")
     if spp is not None and not (isinstance(spp, (int, np.integer)) and 1 <= spp <= 1 << 16):
         raise InputError("spp", spp, "an integer in [1, 65536] (samples per HR pixel), or None for --target-noise")
     if target_noise is not None and not (math.isfinite(target_noise) and target_noise > 0):
@@ -270,17 +277,18 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     noise_at = None
     if spp is None:
         t0 = time.perf_counter()
+        pilot_spp = _square_at_least(PILOT_SPP_HR / (fine * fine))
         for i in range(2):
-            pilot_views.append(render_view(mscene, main_camera, spp=PILOT_SPP, seed=derive_seed("pilot", seed, i),
+            pilot_views.append(render_view(mscene, main_camera, spp=pilot_spp, seed=derive_seed("pilot", seed, i),
                                            response=response, mode="stokes",
                                            progress=say(f"pilot {i + 1}/2", main_camera.width * main_camera.height
-                                                        * PILOT_SPP)))
+                                                        * pilot_spp)))
         diff = gt_estimate(pilot_views[0]) - gt_estimate(pilot_views[1])
         noise_one = float(np.sqrt(np.mean(np.square(diff)) / 2.0))  # RMS error of one pilot ...
-        spp_one = PILOT_SPP * fine * fine  # ... at this many samples per HR pixel
+        spp_one = pilot_spp * fine * fine  # ... at this many samples per HR pixel
         needed = spp_one * (noise_one / target) ** 2  # 1/sqrt(spp) rule: an upper bound for stratified sampling
-        main_spp = _square_at_least(max(PILOT_SPP, needed / (fine * fine)))
-        cap = max(PILOT_SPP, math.isqrt(max(1, max_spp // (fine * fine))) ** 2)
+        main_spp = _square_at_least(max(PILOT_SPP_HR, needed) / (fine * fine))
+        cap = max(1, math.isqrt(max(1, max_spp // (fine * fine))) ** 2)
         if main_spp > cap:
             log.warning("scene %s: a Monte-Carlo noise of %.2g needs about %d spp per HR pixel; capped at %d "
                         "(max_spp)", info.name, target, int(needed), cap * fine * fine)
@@ -411,7 +419,9 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
                                     seed, response_name=camera)
         for c in choices:
             if c["choice"] in measured:
-                c["saved_s"], c["saved_how"] = measured[c["choice"]], "measured"
+                c["saved_s"], c["saved_how"] = measured[c["choice"]], "measured (compile time excluded)"
+            if c["choice"] == "variant" and "variant_cost_ratio" in measured:
+                c["measured_cost_ratio"] = measured["variant_cost_ratio"]
         select_variant(choice.variant, spectral=info.spectral, polarized=info.polarizing)
 
     timer.add("total_s", time.perf_counter() - t_start)
@@ -510,4 +520,5 @@ def _measure_savings(sc, params, choice, array, main_camera, main_spp, fine, mar
                                response=response_full)
         mi.set_variant(choice.variant)
         out["variant"] = n_views * (full_s - chosen_main)
+        out["variant_cost_ratio"] = full_s / max(chosen_main, 1e-9)
     return out

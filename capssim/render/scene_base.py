@@ -263,7 +263,7 @@ def register_plugins() -> None:
             self.half_size = float(props.get("half_size", 1.0))
             self.params = {k: float(props.get(k)) for k in props.keys()
                            if k not in ("pattern", "half_size", "base")}
-            self.base = props.get("base") if props.has_property("base") else None
+            self.base = props.get("base") if "base" in props else None
             self.name = name
 
         def _value(self, si):
@@ -301,7 +301,7 @@ def register_plugins() -> None:
             mi.BSDF.__init__(self, props)
             self.theta = props.get("theta", 0.0)
             self.dolp = props.get("dolp", 1.0)
-            self.transmittance = props.get("transmittance") if props.has_property("transmittance") else None
+            self.transmittance = props.get("transmittance") if "transmittance" in props else None
             flags = mi.BSDFFlags.Null | mi.BSDFFlags.FrontSide | mi.BSDFFlags.BackSide
             self.m_flags = flags
             self.m_components = [flags]
