@@ -3,8 +3,11 @@
 Geometry (+y up; a room-sized layout scaled by ``scale``, default 4): the array at
 (0, 1, 0) looks along -z through a 4 mm glass slab (``dielectric``, n = 1.5, both faces)
 1.5 m away, turned 40 deg about the vertical axis. Behind it, a checkered wall at 3.5 m with a diffuse box and sphere in front of it.
-Beside the array, where the pane mirrors the view (towards +x), stands a lit poster with a
-procedural colour texture (``_procedural.poster_texture``).
+Beside the array, where the pane mirrors the view (towards +x), hangs a backlit poster (an
+area emitter) with a procedural colour texture (``_procedural.poster_texture``). The room
+behind the pane has its own ceiling lamp, also behind the pane and out of view: light that
+reaches a diffuse surface only through glass can only be found by BSDF sampling, and a lamp
+on the camera side made the scene 8x noisier (RMS 0.057 against 0.007 at 64 spp, 48 px).
 
 Physics: the view hits the pane at 40 deg incidence; the reflected poster is mostly
 s-polarized (electric field perpendicular to the horizontal plane of incidence, i.e. AoP
@@ -44,9 +47,9 @@ class WindowReflection(Scene):
         purpose="reflection / transmission separation by polarization (paper fig. 11); 3-D parallax",
         planar=False, polarizing=True, spectral=True, depth_m=6.0,
         geometry="glass slab at 6 m turned 40 deg about y; wall at 14 m; poster to the right (x4 room)",
-        materials="dielectric slab n = 1.5; diffuse walls, box, sphere; diffuse poster",
+        materials="dielectric slab n = 1.5; diffuse walls, box, sphere; emissive poster",
         truth="reflection AoP 90 deg (vertical), single-interface Fresnel DoLP 0.69 at 40 deg incidence",
-        defaults={"light": 6.0, "sky": 0.5, "scale": 4.0},
+        defaults={"light": 6.0, "sky": 0.5, "poster": 2.5, "scale": 4.0},
     )
 
     def camera_pose(self, p):
@@ -73,8 +76,10 @@ class WindowReflection(Scene):
         poster = np.flipud(poster_texture(512, seed=11))
         return scale_scene({"type": "scene", "integrator": {"type": "path", "max_depth": 12},
                 "sky": {"type": "constant", "radiance": d65(p["sky"])},
-                "lamp": {"type": "rectangle", "to_world": T().look_at(origin=[0.5, 3.0, -1.0], target=[0.5, 0.0, -1.8],
-                                                                      up=[0, 0, -1]).scale([0.8, 0.8, 1.0]),
+                # the lamp lights the room behind the pane directly (light through the slab could only be
+                # found by BSDF sampling: fireflies)
+                "lamp": {"type": "rectangle", "to_world": T().look_at(origin=[0.3, 3.6, -2.4], target=[0.1, 0.0, -3.0],
+                                                                      up=[0, 0, -1]).scale([0.6, 0.6, 1.0]),
                          "emitter": {"type": "area", "radiance": d65(p["light"])}},
                 "pane": {"type": "cube", "to_world": T().translate(hit.tolist()).rotate([0, 1, 0], PANE_ANGLE_DEG)
                          .scale([0.9, 0.75, 0.002]), "bsdf": {"type": "dielectric", "int_ior": N_GLASS}},
@@ -90,9 +95,8 @@ class WindowReflection(Scene):
                 "poster": {"type": "rectangle",
                            "to_world": T().look_at(origin=poster_at.tolist(), target=hit.tolist(), up=[0, 1, 0])
                            .scale([0.9, 0.9, 1.0]),
-                           "bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(poster)}}},
-                "poster_light": {"type": "point", "position": (poster_at + np.array([-0.6, 0.6, -0.6])).tolist(),
-                                 "intensity": d65(p["light"] * 2.0)}}, p["scale"])
+                           "emitter": {"type": "area", "radiance": {"type": "bitmap", "bitmap": mi.Bitmap(
+                               np.ascontiguousarray(poster * p["poster"], dtype=np.float32))}}}}, p["scale"])
 
     def truth(self, p, camera):
         rs, rp, dolp = fresnel_dolp(PANE_ANGLE_DEG, N_GLASS)

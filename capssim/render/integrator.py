@@ -139,26 +139,30 @@ def _radical_inverse_3(j):
     return value
 
 
-def stratified_samples(pixel, j, seed):
+def stratified_samples(pixel, j, seed, group_pixel=None, group_index=None):
     """Per-pixel stratified samples ``(u_x, u_y, u_lambda)`` for sample ``j`` of ``pixel``.
 
     Position: the first two Sobol dimensions (a (0,2)-sequence), XOR-scrambled by a hash of
     (pixel, seed); for ``spp`` a power of two they form a (0, m, 2)-net in every pixel (each
     elementary interval of area 1/spp holds one sample). Wavelength: the base-3 radical
-    inverse with a per-pixel random rotation, so it is stratified and not tied to the position.
+    inverse with a random rotation, so it is stratified and not tied to the position; with
+    ``group_pixel`` / ``group_index`` (an oversampled render) it is stratified over all the
+    samples of the ground-truth pixel the render pixel belongs to.
     """
     import drjit as dr
     import mitsuba as mi
 
     sx, sy = mi.sample_tea_32(pixel, seed, 4)
-    sl, _ = mi.sample_tea_32(pixel ^ 0x9E3779B9, seed, 4)
-    u_l = _radical_inverse_3(j) + _unit(sl)
+    if group_pixel is None:
+        group_pixel, group_index = pixel, j
+    sl, _ = mi.sample_tea_32(group_pixel ^ 0x9E3779B9, seed, 4)
+    u_l = _radical_inverse_3(group_index) + _unit(sl)
     u_l = u_l - dr.floor(u_l)
     return _unit(_reverse_bits(j) ^ sx), _unit(_sobol2(j) ^ sy), u_l
 
 
 def _trace_chunk(scene, integrator, response: CameraResponse, camera: PinholeCamera, *, row0: int,
-                 rows: int, spp: int, seed: int):
+                 rows: int, spp: int, seed: int, group: int = 1):
     """Trace ``rows x width x spp`` lanes; returns per-lane numpy arrays ``[S0.RGB, S1.RGB, S2.RGB]``
     (``S1``, ``S2`` are ``None`` in unpolarized variants).
 
@@ -180,9 +184,13 @@ def _trace_chunk(scene, integrator, response: CameraResponse, camera: PinholeCam
     j = idx - local * spp_o
     pix = local + dr.opaque(mi.UInt32, row0 * width)
     row_i = pix // width_o
+    col_i = pix - row_i * width_o
     row = mi.Float(row_i)
-    col = mi.Float(pix - row_i * width_o)
-    u_x, u_y, u_lambda = stratified_samples(pix, j, dr.opaque(mi.UInt32, seed))
+    col = mi.Float(col_i)
+    g = dr.opaque(mi.UInt32, group)
+    group_pixel = (row_i // g) * dr.opaque(mi.UInt32, width // group) + col_i // g
+    group_index = ((row_i % g) * g + col_i % g) * spp_o + j
+    u_x, u_y, u_lambda = stratified_samples(pix, j, dr.opaque(mi.UInt32, seed), group_pixel, group_index)
     f = _opaque_float(camera.focal_px)
     xc = (col - 0.5 + u_x - _opaque_float(camera.cx)) / f
     yc = (row - 0.5 + u_y - _opaque_float(camera.cy)) / f
@@ -219,13 +227,16 @@ def _trace_chunk(scene, integrator, response: CameraResponse, camera: PinholeCam
 
 def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: CameraResponse,
                 mode: str = "stokes", analyzer_deg: float = 0.0, extinction_ratio: float | None = None,
-                max_lanes: int = DEFAULT_MAX_LANES, progress: Callable[[int], None] | None = None) -> ViewRender:
+                max_lanes: int = DEFAULT_MAX_LANES, progress: Callable[[int], None] | None = None,
+                group: int = 1) -> ViewRender:
     """Render one view of ``scene`` (loaded in the active variant) through ``camera``.
 
     ``mode="stokes"``: 9 channels ``S0, S1, S2`` x ``R, G, B`` (camera RGB, D65 white
     balance, camera frame). ``mode="analyzer"``: 3 channels, RGB through an analyzer at
     ``analyzer_deg`` in the camera frame. ``progress(n)`` is called with the number of
-    lanes finished after each chunk. Returns means in float64 ``(C, H, W)``.
+    lanes finished after each chunk. ``group``: the render is ``group`` times finer than the
+    ground truth; wavelengths are then stratified per ``group x group`` block. Returns means
+    in float64 ``(C, H, W)``.
     """
     import mitsuba as mi
 
@@ -239,7 +250,10 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
     diattenuation = 1.0 if er is None or np.isinf(er) else (er - 1.0) / (er + 1.0)
     integrator = scene.integrator()
     height, width = camera.height, camera.width
+    if group < 1 or width % group or height % group:
+        raise InputError("group", group, f"a factor >= 1 dividing the image size {height}x{width}")
     rows_per_chunk = max(1, min(height, max_lanes // max(1, width * spp)))
+    rows_per_chunk = max(group, rows_per_chunk - rows_per_chunk % group)
     n_out = 9 if mode == "stokes" else 3
     sums = np.zeros((n_out, height, width))
     sq = np.zeros((12 if mode == "stokes" else 3, height, width))
@@ -250,7 +264,7 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
     for chunk, row0 in enumerate(range(0, height, rows_per_chunk)):
         rows = min(rows_per_chunk, height - row0)
         lanes = _trace_chunk(scene, integrator, response, camera, row0=row0, rows=rows, spp=int(spp),
-                             seed=derive_seed("chunk", seed, chunk))
+                             seed=derive_seed("chunk", seed, chunk), group=group)
         per = []
         for v in lanes:
             if v is None:
@@ -295,13 +309,24 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
                       lanes=height * width * int(spp))
 
 
-def combine(a: ViewRender, b: ViewRender) -> ViewRender:
-    """Pool two independent renders of the same view (weights = spp)."""
-    n = a.spp + b.spp
-    mean = (a.mean * a.spp + b.mean * b.spp) / n
-    var = (a.sample_variance * a.spp + b.sample_variance * b.spp) / n
-    return ViewRender(mean=mean, sample_variance=var, spp=n, seconds=a.seconds + b.seconds,
-                      nonfinite_samples=a.nonfinite_samples + b.nonfinite_samples, lanes=a.lanes + b.lanes)
+def combine_weighted(views: list[ViewRender], noise_rms: list[float]) -> ViewRender:
+    """Pool independent renders of one view with inverse-variance weights ``1 / noise_rms^2``.
+
+    ``extra["noise_rms"]`` of the result is the pooled RMS error ``(sum 1/sigma_i^2)^-1/2``.
+    A render with zero noise gets all the weight.
+    """
+    sig = np.asarray(noise_rms, dtype=np.float64)
+    if np.any(sig <= 0):
+        w = (sig <= 0).astype(np.float64)
+    else:
+        w = 1.0 / np.square(sig)
+    w = w / w.sum()
+    mean = sum(wi * v.mean for wi, v in zip(w, views))
+    var = sum(wi * v.sample_variance for wi, v in zip(w, views))
+    pooled = 0.0 if np.any(sig <= 0) else float(1.0 / np.sqrt(np.sum(1.0 / np.square(sig))))
+    return ViewRender(mean=mean, sample_variance=var, spp=int(sum(v.spp for v in views)),
+                      seconds=sum(v.seconds for v in views), nonfinite_samples=sum(v.nonfinite_samples for v in views),
+                      lanes=sum(v.lanes for v in views), extra={"noise_rms": pooled, "weights": w.tolist()})
 
 
 def stokes_to_twelve(stokes9: np.ndarray) -> np.ndarray:

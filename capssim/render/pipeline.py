@@ -15,9 +15,11 @@ Pipeline (each choice is recorded in ``meta.json["render"]["choices"]`` with the
    :class:`~capssim.operators.Warp`, bilinear on the finer grid, then box-integrated back).
    Otherwise apertures 1-3 are rendered from their own positions, each only through its own
    polarizer angle; aperture 0's view is the ground-truth render itself.
-4. **spp from a target noise**: two small pilot renders give the Monte-Carlo error of the
-   ground truth; spp is raised (powers of two) until the predicted RMS error of the 12-channel
-   ground truth reaches ``target_noise``; pilots are pooled into the result.
+4. **spp from a target noise**: two pairs of small pilot renders (``s0`` and ``4 s0`` samples)
+   measure the Monte-Carlo RMS error of the 12-channel ground truth and its convergence rate
+   ``sigma ~ spp^-alpha`` (alpha in [0.5, 1]: stratification makes it faster than 1/sqrt);
+   the main spp is the smallest square that reaches ``target_noise``; the pilots are pooled
+   into the ground truth with inverse-variance weights.
 5. **One observation model**: everything after the renderer uses the shared operators:
    ``Convolve`` (optical PSF, applied identically to the ground truth and to every aperture),
    ``IntegrateDecimate`` (2x2 box pixels), ``BayerMosaic`` (RGGB), ``DoFPMosaic``; then the
@@ -46,7 +48,7 @@ from capssim.errors import InputError
 from capssim.operators import Analyzer, BayerMosaic, Convolve, IntegrateDecimate, Warp, dofp_raw_operator
 from capssim.operators.blur import psf_kernel_from_spec
 from capssim.render.geometry import ArrayGeometry, build_array, parallax_residual, scale_matrix, shift_matrix
-from capssim.render.integrator import ViewRender, combine, derive_seed, render_view, stokes_to_twelve
+from capssim.render.integrator import ViewRender, combine_weighted, derive_seed, render_view, stokes_to_twelve
 from capssim.render.spectral import DEFAULT_CAMERA, CameraResponse
 from capssim.render.variants import select_variant, variant_name
 from capssim.sensor import NoNoiseSensor, Sensor, noise_sigma_estimate
@@ -60,7 +62,7 @@ PLANAR_PARALLAX_TOL_PX = 0.01
 DEFAULT_TARGET_NOISE = 0.004
 #: with sensor noise: this fraction of the sensor's noise at mid grey (MC adds <= 12% to the total)
 TARGET_NOISE_FRACTION_OF_SENSOR = 0.5
-PILOT_SPP_HR = 4       # two independent pilots of about this many samples per HR pixel (pooled into the GT)
+PILOT_SPP_HR = 4       # first pilot pair: about this many samples per HR pixel (second pair: 4x)
 DEFAULT_MAX_SPP = 1024  # per HR ground-truth pixel
 FIXED_SPP_REFERENCE = 256  # what the target-noise rule is compared with
 #: planar warp: the reference is rendered this much finer than the ground truth (auto: 4 up to
@@ -180,7 +182,8 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
                    progress: Callable[[str, int, int], None] | None = None, psf: dict | None = None,
                    extinction_ratio: float | None = None, planar: str = "auto",
                    oversample: int | None = None, camera: str = DEFAULT_CAMERA,
-                   max_spp: int = DEFAULT_MAX_SPP, measure_savings: bool = False) -> Capture:
+                   max_spp: int = DEFAULT_MAX_SPP, measure_savings: bool = False,
+                   render_seed: int | None = None) -> Capture:
     """Render library scene ``scene`` through the CAPS array and the DoFP camera.
 
     ``size`` is the HR ground-truth size (raw frames are ``size/2``); ``spp`` samples per HR
@@ -193,7 +196,8 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     is called as rays finish. With ``record_timing=False`` ``meta.json`` holds no wall times
     (byte-identical regeneration); they are on ``capture.render_timing`` either way.
     ``measure_savings`` also renders the alternatives each choice avoided and records the
-    measured times (slow; for the README numbers).
+    measured times (slow; for the README numbers). ``render_seed`` (default ``seed``) seeds only
+    the Monte-Carlo sampling, so two renders of the same array geometry can differ in noise alone.
 
     Returns a :class:`~capssim.capture.Capture` of kind ``rendered`` (not yet written).
     """
@@ -224,6 +228,7 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
         raise InputError("extinction_ratio", extinction_ratio, "a number >= 1, or None for ideal polarizers")
     choices: list[dict] = []
     say = _Progress(progress)
+    mc_seed = seed if render_seed is None else int(render_seed)
 
     # 1. variant ---------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -272,28 +277,39 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
         return twelve[:, crop, crop].numpy()
 
     # 3. spp -------------------------------------------------------------------------------------
+    # Two pilot pairs at s0 and 4 s0 samples per render pixel measure the Monte-Carlo error of one
+    # render and how fast it falls (exponent alpha: 0.5 for independent samples, more when the
+    # stratification works); the main spp is extrapolated from them. Everything is pooled into
+    # the ground truth with inverse-variance weights.
     target = target_noise if target_noise is not None else _default_target(sensor)
     pilot_views: list[ViewRender] = []
-    noise_at = None
+    pilot_sigmas: list[float] = []
+    noise_model = None
     if spp is None:
         t0 = time.perf_counter()
-        pilot_spp = _square_at_least(PILOT_SPP_HR / (fine * fine))
-        for i in range(2):
-            pilot_views.append(render_view(mscene, main_camera, spp=pilot_spp, seed=derive_seed("pilot", seed, i),
-                                           response=response, mode="stokes",
-                                           progress=say(f"pilot {i + 1}/2", main_camera.width * main_camera.height
-                                                        * pilot_spp)))
-        diff = gt_estimate(pilot_views[0]) - gt_estimate(pilot_views[1])
-        noise_one = float(np.sqrt(np.mean(np.square(diff)) / 2.0))  # RMS error of one pilot ...
-        spp_one = pilot_spp * fine * fine  # ... at this many samples per HR pixel
-        needed = spp_one * (noise_one / target) ** 2  # 1/sqrt(spp) rule: an upper bound for stratified sampling
-        main_spp = _square_at_least(max(PILOT_SPP_HR, needed) / (fine * fine))
+        s0 = _square_at_least(PILOT_SPP_HR / (fine * fine))
+        levels = []
+        for level, s_l in enumerate((s0, 4 * s0)):
+            pair = [render_view(mscene, main_camera, spp=s_l, seed=derive_seed("pilot", mc_seed, level, i),
+                                response=response, mode="stokes", group=fine,
+                                progress=say(f"pilot {2 * level + i + 1}/4", main_camera.width * main_camera.height
+                                             * s_l)) for i in range(2)]
+            sigma = float(np.sqrt(np.mean(np.square(gt_estimate(pair[0]) - gt_estimate(pair[1]))) / 2.0))
+            levels.append((s_l, sigma))
+            pilot_views += pair
+            pilot_sigmas += [sigma, sigma]
+        (sa, sig_a), (sb, sig_b) = levels
+        alpha = 1.0 if sig_b <= 0 else float(np.clip(math.log(max(sig_a, 1e-30) / sig_b) / math.log(sb / sa),
+                                                      0.5, 1.0))
+        needed = sb if sig_b <= target else sb * (sig_b / target) ** (1.0 / alpha)
+        main_spp = _square_at_least(needed)
         cap = max(1, math.isqrt(max(1, max_spp // (fine * fine))) ** 2)
         if main_spp > cap:
             log.warning("scene %s: a Monte-Carlo noise of %.2g needs about %d spp per HR pixel; capped at %d "
-                        "(max_spp)", info.name, target, int(needed), cap * fine * fine)
+                        "(max_spp)", info.name, target, int(needed * fine * fine), cap * fine * fine)
             main_spp = cap
-        noise_at = (noise_one, spp_one)
+        noise_model = {"pilot_spp_per_hr_pixel": [sa * fine * fine, sb * fine * fine],
+                       "pilot_noise_rms": [sig_a, sig_b], "convergence_exponent": alpha}
         timer.add("pilot_s", time.perf_counter() - t0)
     else:
         main_spp = _square_at_least(spp / (fine * fine))
@@ -303,23 +319,27 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
 
     # 4. render ----------------------------------------------------------------------------------
     t0 = time.perf_counter()
-    views = list(pilot_views)
-    views.append(render_view(mscene, main_camera, spp=main_spp, seed=derive_seed("main", seed),
-                             response=response, mode="stokes",
-                             progress=say("reference view", main_camera.width * main_camera.height * main_spp)))
-    main = views[0]
-    for v in views[1:]:
-        main = combine(main, v)
+    main_view = render_view(mscene, main_camera, spp=main_spp, seed=derive_seed("main", mc_seed), response=response,
+                            mode="stokes", group=fine, progress=say("reference view",
+                                                        main_camera.width * main_camera.height * main_spp))
     timer.add("render_reference_s", time.perf_counter() - t0)
+    achieved = None
+    if noise_model is None:
+        main = main_view
+    else:
+        s_b, sig_b = noise_model["pilot_spp_per_hr_pixel"][1] / (fine * fine), noise_model["pilot_noise_rms"][1]
+        sig_main = sig_b * (s_b / main_spp) ** noise_model["convergence_exponent"]
+        main = combine_weighted([*pilot_views, main_view], [*pilot_sigmas, sig_main])
+        achieved = main.extra["noise_rms"]
+        noise_model["main_noise_rms_predicted"] = sig_main
     spp_hr = main.spp * fine * fine  # reference view, pilots included
-    achieved = None if noise_at is None else noise_at[0] * math.sqrt(noise_at[1] / spp_hr)
 
     aperture_views: dict[int, ViewRender] = {}
     if not use_warp:
         for n in range(1, N_APERTURES):
             t1 = time.perf_counter()
             cam = array.cameras[n].expanded(margin)
-            aperture_views[n] = render_view(mscene, cam, spp=main_spp, seed=derive_seed("aperture", seed, n),
+            aperture_views[n] = render_view(mscene, cam, spp=main_spp, seed=derive_seed("aperture", mc_seed, n),
                                             response=response, mode="analyzer", analyzer_deg=POLARIZER_ANGLES_DEG[n],
                                             extinction_ratio=extinction_ratio,
                                             progress=say(f"aperture {n} ({POLARIZER_ANGLES_DEG[n]} deg)",
@@ -405,8 +425,11 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     if spp is None:
         choices.append({"choice": "spp-from-target-noise", "value": main_spp_hr,
                         "instead_of": f"a fixed {FIXED_SPP_REFERENCE} spp",
-                        "reason": f"pilot noise {noise_at[0]:.3g} at {noise_at[1]} spp per HR pixel, target "
-                                  f"{target:.3g}; the ground truth also pools the pilots ({spp_hr} spp)",
+                        "reason": f"pilot noise {noise_model['pilot_noise_rms'][0]:.3g} / "
+                                  f"{noise_model['pilot_noise_rms'][1]:.3g} at "
+                                  f"{noise_model['pilot_spp_per_hr_pixel']} spp per HR pixel (exponent "
+                                  f"{noise_model['convergence_exponent']:.2f}), target {target:.3g}; the ground truth "
+                                  f"also pools the pilots ({spp_hr} spp)",
                         "saved_s": rendered_s * (FIXED_SPP_REFERENCE / main_spp_hr - 1.0),
                         "saved_how": "estimated: render time scaled by spp (negative: the target needed more)"})
     else:
@@ -430,6 +453,7 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     # 7. meta ------------------------------------------------------------------------------------
     render_meta = {
         "renderer": "mitsuba3 + capssim camera-RGB Stokes integrator (capssim.render.integrator)",
+        "render_seed": mc_seed,
         "variant": choice.to_meta(),
         "path": path,
         "oversample": fine,
@@ -438,10 +462,9 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
         "spp_per_render_pixel": main.spp,
         "spp_apertures_per_hr_pixel": None if use_warp else main_spp,
         "target_noise": None if spp is not None else target,
-        "pilot": None if noise_at is None else {"spp_per_hr_pixel": noise_at[1], "noise_rms": noise_at[0],
-                                                "renders": 2},
+        "noise_model": noise_model,
         "mc_noise_rms_estimate": achieved,
-        "nonfinite_samples": int(sum(v.nonfinite_samples for v in [*views, *aperture_views.values()])),
+        "nonfinite_samples": int(sum(v.nonfinite_samples for v in [*pilot_views, main_view, *aperture_views.values()])),
         "camera_response": response.to_meta(),
         "optics_psf": psf_spec,
         "pixel_filter": "box (exact pixel-area integration)",
