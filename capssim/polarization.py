@@ -114,7 +114,7 @@ def aop_deg(stokes: ArrayLike, *, axis: int = 0, min_s0: float | None = None, fi
     """
     xp = _xp(stokes)
     parts = _move_axis_first(stokes, axis)
-    s1, s2 = parts[1], parts[2]
+    s1, s2 = parts[1] + 0.0, parts[2] + 0.0  # +0.0 turns -0.0 into 0.0 so atan2(0, 0) = 0
     angle = 0.5 * xp.rad2deg(xp.arctan2(s2, s1)) if xp is np else 0.5 * torch.rad2deg(torch.atan2(s2, s1))
     angle = angle % 180.0
     angle = xp.where(angle >= 180.0, angle - 180.0, angle)  # guards -0.0 % 180 rounding to 180

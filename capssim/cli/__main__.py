@@ -1,0 +1,3 @@
+from capssim.cli import main
+
+main()
