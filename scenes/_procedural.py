@@ -6,8 +6,9 @@ import numpy as np
 
 
 def fractal_noise(shape: tuple[int, int], *, seed: int, octaves: int = 6, base_cells: int = 4,
-                  persistence: float = 0.55, wrap_x: bool = False) -> np.ndarray:
-    """Smooth fractal (1/f-like) noise in [0, 1], ``shape`` (rows, cols); same seed, same texture."""
+                  persistence: float = 0.55) -> np.ndarray:
+    """Smooth fractal (1/f-like) noise in [0, 1], ``shape`` (rows, cols), periodic in both axes
+    (no seam where an environment map wraps round); the same seed gives the same texture."""
     from scipy.ndimage import zoom
 
     rng = np.random.default_rng(seed)
@@ -16,11 +17,10 @@ def fractal_noise(shape: tuple[int, int], *, seed: int, octaves: int = 6, base_c
     amp, total = 1.0, 0.0
     for o in range(octaves):
         cells = base_cells * 2 ** o
-        ch, cw = max(2, int(round(cells * h / max(h, w)))), max(2, int(round(cells * w / max(h, w))))
-        grid = rng.standard_normal((ch + 3, cw + 3))
-        if wrap_x:
-            grid[:, -3:] = grid[:, :3]
-        up = zoom(grid, ((h + 3 * h / ch) / (ch + 3), (w + 3 * w / cw) / (cw + 3)), order=3, mode="grid-wrap")
+        ch = max(2, int(round(cells * h / max(h, w))))
+        cw = max(2, int(round(cells * w / max(h, w))))
+        grid = rng.standard_normal((ch, cw))
+        up = zoom(grid, (h / ch, w / cw), order=3, mode="grid-wrap", grid_mode=True)
         out += amp * up[:h, :w]
         total += amp
         amp *= persistence
@@ -41,9 +41,9 @@ def sky_envmap(*, width: int = 1024, seed: int = 3, cloud_cover: float = 0.45, b
     horizon = np.array([0.80, 0.88, 1.00])
     zenith = np.array([0.18, 0.34, 0.80])
     sky = (1 - t) * horizon + t * zenith
-    noise = fractal_noise((h, width), seed=seed, octaves=7, base_cells=6, wrap_x=True)
+    noise = fractal_noise((h, width), seed=seed, octaves=7, base_cells=6)
     clouds = np.clip((noise - (1.0 - cloud_cover)) / 0.18, 0.0, 1.0)[..., None]
-    shade = 0.75 + 0.35 * fractal_noise((h, width), seed=seed + 1, octaves=5, base_cells=12, wrap_x=True)[..., None]
+    shade = 0.75 + 0.35 * fractal_noise((h, width), seed=seed + 1, octaves=5, base_cells=12)[..., None]
     sky = sky * (1 - clouds) + clouds * shade * np.array([1.05, 1.05, 1.05])
     ground = np.array([0.06, 0.07, 0.05])
     below = (elev < 0)[:, None, None]

@@ -37,7 +37,7 @@ class WaterGlare(Scene):
         geometry="array 12 m above the water looking 16 m ahead (53.1 deg incidence); bed 1.5 m deep; posts",
         materials="dielectric water n = 1.333; diffuse sand bed and wood; procedural sky envmap",
         truth="centre ray at Brewster's angle: reflected DoLP 1, AoP 0 deg (horizontal)",
-        defaults={"sky": 1.0, "cloud_cover": 0.45, "seed": 3},
+        defaults={"sky": 3.0, "cloud_cover": 0.45, "seed": 3},
     )
 
     def camera_pose(self, p):

@@ -85,6 +85,16 @@ class _Timer:
         self.record[key] = self.record.get(key, 0.0) + float(seconds)
 
 
+def _pooled_noise(sigmas) -> float:
+    """RMS noise of inverse-variance-pooled independent estimates with RMS noise ``sigmas``."""
+    sig = np.asarray(sigmas, dtype=np.float64)
+    if sig.size == 0:
+        return float("inf")
+    if np.any(sig <= 0):
+        return 0.0
+    return float(1.0 / np.sqrt(np.sum(1.0 / np.square(sig))))
+
+
 def _square_at_least(x: float) -> int:
     """Smallest perfect square >= x (>= 1): the multijitter sampler stratifies on a square grid."""
     r = max(1, math.isqrt(max(0, int(math.ceil(x - 1e-9)))))
@@ -277,61 +287,72 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
         return twelve[:, crop, crop].numpy()
 
     # 3. spp -------------------------------------------------------------------------------------
-    # Two pilot pairs at s0 and 4 s0 samples per render pixel measure the Monte-Carlo error of one
-    # render and how fast it falls (exponent alpha: 0.5 for independent samples, more when the
-    # stratification works); the main spp is extrapolated from them. Everything is pooled into
-    # the ground truth with inverse-variance weights.
+    # Pilot pairs at s0 and then 4 s0 samples per render pixel measure the Monte-Carlo RMS error
+    # of one render and how fast it falls (sigma ~ spp^-alpha; alpha 0.5 for independent samples,
+    # more when the stratification works). Rendering stops as soon as the pooled ground truth
+    # (inverse-variance weights) reaches the target; otherwise one main render makes up the rest.
     target = target_noise if target_noise is not None else _default_target(sensor)
     pilot_views: list[ViewRender] = []
     pilot_sigmas: list[float] = []
     noise_model = None
+    main_spp = 0
+    t0 = time.perf_counter()
     if spp is None:
-        t0 = time.perf_counter()
         s0 = _square_at_least(PILOT_SPP_HR / (fine * fine))
         levels = []
         for level, s_l in enumerate((s0, 4 * s0)):
             pair = [render_view(mscene, main_camera, spp=s_l, seed=derive_seed("pilot", mc_seed, level, i),
                                 response=response, mode="stokes", group=fine,
-                                progress=say(f"pilot {2 * level + i + 1}/4", main_camera.width * main_camera.height
+                                progress=say(f"pilot {2 * level + i + 1}", main_camera.width * main_camera.height
                                              * s_l)) for i in range(2)]
             sigma = float(np.sqrt(np.mean(np.square(gt_estimate(pair[0]) - gt_estimate(pair[1]))) / 2.0))
             levels.append((s_l, sigma))
             pilot_views += pair
             pilot_sigmas += [sigma, sigma]
-        (sa, sig_a), (sb, sig_b) = levels
-        alpha = 1.0 if sig_b <= 0 else float(np.clip(math.log(max(sig_a, 1e-30) / sig_b) / math.log(sb / sa),
-                                                      0.5, 1.0))
-        needed = sb if sig_b <= target else sb * (sig_b / target) ** (1.0 / alpha)
-        main_spp = _square_at_least(needed)
+            if _pooled_noise(pilot_sigmas) <= target:
+                break
+        s_last, sig_last = levels[-1]
+        alpha = 0.5
+        if len(levels) == 2:
+            (sa, sig_a), (sb, sig_b) = levels
+            alpha = 1.0 if sig_b <= 0 else float(np.clip(math.log(max(sig_a, 1e-30) / sig_b) / math.log(sb / sa),
+                                                          0.5, 1.0))
         cap = max(1, math.isqrt(max(1, max_spp // (fine * fine))) ** 2)
-        if main_spp > cap:
-            log.warning("scene %s: a Monte-Carlo noise of %.2g needs about %d spp per HR pixel; capped at %d "
-                        "(max_spp)", info.name, target, int(needed * fine * fine), cap * fine * fine)
-            main_spp = cap
-        noise_model = {"pilot_spp_per_hr_pixel": [sa * fine * fine, sb * fine * fine],
-                       "pilot_noise_rms": [sig_a, sig_b], "convergence_exponent": alpha}
+        aperture_spp = s_last
+        if _pooled_noise(pilot_sigmas) > target:
+            # the main render must bring the pooled noise to the target; apertures need the target alone
+            rest = 1.0 / target ** 2 - sum(1.0 / sg ** 2 for sg in pilot_sigmas if sg > 0)
+            sig_needed = 1.0 / math.sqrt(rest) if rest > 0 else target
+            main_spp = _square_at_least(s_last * (sig_last / sig_needed) ** (1.0 / alpha))
+            aperture_spp = _square_at_least(max(s_last, s_last * (sig_last / target) ** (1.0 / alpha)))
+            if max(main_spp, aperture_spp) > cap:
+                log.warning("scene %s: a Monte-Carlo noise of %.2g needs about %d spp per HR pixel; capped at %d "
+                            "(max_spp)", info.name, target, max(main_spp, aperture_spp) * fine * fine,
+                            cap * fine * fine)
+                main_spp, aperture_spp = min(main_spp, cap), min(aperture_spp, cap)
+        noise_model = {"pilot_spp_per_hr_pixel": [lv[0] * fine * fine for lv in levels],
+                       "pilot_noise_rms": [lv[1] for lv in levels], "convergence_exponent": alpha}
         timer.add("pilot_s", time.perf_counter() - t0)
     else:
-        main_spp = _square_at_least(spp / (fine * fine))
+        main_spp = aperture_spp = _square_at_least(spp / (fine * fine))
         if main_spp * fine * fine != spp:
             log.info("spp %d rounded up to %d per HR pixel (%d per %dx finer render pixel, a perfect square for "
                      "the stratified sampler)", spp, main_spp * fine * fine, main_spp, fine)
 
     # 4. render ----------------------------------------------------------------------------------
     t0 = time.perf_counter()
-    main_view = render_view(mscene, main_camera, spp=main_spp, seed=derive_seed("main", mc_seed), response=response,
-                            mode="stokes", group=fine, progress=say("reference view",
-                                                        main_camera.width * main_camera.height * main_spp))
+    views, sigmas = list(pilot_views), list(pilot_sigmas)
+    if main_spp > 0:
+        views.append(render_view(mscene, main_camera, spp=main_spp, seed=derive_seed("main", mc_seed),
+                                 response=response, mode="stokes", group=fine,
+                                 progress=say("reference view", main_camera.width * main_camera.height * main_spp)))
+        if noise_model is not None:
+            s_l = noise_model["pilot_spp_per_hr_pixel"][-1] / (fine * fine)
+            sigmas.append(noise_model["pilot_noise_rms"][-1] * (s_l / main_spp) ** noise_model["convergence_exponent"])
+            noise_model["main_noise_rms_predicted"] = sigmas[-1]
     timer.add("render_reference_s", time.perf_counter() - t0)
-    achieved = None
-    if noise_model is None:
-        main = main_view
-    else:
-        s_b, sig_b = noise_model["pilot_spp_per_hr_pixel"][1] / (fine * fine), noise_model["pilot_noise_rms"][1]
-        sig_main = sig_b * (s_b / main_spp) ** noise_model["convergence_exponent"]
-        main = combine_weighted([*pilot_views, main_view], [*pilot_sigmas, sig_main])
-        achieved = main.extra["noise_rms"]
-        noise_model["main_noise_rms_predicted"] = sig_main
+    main = views[0] if len(views) == 1 else combine_weighted(views, sigmas)
+    achieved = None if noise_model is None else _pooled_noise(sigmas)
     spp_hr = main.spp * fine * fine  # reference view, pilots included
 
     aperture_views: dict[int, ViewRender] = {}
@@ -339,11 +360,11 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
         for n in range(1, N_APERTURES):
             t1 = time.perf_counter()
             cam = array.cameras[n].expanded(margin)
-            aperture_views[n] = render_view(mscene, cam, spp=main_spp, seed=derive_seed("aperture", mc_seed, n),
+            aperture_views[n] = render_view(mscene, cam, spp=aperture_spp, seed=derive_seed("aperture", mc_seed, n),
                                             response=response, mode="analyzer", analyzer_deg=POLARIZER_ANGLES_DEG[n],
                                             extinction_ratio=extinction_ratio,
                                             progress=say(f"aperture {n} ({POLARIZER_ANGLES_DEG[n]} deg)",
-                                                         cam.width * cam.height * main_spp))
+                                                         cam.width * cam.height * aperture_spp))
             timer.add(f"render_aperture_{n}_s", time.perf_counter() - t1)
 
     # 5. camera model (shared operators) --------------------------------------------------------
@@ -421,15 +442,14 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
                         "instead_of": "four polarizer-plate renders per aperture",
                         "reason": "an aperture only sees through its own polarizer",
                         "saved_s": 3.0 * float(sum(aperture_s)), "saved_how": "estimated: 3 x the aperture renders"})
-    main_spp_hr = main_spp * fine * fine
+    main_spp_hr = spp_hr if use_warp else aperture_spp
     if spp is None:
         choices.append({"choice": "spp-from-target-noise", "value": main_spp_hr,
                         "instead_of": f"a fixed {FIXED_SPP_REFERENCE} spp",
-                        "reason": f"pilot noise {noise_model['pilot_noise_rms'][0]:.3g} / "
-                                  f"{noise_model['pilot_noise_rms'][1]:.3g} at "
+                        "reason": f"pilot noise {[round(v, 5) for v in noise_model['pilot_noise_rms']]} at "
                                   f"{noise_model['pilot_spp_per_hr_pixel']} spp per HR pixel (exponent "
-                                  f"{noise_model['convergence_exponent']:.2f}), target {target:.3g}; the ground truth "
-                                  f"also pools the pilots ({spp_hr} spp)",
+                                  f"{noise_model['convergence_exponent']:.2f}), target {target:.3g}; ground truth "
+                                  f"{spp_hr} spp in all" + ("" if use_warp else f", apertures {aperture_spp} spp"),
                         "saved_s": rendered_s * (FIXED_SPP_REFERENCE / main_spp_hr - 1.0),
                         "saved_how": "estimated: render time scaled by spp (negative: the target needed more)"})
     else:
@@ -438,8 +458,8 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
 
     measured = None
     if measure_savings:
-        measured = _measure_savings(sc, params, choice, array, main_camera, main_spp, fine, margin, use_warp,
-                                    seed, response_name=camera)
+        measured = _measure_savings(sc, params, choice, array, main_camera, max(main_spp, aperture_spp), fine,
+                                    margin, use_warp, seed, response_name=camera)
         for c in choices:
             if c["choice"] in measured:
                 c["saved_s"], c["saved_how"] = measured[c["choice"]], "measured (compile time excluded)"
@@ -460,11 +480,11 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
         "margin_hr_px": margin,
         "spp_per_hr_pixel": spp_hr,
         "spp_per_render_pixel": main.spp,
-        "spp_apertures_per_hr_pixel": None if use_warp else main_spp,
+        "spp_apertures_per_hr_pixel": None if use_warp else aperture_spp,
         "target_noise": None if spp is not None else target,
         "noise_model": noise_model,
         "mc_noise_rms_estimate": achieved,
-        "nonfinite_samples": int(sum(v.nonfinite_samples for v in [*pilot_views, main_view, *aperture_views.values()])),
+        "nonfinite_samples": int(sum(v.nonfinite_samples for v in [*views, *aperture_views.values()])),
         "camera_response": response.to_meta(),
         "optics_psf": psf_spec,
         "pixel_filter": "box (exact pixel-area integration)",
