@@ -78,6 +78,9 @@ def render(
     measure_savings: bool = typer.Option(False, "--measure-savings",
                                          help="Also render what each choice avoided and record measured savings."),
     preview: Optional[Path] = typer.Option(None, "--preview", help="Also write an intensity|DoLP|AoP PNG of the GT."),
+    preview_white: Optional[float] = typer.Option(None, "--preview-white",
+                                                  help="Preview intensity shown white (default: 99.5th percentile)."),
+    preview_dolp_max: float = typer.Option(0.5, "--preview-dolp-max", help="Preview DoLP shown saturated."),
     overwrite: bool = OverwriteOption,
 ) -> None:
     """Render a library scene through the four CAPS apertures and a DoFP camera (Mitsuba 3)."""
@@ -126,7 +129,7 @@ def render(
         from capssim.imageio import write_png
         from capssim.visualize import preview_panel
 
-        write_png(preview, preview_panel(capture.gt))
+        write_png(preview, preview_panel(capture.gt, white=preview_white, dolp_max=preview_dolp_max))
         typer.echo(f"  preview {preview}")
 
 

@@ -405,7 +405,7 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     timer.add("sensor_s", time.perf_counter() - t0)
 
     # 6. choices and what they saved ----------------------------------------------------------------
-    main_s = timer.record["render_reference_s"]
+    main_s = timer.record["render_reference_s"] + timer.record.get("pilot_s", 0.0)  # the whole reference view
     aperture_s = [timer.record.get(f"render_aperture_{n}_s", 0.0) for n in range(1, N_APERTURES)]
     rendered_s = main_s + sum(aperture_s)
     chosen_kind = choice.variant.split("_ad_")[-1] if "_ad_" in choice.variant else None
