@@ -1,0 +1,44 @@
+"""Shared layout of the flat test targets: a card facing the array at depth Z, filling the view."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from capssim.render.scene_base import CameraPose
+
+#: half-width of the card relative to the half-width of the reference view at depth Z (covers
+#: the other apertures' views, their tilts and the render margins)
+CARD_OVERSIZE = 1.6
+
+
+def target_pose(depth_m: float, fov_deg: float) -> CameraPose:
+    return CameraPose(origin=(0.0, 0.0, float(depth_m)), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0),
+                      fov_deg=float(fov_deg))
+
+
+def view_half_width(depth_m: float, fov_deg: float) -> float:
+    """Half-width in metres of the reference view at depth Z."""
+    return float(depth_m) * math.tan(math.radians(fov_deg) / 2.0)
+
+
+def card_half_size(depth_m: float, fov_deg: float) -> float:
+    return CARD_OVERSIZE * view_half_width(depth_m, fov_deg)
+
+
+def rectangle(half_size: float, *, z: float = 0.0, **extra) -> dict:
+    """A camera-facing (normal +z) square of half-size ``half_size`` at height ``z``."""
+    import mitsuba as mi
+
+    d = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0.0, 0.0, z]).scale(
+        [half_size, half_size, 1.0])}
+    d.update(extra)
+    return d
+
+
+def metres_to_pixels(camera, xy_m: np.ndarray) -> np.ndarray:
+    """Card-plane points (z = 0) -> reference HR pixel (x=col, y=row)."""
+    xy_m = np.asarray(xy_m, dtype=np.float64)
+    pts = np.concatenate([xy_m, np.zeros((*xy_m.shape[:-1], 1))], axis=-1)
+    return camera.project(pts)
