@@ -69,7 +69,7 @@ SEGMENT_CENTRES_DEG = tuple(range(0, 360, 45))
 GROUPS = {"hv": (0, 2, 4, 6), "diagonal": (1, 3, 5, 7)}
 HECT = 0.03  # human-eye contrast threshold (paper section 5.3)
 NYQUIST = 0.5  # cycles per pixel of the measured grid
-MIN_PIXELS_PER_FIT = 8
+MIN_PIXELS_PER_FIT = 6
 
 
 # -- a sinusoidal star, analytic (tests, examples) -----------------------------------------------
@@ -250,7 +250,11 @@ def _nan_to_none(arr: np.ndarray) -> list:
 def _ring_edges(r_min: float, r_max: float, ring_width: float) -> np.ndarray:
     edges = [r_min]
     while edges[-1] < r_max:
-        edges.append(edges[-1] + max(1.0, ring_width * edges[-1]))
+        r = edges[-1]
+        # at least 1 px, the relative width, and ~12 pixels per 45-degree segment (8 * 12 / 2 pi r)
+        edges.append(r + max(1.0, ring_width * r, 15.0 / max(r, 1.0)))
+    if len(edges) > 2 and edges[-1] > r_max:  # never reach past r_max: drop the partial outer ring
+        edges.pop()
     return np.asarray(edges)
 
 
@@ -405,14 +409,17 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
     if not (0 <= cy <= h - 1 and 0 <= cx <= w - 1):
         raise InputError("center", f"({cy:.1f}, {cx:.1f})", f"a point inside the {h}x{w} image")
     r_border = min(cy, cx, h - 1 - cy, w - 1 - cx)
-    r_max = min(radius, r_border) if radius is not None else r_border
+    # a given radius is the star's edge: keep 1.5 px off it (edge pixels mix star and background)
+    r_max = min(radius - 1.5, r_border) if radius is not None else r_border
     r_min = min_radius if min_radius is not None else max(1.5, cycles / (2 * math.pi * 2 * nyquist))
     if r_max <= r_min + 2:
         raise InputError("image", f"a star of usable radius {r_max:.1f} px around ({cy:.1f}, {cx:.1f})",
                          f"a star radius above {r_min + 2:.1f} px", "Check --center and --cycles.")
     edges = _ring_edges(r_min, r_max, ring_width)
     fits = [_fit_rings(imgs[c], (cy, cx), cycles, edges) for c in range(n_ch)]
-    ring_ok = np.logical_and.reduce([f["ok"].all(axis=1) for f in fits])
+    # a ring counts when each direction group has at least 3 of its 4 segments fitted
+    ring_ok = np.logical_and.reduce([np.logical_and.reduce([f["ok"][:, list(segs)].sum(1) >= 3
+                                                            for segs in GROUPS.values()]) for f in fits])
     with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         mods = [np.where(f["ok"], f["amplitude"] / np.abs(f["mean"]), np.nan) for f in fits]
