@@ -451,12 +451,14 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
     per_group_ratio: dict[str, list] = {g: [] for g in GROUPS}
     ref_used = []
     for c in range(n_ch):
-        m_all = np.nanmean(mods[c][order], axis=1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            m_all = np.nanmean(mods[c][order], axis=1)
         if refs[c] is None:
             ref, src = _reference_from_low_frequencies(freq_o, m_all)
         else:
             ref, src = refs[c], "given"
-        if not (np.isfinite(ref) and ref > 0):
+        if not (np.isfinite(ref) and ref > 1e-6):
             raise InputError("reference_modulation", ref, f"a positive target modulation (channel {names[c]})",
                              "Is this channel a Siemens star with the given --cycles?")
         ref_used.append(ref)
