@@ -350,8 +350,8 @@ def _limit(freq: np.ndarray, mtf: np.ndarray, ratio: np.ndarray, *, threshold: f
     below = np.nonzero(mc <= threshold)[0]
     if len(below):
         j = below[0]
-        if j == 0:
-            return cred, float(fc[0]), "mtf"
+        if j == 0:  # below the threshold already at the lowest measured frequency: nothing resolved
+            return cred, 0.0, "mtf"
         f0, f1, m0, m1 = fc[j - 1], fc[j], mc[j - 1], mc[j]
         return cred, float(f0 + (m0 - threshold) * (f1 - f0) / (m0 - m1)), "mtf"
     return cred, float(fc[-1]), why
