@@ -112,7 +112,7 @@ def _crop_window(shape, size: int) -> tuple[slice, slice]:
     return slice(top, top + ch), slice(left, left + cw)
 
 
-def crops(gt: np.ndarray, estimates: dict[str, np.ndarray], path: Path, *, title: str = "", crop: int = 96,
+def crops(gt: np.ndarray, estimates: dict[str, np.ndarray], path: Path, *, title: str = "", crop: int = 128,
           center_rowcol: tuple[float, float] | None = None) -> Path:
     """Ground truth and each method: intensity, DoLP and AoP (fig. 7 colour map) of one crop."""
     from capssim.polarization import dolp, stokes_from_12

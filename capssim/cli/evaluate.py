@@ -278,6 +278,7 @@ def bench(
     if check is not None:
         verdict = check_against_baseline(run, check)
     report = write_report(run, output, verdict=verdict, plots=not no_plots)
+    typer.echo(render_bench_summary(run))
     typer.echo(f"results: {run.results_path}")
     typer.echo(f"report:  {report}")
     if update_baseline is not None:
@@ -290,6 +291,32 @@ def bench(
     if run.n_errors:
         typer.echo(f"{run.n_errors} case(s) failed; see {run.results_path}", err=True)
         raise typer.Exit(1)
+
+
+def render_bench_summary(run) -> str:
+    """One compact table per scene / noise level (the full tables are in report.md)."""
+    from eval.report import group_records
+
+    lines = []
+    methods = [m["label"] for m in run.spec["methods"]]
+    for (scene, noise), recs in sorted(group_records(run.records).items()):
+        rows = []
+        for m in methods:
+            rs = [r for r in recs if r["method"] == m]
+            if not rs:
+                continue
+            mean = lambda k: (sum(r["metrics"][k] for r in rs if r["metrics"].get(k) is not None) /  # noqa: E731
+                              max(1, sum(r["metrics"].get(k) is not None for r in rs))
+                              if any(r["metrics"].get(k) is not None for r in rs) else None)
+            t = sum(r["wall_time_s"] for r in rs) / len(rs)
+            rows.append([m, _fmt(mean("psnr_mean")), _fmt(mean("ssim_mean"), 4), _fmt(mean("dolp_psnr")),
+                         _fmt(mean("aop_rmse_deg")), _fmt(mean("mtf_magnification_hv")), _fmt(t, 2)])
+        lines += ["", f"{scene} / {noise}:",
+                  format_table(["method", "PSNR", "SSIM", "DoLP", "AoP-RMSE", "SR-mag", "time-s"], rows)]
+    skipped = [r for r in run.records if r["status"] == "skipped"]
+    if skipped:
+        lines.append(f"\n{len(skipped)} case(s) skipped (reasons in report.md)")
+    return "\n".join(lines)
 
 
 def register(app: typer.Typer) -> None:
