@@ -547,6 +547,7 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
     factory = CaptureFactory(cache, emit)
     notes: list[str] = []
     records: list[dict] = []
+    announced: set[str] = set()
     n_total = len(plan_scenes) * len(spec["noise"]) * len(spec["seeds"]) * len(method_entries)
     emit("start", total=n_total)
 
@@ -614,7 +615,9 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
                         rec.update(status="skipped", skip_kind="method",
                                    reason=f"method {m['name']!r} is not registered (available: "
                                           f"{', '.join(registered) or 'none'})")
-                        emit("skip", message=f"skipped {key}: {rec['reason']}")
+                        if m["name"] not in announced:
+                            announced.add(m["name"])
+                            emit("skip", message=f"skipping every case of {m['label']}: {rec['reason']}")
                         records.append(rec)
                         flush()
                         emit("done")
