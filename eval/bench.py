@@ -725,11 +725,13 @@ class Verdict:
     new_cases: list[str]
     improvements: list[str]
     timings: list[str]
+    notes: list[str] = field(default_factory=list)
 
     def text(self) -> str:
         lines = [f"regression check: {'PASSED' if self.passed else 'FAILED'} "
                  f"({len(self.compared)} case(s) compared, {len(self.failures)} failure(s))"]
         lines += [f"  FAIL {f}" for f in self.failures]
+        lines += [f"  note: {n}" for n in self.notes]
         lines += [f"  not compared: {n}" for n in self.not_compared]
         lines += [f"  new (not in baseline): {n}" for n in self.new_cases]
         if self.improvements:
@@ -756,8 +758,14 @@ def check_against_baseline(run: BenchRun, baseline_path: str | Path) -> Verdict:
     tolerances = {**DEFAULT_TOLERANCES, **base.get("tolerances", {})}
     current = {r["key"]: r for r in run.records}
     failures, compared, not_compared, improvements, timings = [], [], [], [], []
+    notes = []
     if base.get("suite") != run.spec["name"]:
         failures.append(f"baseline is for suite {base.get('suite')!r}, this run is {run.spec['name']!r}")
+    elif base.get("suite_sha256") != run.spec.get("sha256"):
+        notes.append("the suite file changed since the baseline was written; only cases present in both are compared")
+    base_git = (base.get("environment") or {}).get("git", {}).get("revision")
+    if base_git:
+        notes.append(f"baseline written at git {base_git[:12]} on {base.get('created', '?')}")
     for key, stored in sorted(base.get("cases", {}).items()):
         rec = current.get(key)
         if rec is None:
@@ -796,4 +804,4 @@ def check_against_baseline(run: BenchRun, baseline_path: str | Path) -> Verdict:
     if not compared:
         failures.append("no case could be compared with the baseline (all skipped or missing)")
     return Verdict(passed=not failures, failures=failures, compared=compared, not_compared=not_compared,
-                   new_cases=new_cases, improvements=improvements, timings=timings)
+                   new_cases=new_cases, improvements=improvements, timings=timings, notes=notes)
