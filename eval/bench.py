@@ -3,7 +3,7 @@
 A suite (``eval/suites/NAME.yaml`` or any YAML path; README "Benchmarks") names:
 
 * ``scenes``: each ``{name, source, ...}`` with ``source`` one of
-  ``render`` (``capssim.render.render_capture``: ``scene``, ``size``, ``spp``),
+  ``render`` (``capssim.render.render_capture``: ``scene``, ``size``, ``spp``, ``scene_params``),
   ``shared-gt`` (a ground truth under ``../shared/data``: ``path``, ``crop``),
   ``gt`` (a ground-truth folder or 12-channel TIFF anywhere: ``path``, ``crop``),
   ``synthetic`` (:mod:`eval.synthetic`: ``generator``, ``size``, ``cycles``);
@@ -402,7 +402,7 @@ class CaptureFactory:
             if known and name not in known:
                 raise Unavailable(f"scene {name!r} is not one of the renderer's scenes ({', '.join(map(str, known))})")
         params = {"scene": name, "size": int(scene.get("size", 256)), "spp": scene.get("spp"), "seed": seed,
-                  "variant": scene.get("variant", "auto")}
+                  "variant": scene.get("variant", "auto"), "scene_params": scene.get("scene_params")}
         key = _sha({"render": params, "code": code_fingerprint("capssim/render", "scenes", "capssim/operators",
                                                                "capssim/simulate.py", "capssim/capture.py")})[:20]
         path = self.cache_dir / "renders" / key
@@ -413,9 +413,11 @@ class CaptureFactory:
                 log.warning("cached render %s is corrupt; re-rendering", path)
         self.events("note", message=f"rendering {name} at {params['size']} px (cached afterwards)")
         t0 = time.perf_counter()
+        extra = {"scene_params": scene["scene_params"]} if scene.get("scene_params") else {}
         try:
             clean = render.render_capture(name, size=params["size"], spp=params["spp"], seed=seed,
-                                          sensor=make_sensor("none"), variant=params["variant"], record_timing=True)
+                                          sensor=make_sensor("none"), variant=params["variant"], record_timing=True,
+                                          **extra)
         except ImportError as exc:
             raise Unavailable(f"rendering unavailable ({exc})") from None
         elapsed = time.perf_counter() - t0
@@ -633,6 +635,7 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
                                                           names=[str(c) for c in range(12)],
                                                           center_rowcol=star.get("center_rowcol"),
                                                           radius=star.get("radius_px"),
+                                                          reference_modulation=star.get("contrast"),
                                                           reference_pitch=SUB_IMAGE_PITCH_HR)
                                 except CapssimError as exc:  # the scene is scored, only without its MTF
                                     note = f"{used_scene['name']}: ground-truth MTF not measured ({exc})"

@@ -8,8 +8,10 @@ MTF / SR magnification of :mod:`eval.mtf`. Results go to ``CAPTURE/metrics.json`
 Star scenes: the geometry comes from ``meta["scene"]["star"]`` (``cycles``, optional
 ``center_rowcol`` and ``radius_px``, in HR = ground-truth pixels) when the renderer records
 it; a missing centre is found on the ground truth. Each method's MTF is normalized by the
-ground truth's own low-frequency modulation per channel (the target contrast), and the
-magnification is reported per Bayer sub-image pixel (``reference_pitch = 4`` HR pixels).
+target's modulation: the scene's known ``contrast`` when recorded (modulation of every
+channel: the intensity contrast of ``siemens-star``, the DoLP of ``polarization-star``), else
+the ground truth's own modulation extrapolated to f = 0 per channel. The magnification is
+reported per Bayer sub-image pixel (``reference_pitch = 4`` HR pixels).
 """
 
 from __future__ import annotations
@@ -42,9 +44,11 @@ def star_geometry(meta: dict) -> dict | None:
     for star in candidates:
         if isinstance(star, dict) and star.get("cycles"):
             centre = star.get("center_rowcol")
+            contrast = star.get("contrast")
             return {"cycles": int(star["cycles"]),
                     "center_rowcol": [float(v) for v in centre] if centre is not None else None,
-                    "radius_px": float(star["radius_px"]) if star.get("radius_px") else None}
+                    "radius_px": float(star["radius_px"]) if star.get("radius_px") else None,
+                    "contrast": float(contrast) if contrast else None}
     return None
 
 
@@ -65,7 +69,8 @@ def star_mtfs(gt12: np.ndarray, estimates: dict[str, np.ndarray], star: dict) ->
     """MTF of the ground truth and of each estimate; returns (gt summary, {name: summary or error})."""
     cycles = star["cycles"]
     gt_res = measure_star(gt12, cycles, names=list(CHANNEL_NAMES), center_rowcol=star.get("center_rowcol"),
-                          radius=star.get("radius_px"), reference_pitch=SUB_IMAGE_PITCH_HR)
+                          radius=star.get("radius_px"), reference_modulation=star.get("contrast"),
+                          reference_pitch=SUB_IMAGE_PITCH_HR)
     head = gt_res.results["mean"]
     centre, radius = head.center_rowcol, head.radius_px
     refs = [gt_res.results[n].reference_modulation for n in CHANNEL_NAMES]

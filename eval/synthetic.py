@@ -96,7 +96,8 @@ def star_scene(size: int = 128, *, cycles: int = 36, polarization: bool = False)
         d, a = 0.3, np.deg2rad(30.0)
         stokes = np.stack([s0, s0 * d * np.cos(2 * a), s0 * d * np.sin(2 * a)])
     gt = twelve_from_stokes(stokes)
-    star = {"cycles": int(cycles), "center_rowcol": [float(centre[0]), float(centre[1])], "radius_px": float(radius)}
+    star = {"cycles": int(cycles), "center_rowcol": [float(centre[0]), float(centre[1])], "radius_px": float(radius),
+            "contrast": 0.8 if polarization else 0.9}  # the modulation of every channel
     return np.clip(gt, 0.0, 1.0).astype(np.float32), {"generator": "polarization-star" if polarization else "star",
                                                       "star": star}
 
