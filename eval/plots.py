@@ -128,7 +128,7 @@ def crops(gt: np.ndarray, estimates: dict[str, np.ndarray], path: Path, *, title
     else:
         win = _crop_window(gt.shape[1:], crop)
     s_gt = stokes_from_12(gt.astype(np.float64))
-    white = float(np.percentile(s_gt[0] / 2, 99.5)) or 1.0
+    white = 1.2 * float(np.percentile(s_gt[0] / 2, 99.5)) or 1.0  # headroom: overshoots stay visible
     lum = s_gt.sum(axis=1)
     dmax = float(np.clip(np.percentile(dolp(lum, min_s0=1e-3), 99), 0.1, 1.0))
     rows = [("ground truth", gt)] + list(estimates.items())
