@@ -408,7 +408,8 @@ class CaptureFactory:
         path = self.cache_dir / "renders" / key
         if (path / "meta.json").is_file():
             try:
-                return read_capture(path, require_gt=True), {"render": params, "render_cached": True}
+                clean = read_capture(path, require_gt=True)
+                return clean, {"render": params, "render_cached": True, "render_variant": _variant_of(clean)}
             except CapssimError:
                 log.warning("cached render %s is corrupt; re-rendering", path)
         self.events("note", message=f"rendering {name} at {params['size']} px (cached afterwards)")
@@ -424,7 +425,8 @@ class CaptureFactory:
         if clean.gt is None:
             raise CapssimError(f"render of {name!r} returned no ground truth")
         write_capture(path, clean, overwrite=path.exists())
-        return clean, {"render": params, "render_cached": False, "render_time_s": elapsed}
+        return clean, {"render": params, "render_cached": False, "render_time_s": elapsed,
+                       "render_variant": _variant_of(clean)}
 
 
 def expand_render_scenes(scenes: list[dict], emit: Callable[..., None]) -> list[dict]:
@@ -447,6 +449,12 @@ def expand_render_scenes(scenes: list[dict], emit: Callable[..., None]) -> list[
         for name in names:
             out.append(dict(sc, name=f"{prefix}{name}", scene=name))
     return out
+
+
+def _variant_of(capture) -> str | None:
+    """The Mitsuba variant a render used (recorded by capssim.render in meta["render"])."""
+    variant = (capture.meta.get("render") or {}).get("variant")
+    return variant.get("variant") if isinstance(variant, dict) else variant
 
 
 # -- the run -------------------------------------------------------------------------------------
