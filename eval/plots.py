@@ -190,7 +190,7 @@ def mtf_curves(gt_mtf: dict | None, method_mtfs: dict[str, dict], path: Path, *,
         ax.set_xlabel("frequency (cycles per Bayer sub-image pixel = 4 HR px)")
         ax.set_title(f"{'horizontal/vertical' if group == 'hv' else 'diagonal'} segments", fontsize=10)
         ax.grid(True, alpha=0.25)
-        ax.legend(fontsize=7, loc="upper right")
+        ax.legend(fontsize=7, loc="center right")
     axes[0].set_ylabel("MTF (mean of 12 channels)")
     fig.suptitle(f"{title}: SR magnification = limit / 0.5; dotted = not credited (aliasing/noise/Nyquist)",
                  fontsize=10)
