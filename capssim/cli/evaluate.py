@@ -1,0 +1,325 @@
+"""``capssim evaluate``, ``capssim mtf`` and ``capssim bench``: scoring from the command line."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def _fmt(value, digits: int = 2) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            return str(value)
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def format_table(headers: list[str], rows: list[list], *, align_first_left: bool = True) -> str:
+    """Plain aligned text table (readable in CI logs and pipes)."""
+    cells = [[str(h) for h in headers]] + [[str(c) for c in r] for r in rows]
+    widths = [max(len(r[i]) for r in cells) for i in range(len(headers))]
+    lines = []
+    for j, r in enumerate(cells):
+        parts = [(r[i].ljust(widths[i]) if (i == 0 and align_first_left) else r[i].rjust(widths[i]))
+                 for i in range(len(r))]
+        lines.append("  ".join(parts))
+        if j == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+# -- evaluate ------------------------------------------------------------------------------------
+def evaluate(
+    capture: Path = typer.Argument(..., help="Capture folder with gt.tiff and recon/*.tiff."),
+    convention: str = typer.Option("capssim", "--convention",
+                                   help="Metric definitions: capssim | tokyotech | qiu (README 'Metrics')."),
+    methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated reconstructions to score (default: all)."),
+    min_s0: Optional[float] = typer.Option(None, "--min-s0", help="AoP mask / DoLP guard: GT S0 above this (S0 in [0,2])."),
+    min_dolp: Optional[float] = typer.Option(None, "--min-dolp", help="AoP mask: GT DoLP above this."),
+    border: Optional[int] = typer.Option(None, "--border", help="Border crop in pixels (default: the convention's)."),
+    lpips_weights: Optional[Path] = typer.Option(None, "--lpips-weights",
+                                                 help="Local LPIPS-Alex weights (file or folder); never downloaded."),
+    no_mtf: bool = typer.Option(False, "--no-mtf", help="Skip the Siemens-star MTF of star scenes."),
+    as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON instead of tables."),
+) -> None:
+    """Score every reconstruction of a capture against its ground truth; write CAPTURE/metrics.json."""
+    from eval.evaluate import evaluate_capture
+
+    lpips = None
+    if lpips_weights is not None:
+        from eval.lpips import LPIPS
+
+        lpips = LPIPS.from_path(lpips_weights)
+    wanted = [m.strip() for m in methods.split(",") if m.strip()] if methods else None
+    result = evaluate_capture(capture, convention=convention, methods=wanted, min_s0=min_s0, min_dolp=min_dolp,
+                              border=border, lpips=lpips, with_mtf=not no_mtf)
+    if as_json:
+        typer.echo(json.dumps(result, indent=2, default=float))
+    else:
+        typer.echo(render_evaluation(result, lpips_used=lpips is not None))
+        typer.echo(f"wrote {Path(capture) / 'metrics.json'}")
+    if any("error" in e for e in result["methods"].values()):
+        raise typer.Exit(1)
+
+
+def render_evaluation(result: dict, *, lpips_used: bool) -> str:
+    from capssim.conventions import CHANNEL_NAMES
+
+    out = [f"capture: {result['capture']}",
+           f"convention: {result['convention']} ({result['convention_description']})"]
+    rows, ch_psnr, ch_ssim = [], [], []
+    for name, e in result["methods"].items():
+        if "error" in e:
+            rows.append([name, f"ERROR: {e['error']}"] + [""] * 10)
+            continue
+        m = e["metrics"]
+        rows.append([name, _fmt(m["psnr_mean"]), _fmt(m["ssim_mean"], 4), _fmt(m["s0_psnr"]), _fmt(m["s1_psnr"]),
+                     _fmt(m["s2_psnr"]), _fmt(m["dolp_psnr"]), _fmt(m["dolp_ssim"], 4), _fmt(m["aop_rmse_deg"]),
+                     _fmt(m["aop_mae_deg"]), _fmt(m.get("lpips_mean"), 4), _fmt(e.get("wall_time_s"), 2)])
+        ch_psnr.append([name] + [_fmt(m["psnr"][c]) for c in CHANNEL_NAMES] + [_fmt(m["psnr_mean"])])
+        ch_ssim.append([name] + [_fmt(m["ssim"][c], 3) for c in CHANNEL_NAMES] + [_fmt(m["ssim_mean"], 3)])
+    out.append("")
+    out.append(format_table(["method", "PSNR", "SSIM", "S0", "S1", "S2", "DoLP", "DoLP-SSIM", "AoP-RMSE",
+                             "AoP-MAE", "LPIPS", "time-s"], rows))
+    if ch_psnr:
+        out += ["", "PSNR per channel (dB, data range 1):",
+                format_table(["method", *CHANNEL_NAMES, "mean"], ch_psnr), "",
+                "SSIM per channel (data range 1, Gaussian window sigma 1.5):",
+                format_table(["method", *CHANNEL_NAMES, "mean"], ch_ssim)]
+    s = result.get("settings")
+    if s:
+        out += ["", f"units: PSNR dB; AoP degrees (wrap-aware, per colour, pooled); border crop {s['border']} px; "
+                    f"DoLP per colour, clipped to [0, 1], 0 where S0 <= {s['min_s0']}.",
+                f"AoP mask: ground-truth S0 > {s['min_s0']} and DoLP > {s['min_dolp']} "
+                f"(None = no mask); S0 = (I0+I45+I90+I135)/2 on [0, 2]."]
+        fractions = {n: e["metrics"]["aop_fraction"] for n, e in result["methods"].items() if "metrics" in e}
+        if fractions:
+            out.append(f"AoP scored on {100 * next(iter(fractions.values())):.1f}% of colour-pixels.")
+        notes = {note for e in result["methods"].values() if "metrics" in e for note in e["metrics"]["notes"]}
+        out += [f"note: {n}" for n in sorted(notes)]
+    if not lpips_used:
+        out.append("LPIPS: skipped (no --lpips-weights given; capssim never downloads network weights).")
+    if "gt_mtf" in result:
+        star = result["star"]
+        rows = []
+        g = result["gt_mtf"]["mean"]
+        rows.append(["(ground truth)", _fmt(g["limit_cyc_per_ref_px"]["hv"], 3), _fmt(g["magnification"]["hv"], 3),
+                     _fmt(g["limit_cyc_per_ref_px"]["diagonal"], 3), _fmt(g["magnification"]["diagonal"], 3),
+                     g["limited_by"]["hv"]])
+        for name, e in result["methods"].items():
+            mt = e.get("mtf")
+            if not mt:
+                continue
+            if "error" in mt:
+                rows.append([name, f"ERROR: {mt['error']}", "", "", "", ""])
+                continue
+            mm = mt["mean"]
+            rows.append([name, _fmt(mm["limit_cyc_per_ref_px"]["hv"], 3), _fmt(mm["magnification"]["hv"], 3),
+                         _fmt(mm["limit_cyc_per_ref_px"]["diagonal"], 3), _fmt(mm["magnification"]["diagonal"], 3),
+                         mm["limited_by"]["hv"]])
+        out += ["", f"Siemens star ({star['cycles']} cycles): limit resolution in cycles per Bayer sub-image pixel "
+                    f"(4 HR px), channel-mean MTF = 0.03; SR magnification = limit / 0.5",
+                format_table(["method", "limit-hv", "mag-hv", "limit-diag", "mag-diag", "limited-by"], rows)]
+    if "mtf_error" in result:
+        out.append(f"MTF not measured: {result['mtf_error']}")
+    return "\n".join(out)
+
+
+# -- mtf -----------------------------------------------------------------------------------------
+def _read_star_image(path: Path):
+    """``(C, H, W)`` float64 and channel names from a grey, RGB or 12-channel image."""
+    import numpy as np
+
+    from capssim.conventions import CHANNEL_NAMES
+    from capssim.errors import InputError
+    from capssim.imageio import read_image
+
+    arr, bits = read_image(path, argument="image")
+    arr = arr.astype(np.float64) / (2 ** bits - 1) if bits else arr.astype(np.float64)
+    if arr.ndim == 2:
+        return arr[None], ["grey"]
+    if arr.ndim == 3 and arr.shape[0] == 12:
+        return arr, list(CHANNEL_NAMES)
+    if arr.ndim == 3 and arr.shape[2] == 12:
+        return np.moveaxis(arr, 2, 0), list(CHANNEL_NAMES)
+    if arr.ndim == 3 and arr.shape[2] in (3, 4):
+        return np.moveaxis(arr[..., :3], 2, 0), ["R", "G", "B"]
+    if arr.ndim == 3 and arr.shape[0] == 3:
+        return arr, ["R", "G", "B"]
+    raise InputError("image", f"{path} with shape {arr.shape}", "a grey, RGB or 12-channel image")
+
+
+def mtf(
+    image: Path = typer.Argument(..., help="Star image: PNG/TIFF, grey, RGB or 12-channel (capssim output)."),
+    cycles: int = typer.Option(..., "--cycles", help="Sinusoidal periods of the star per turn."),
+    center: Optional[str] = typer.Option(None, "--center", help="Star centre ROW,COL in pixels (default: found)."),
+    radius: Optional[float] = typer.Option(None, "--radius", help="Star radius in pixels (default: found)."),
+    reference_pitch: Optional[float] = typer.Option(
+        None, "--reference-pitch",
+        help="Pixels of this image per reference pixel for the magnification (default 1; 4 for a 12-channel image)."),
+    channel: Optional[str] = typer.Option(None, "--channel", help="Comma-separated channel names or indices (default: all)."),
+    modulation: Optional[float] = typer.Option(None, "--modulation",
+                                               help="The target's true modulation (default: extrapolated to f=0)."),
+    threshold: float = typer.Option(0.03, "--threshold", help="MTF at the limit resolution (paper: 0.03)."),
+    residual_limit: float = typer.Option(0.5, "--residual-limit",
+                                         help="Stop where residual RMS / sinusoid RMS reaches this."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
+) -> None:
+    """MTF of a sinusoidal Siemens star per segment direction, limit resolution and SR magnification."""
+    from capssim.errors import InputError
+    from eval.mtf import measure_star
+
+    imgs, names = _read_star_image(image)
+    is_twelve = len(names) == 12
+    centre = None
+    if center:
+        try:
+            centre = tuple(float(v) for v in center.split(","))
+            assert len(centre) == 2
+        except (ValueError, AssertionError):
+            raise InputError("--center", center, "ROW,COL in pixels, e.g. 255.5,255.5") from None
+    if channel:
+        picked = []
+        for token in (t.strip() for t in channel.split(",") if t.strip()):
+            if token in names:
+                picked.append(names.index(token))
+            elif token.isdigit() and int(token) < len(names):
+                picked.append(int(token))
+            else:
+                raise InputError("--channel", token, f"one of {', '.join(names)} or an index < {len(names)}")
+        imgs, names = imgs[picked], [names[i] for i in picked]
+    pitch = reference_pitch if reference_pitch is not None else (4.0 if is_twelve else 1.0)
+    res = measure_star(imgs, cycles, names=names, center_rowcol=centre, radius=radius, reference_modulation=modulation,
+                       reference_pitch=pitch, threshold=threshold, residual_limit=residual_limit).results
+    if as_json:
+        typer.echo(json.dumps({"image": str(image), "channels": {k: v.to_dict() for k, v in res.items()}}, indent=2))
+        return
+    head = res["mean"] if "mean" in res else res[names[0]]
+    lines = [f"image: {image} ({len(names)} channel{'s' if len(names) > 1 else ''}: {', '.join(names)})",
+             f"star: {cycles} cycles, centre row {head.center_rowcol[0]:.2f} col {head.center_rowcol[1]:.2f}"
+             f"{' (given)' if centre else ' (found)'}, radius {head.radius_px:.1f} px",
+             f"reference pitch: {pitch:g} px of this image"
+             + (" (default for a 12-channel capssim image: one Bayer sub-image pixel = 4 HR px)"
+                if reference_pitch is None and pitch == 4.0 else ""),
+             f"frequencies: cycles/px of this image (f) and cycles per reference pixel (f_ref = f x {pitch:g})", ""]
+    label = "channel mean" if "mean" in res else names[0]
+    rows = []
+    for i, f in enumerate(head.frequency):
+        flags = "".join("*" if not head.credited[g][i] else " " for g in ("hv", "diagonal"))
+        rows.append([f"{f:.4f}", f"{f * pitch:.3f}", _fmt(float(head.mtf["hv"][i]), 3),
+                     _fmt(float(head.mtf["diagonal"][i]), 3), _fmt(float(head.residual_ratio["hv"][i]), 3),
+                     _fmt(float(head.residual_ratio["diagonal"][i]), 3), flags])
+    lines.append(f"MTF per segment direction ({label}); hv = segments centred on 0/90/180/270 deg, "
+                 f"diagonal = 45/135/225/315 deg; '*' = not credited (beyond a stop):")
+    lines.append(format_table(["f", "f_ref", "MTF-hv", "MTF-diag", "resid-hv", "resid-diag", "hv/diag"], rows))
+    lines.append("")
+    summary = []
+    for name, r in res.items():
+        summary.append([name, f"{r.limit['hv']:.4f}", f"{r.limit['hv'] * pitch:.3f}", f"{r.magnification('hv'):.3f}",
+                        r.limited_by["hv"], f"{r.limit['diagonal']:.4f}", f"{r.limit['diagonal'] * pitch:.3f}",
+                        f"{r.magnification('diagonal'):.3f}", r.limited_by["diagonal"]])
+    lines.append(f"limit resolution (MTF = {threshold}) and SR magnification = limit (cycles/reference px) / 0.5:")
+    lines.append(format_table(["channel", "limit-hv", "ref-hv", "mag-hv", "by", "limit-diag", "ref-diag", "mag-diag",
+                               "by"], summary))
+    lines.append(f"reference modulation: {head.reference_source}; the measurement never credits frequencies above "
+                 "0.5 cycles/px of this grid and stops where the fit residual reaches "
+                 f"{residual_limit} x the sinusoid (aliasing or noise).")
+    typer.echo("\n".join(lines))
+
+
+# -- bench ---------------------------------------------------------------------------------------
+def bench(
+    suite: str = typer.Option(..., "--suite", help="Suite name (eval/suites/NAME.yaml: quick, paper, full) or a YAML path."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
+    check: Optional[Path] = typer.Option(None, "--check", help="Baseline JSON: exit 1 if a metric fell beyond tolerance."),
+    update_baseline: Optional[Path] = typer.Option(None, "--update-baseline", help="Write this run's metrics as the baseline."),
+    methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated subset of the suite's methods."),
+    scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated subset of the suite's scenes."),
+    device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/cache)."),
+    fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
+    no_plots: bool = typer.Option(False, "--no-plots", help="Skip the plots (report and results only)."),
+) -> None:
+    """Run a benchmark suite: scenes x methods x noise levels (x seeds); results.jsonl, report.md, plots."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from eval.bench import check_against_baseline, load_suite, run_suite, write_baseline
+    from eval.report import write_report
+
+    spec = load_suite(suite)
+    pick = lambda s: [t.strip() for t in s.split(",") if t.strip()] if s else None  # noqa: E731
+    console = Console(stderr=True)
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.fields[case]}"), console=console, transient=False) as progress:
+        task = progress.add_task(f"bench {spec['name']}", total=None, case="")
+
+        def on_event(kind: str, **info):
+            if kind == "start":
+                progress.update(task, total=info["total"])
+            elif kind == "case":
+                progress.update(task, case=info["label"])
+            elif kind == "done":
+                progress.advance(task)
+            elif kind in ("skip", "note"):
+                progress.console.print(f"[yellow]{info['message']}")
+            elif kind == "error":
+                progress.console.print(f"[red]{info['message']}")
+
+        run = run_suite(spec, output, methods=pick(methods), scenes=pick(scenes), device=device, cache_dir=cache,
+                        fresh=fresh, events=on_event)
+    verdict = None
+    if check is not None:
+        verdict = check_against_baseline(run, check)
+    report = write_report(run, output, verdict=verdict, plots=not no_plots)
+    typer.echo(render_bench_summary(run))
+    typer.echo(f"results: {run.results_path}")
+    typer.echo(f"report:  {report}")
+    if update_baseline is not None:
+        n = write_baseline(run, update_baseline)
+        typer.echo(f"wrote baseline {update_baseline} ({n} cases)")
+    if verdict is not None:
+        typer.echo(verdict.text())
+        if not verdict.passed:
+            raise typer.Exit(1)
+    if run.n_errors:
+        typer.echo(f"{run.n_errors} case(s) failed; see {run.results_path}", err=True)
+        raise typer.Exit(1)
+
+
+def render_bench_summary(run) -> str:
+    """One compact table per scene / noise level (the full tables are in report.md)."""
+    from eval.report import group_records
+
+    lines = []
+    methods = [m["label"] for m in run.spec["methods"]]
+    for (scene, noise), recs in sorted(group_records(run.records).items()):
+        rows = []
+        for m in methods:
+            rs = [r for r in recs if r["method"] == m]
+            if not rs:
+                continue
+            mean = lambda k: (sum(r["metrics"][k] for r in rs if r["metrics"].get(k) is not None) /  # noqa: E731
+                              max(1, sum(r["metrics"].get(k) is not None for r in rs))
+                              if any(r["metrics"].get(k) is not None for r in rs) else None)
+            t = sum(r["wall_time_s"] for r in rs) / len(rs)
+            rows.append([m, _fmt(mean("psnr_mean")), _fmt(mean("ssim_mean"), 4), _fmt(mean("dolp_psnr")),
+                         _fmt(mean("aop_rmse_deg")), _fmt(mean("mtf_magnification_hv")), _fmt(t, 2)])
+        lines += ["", f"{scene} / {noise}:",
+                  format_table(["method", "PSNR", "SSIM", "DoLP", "AoP-RMSE", "SR-mag", "time-s"], rows)]
+    skipped = [r for r in run.records if r["status"] == "skipped"]
+    if skipped:
+        lines.append(f"\n{len(skipped)} case(s) skipped (reasons in report.md)")
+    return "\n".join(lines)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("evaluate")(evaluate)
+    app.command("mtf")(mtf)
+    app.command("bench")(bench)

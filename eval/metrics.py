@@ -1,0 +1,345 @@
+"""Full-reference metrics of a 12-channel estimate against its ground truth.
+
+One entry point, :func:`score`, under three conventions (README "Metrics"):
+
+``capssim`` (default)
+    * border crop of 8 HR pixels on every side (simulated apertures 1-3 replicate the
+      ground-truth border over ~2 HR px, plus the PSF support and block-matching margins);
+    * PSNR and SSIM of each of the 12 intensity channels on [0, 1] (``data_range = 1``),
+      and their means; CPSNR (pooled MSE over R, G, B) per polarizer angle;
+    * Stokes per colour with the project's convention ``S0 = (I0+I45+I90+I135)/2`` in
+      [0, 2], ``S1 = I0 - I90`` and ``S2 = I45 - I135`` in [-1, 1]; S0/S1/S2 PSNR pooled
+      over R, G, B with ``data_range = 2`` (identical to scoring ``S0/2`` and ``(S+1)/2``
+      with peak 1);
+    * DoLP per colour ``sqrt(S1^2+S2^2)/S0`` clipped to [0, 1], 0 where ``S0 <= min_s0``;
+      DoLP PSNR pooled over R, G, B (``data_range = 1``); DoLP SSIM = mean of the three
+      per-colour SSIMs;
+    * AoP per colour ``0.5 atan2(S2, S1)`` in [0, 180) deg; wrap-aware error in
+      [-90, 90) deg; RMSE and MAE pooled over R, G, B at the pixels where the *ground
+      truth* has ``S0 > min_s0`` (default 0.02, i.e. a mean intensity of 1 % of full
+      scale) and ``DoLP > min_dolp`` (default 0.05). The mask depends on the ground truth
+      only, so an estimate cannot shrink it. ``aop_psnr`` = 20 log10(180 / RMSE).
+
+``tokyotech`` (Morimatsu et al. 2020, EARI; their published MATLAB evaluation)
+    * border crop of 15 pixels with their indexing (rows ``15..H-15`` 1-based, i.e.
+      ``14`` rows removed at the top/left and ``15`` at the bottom/right);
+    * CPSNR over R, G, B per polarizer angle with peak 1;
+    * S0 = mean of the four angles (peak 1); S1, S2 scored as ``(S + 1) / 2`` (peak 1);
+    * DoLP clipped to [0, 1], peak 1 (0 where S0 <= 0);
+    * AoP RMSE in degrees, wrap-aware, pooled over R, G, B, over *all* pixels (no mask).
+
+``qiu`` (Qiu et al. 2021, KAUST dataset)
+    * no border crop; otherwise as ``tokyotech``, and AoP also reported as PSNR
+      ``20 log10(180 / RMSE_deg)``. (Their noise protocol, sigma 2/255 on the mosaic and
+      8-bit quantization, belongs to the simulation, not to the metric.)
+
+Well-defined results on hard inputs (each pinned by a test):
+
+* identical images (MSE = 0, e.g. both all dark): PSNR is capped at :data:`PSNR_CAP_DB`;
+* constant images: SSIM is computed with the explicit data range, so its stabilizing
+  constants keep it finite (1 for equal constants, < 1 otherwise);
+* AoP undefined everywhere (no ground-truth pixel passes the mask, e.g. DoLP = 0 or an
+  all-dark scene): the AoP metrics are ``None`` and ``notes`` says why;
+* NaN/inf in either image, mismatched shapes, integer dtypes, images too small for the
+  border crop and SSIM window: :class:`~capssim.errors.InputError`.
+
+PSNR and SSIM come from ``skimage.metrics`` with an explicit ``data_range``; SSIM uses the
+Wang et al. (2004) settings: Gaussian window sigma 1.5 (11 x 11), K1 = 0.01, K2 = 0.03,
+population covariance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from capssim.conventions import CHANNEL_NAMES, COLOURS, N_CHANNELS, POLARIZER_ANGLES_DEG
+from capssim.errors import InputError, UnknownNameError
+from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
+
+#: PSNR reported for identical images (zero MSE), in dB.
+PSNR_CAP_DB = 100.0
+#: Gaussian SSIM window (Wang et al. 2004): sigma 1.5 -> an 11 x 11 window.
+SSIM_SIGMA = 1.5
+SSIM_MIN_SIDE = 11
+
+
+@dataclass(frozen=True)
+class Convention:
+    """How a published protocol crops, scales and masks (see the module docstring)."""
+
+    name: str
+    border: int
+    matlab_crop: bool  # crop rows b..H-b (1-based, inclusive) as imcpsnr(X, Y, peak, b) does
+    stokes_scale: str  # "capssim": S0 in [0,2], S1/S2 in [-1,1], data_range 2; "unit": S0/2, (S+1)/2, peak 1
+    min_s0: float | None  # AoP/DoLP mask on the ground truth's S0 (None: no mask)
+    min_dolp: float | None  # AoP mask on the ground truth's DoLP (None: no mask)
+    description: str
+
+
+CONVENTIONS: dict[str, Convention] = {
+    "capssim": Convention("capssim", 8, False, "capssim", 0.02, 0.05,
+                          "8 px border; S0=(I0+I45+I90+I135)/2; AoP over GT pixels with S0>0.02 and DoLP>0.05"),
+    "tokyotech": Convention("tokyotech", 15, True, "unit", None, None,
+                            "Tokyo Tech / EARI: 15 px border; CPSNR peak 1; S0=mean of 4; (S+1)/2; AoP RMSE all pixels"),
+    "qiu": Convention("qiu", 0, False, "unit", None, None,
+                      "Qiu et al.: no crop; as tokyotech otherwise; AoP PSNR = 20 log10(180/RMSE)"),
+}
+
+#: Every scalar metric :func:`flatten` produces: (direction, unit, definition). ``+1`` means
+#: higher is better, ``-1`` lower is better. The README metric table is generated from it.
+METRIC_SPECS: dict[str, tuple[int, str, str]] = {
+    "psnr_mean": (+1, "dB", "mean over the 12 channels of PSNR(channel), data_range 1"),
+    "ssim_mean": (+1, "", "mean over the 12 channels of SSIM(channel), data_range 1"),
+    "psnr.<channel>": (+1, "dB", "PSNR of one channel (0-R ... 135-B), data_range 1"),
+    "ssim.<channel>": (+1, "", "SSIM of one channel, data_range 1, Gaussian window sigma 1.5"),
+    "cpsnr.<angle>": (+1, "dB", "CPSNR: PSNR of the MSE pooled over R, G, B at one polarizer angle, peak 1"),
+    "s0_psnr": (+1, "dB", "PSNR of S0 pooled over R, G, B (S0 in [0,2], range 2 == S0/2 with peak 1)"),
+    "s1_psnr": (+1, "dB", "PSNR of S1 = I0 - I90 pooled over R, G, B (range 2 == (S1+1)/2 with peak 1)"),
+    "s2_psnr": (+1, "dB", "PSNR of S2 = I45 - I135 pooled over R, G, B (range 2 == (S2+1)/2 with peak 1)"),
+    "dolp_psnr": (+1, "dB", "PSNR of per-colour DoLP in [0,1] pooled over R, G, B, data_range 1"),
+    "dolp_psnr_per_colour.<colour>": (+1, "dB", "PSNR of the DoLP of one colour, data_range 1"),
+    "dolp_ssim": (+1, "", "mean over R, G, B of SSIM(DoLP), data_range 1"),
+    "aop_rmse_deg": (-1, "deg", "RMSE of the wrap-aware AoP difference in [-90, 90), per colour, pooled, masked"),
+    "aop_mae_deg": (-1, "deg", "mean |wrap-aware AoP difference|, per colour, pooled, masked"),
+    "aop_psnr": (+1, "dB", "20 log10(180 / aop_rmse_deg) (Qiu et al.)"),
+    "aop_fraction": (0, "", "fraction of colour-pixels inside the AoP mask (not a quality metric)"),
+    "lpips.<angle>": (-1, "", "LPIPS (AlexNet) of the RGB image at one polarizer angle; user-supplied weights"),
+    "lpips_mean": (-1, "", "mean of lpips.<angle> over the four angles (paper Table 1)"),
+}
+
+
+def get_convention(convention: str | Convention) -> Convention:
+    if isinstance(convention, Convention):
+        return convention
+    key = str(convention).lower()
+    if key not in CONVENTIONS:
+        raise UnknownNameError("metric convention", str(convention), list(CONVENTIONS))
+    return CONVENTIONS[key]
+
+
+def metric_direction(name: str) -> int:
+    """+1 when higher is better, -1 when lower is better, 0 when not a quality metric."""
+    if name in METRIC_SPECS:
+        return METRIC_SPECS[name][0]
+    head = name.split(".", 1)[0]
+    for key, spec in METRIC_SPECS.items():
+        if "." in key and key.split(".", 1)[0] == head:
+            return spec[0]
+    if head.startswith("mtf") or head.endswith("magnification") or head.endswith("limit_resolution"):
+        return +1
+    if "time" in head or head.endswith("_s") or "memory" in head:
+        return -1
+    return 0
+
+
+# -- input checks ---------------------------------------------------------------------------
+def _as_float_array(x, argument: str) -> np.ndarray:
+    if hasattr(x, "detach"):  # torch tensor
+        x = x.detach().cpu().numpy()
+    arr = np.asarray(x)
+    if not (np.issubdtype(arr.dtype, np.floating)):
+        raise InputError(argument, f"dtype {arr.dtype}", "a float array on [0, 1] full scale",
+                         "Convert integer images with capssim.imageio.read_gt_scene or divide by the white level.")
+    return arr.astype(np.float64, copy=False)
+
+
+def check_pair(estimate12, gt12) -> tuple[np.ndarray, np.ndarray]:
+    """Validate and return ``(estimate, gt)`` as float64 ``(12, H, W)`` arrays."""
+    est = _as_float_array(estimate12, "estimate")
+    gt = _as_float_array(gt12, "gt")
+    for name, arr in (("gt", gt), ("estimate", est)):
+        if arr.ndim != 3 or arr.shape[0] != N_CHANNELS:
+            raise InputError(name, f"shape {arr.shape}", "a (12, H, W) array (channel c = 3*p + k)")
+    if est.shape != gt.shape:
+        raise InputError("estimate", f"shape {est.shape}", f"the ground-truth shape {gt.shape}",
+                         "Score a reconstruction on the ground-truth grid (2H x 2W).")
+    for name, arr in (("gt", gt), ("estimate", est)):
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            chans = sorted({CHANNEL_NAMES[c] for c in np.nonzero(bad.any(axis=(1, 2)))[0]})
+            raise InputError(name, f"{int(bad.sum())} NaN/inf values (channels {', '.join(chans)})",
+                             "finite values", "Metrics of a non-finite image are undefined; fix the method or input.")
+    return est, gt
+
+
+def crop_border(image: np.ndarray, border: int, *, matlab: bool = False) -> np.ndarray:
+    """Drop ``border`` pixels on each side of the last two axes.
+
+    ``matlab=True`` reproduces ``X(b:end-b, b:end-b)`` (1-based): ``b-1`` rows/cols are
+    removed at the start and ``b`` at the end.
+    """
+    if border <= 0:
+        return image
+    h, w = image.shape[-2:]
+    start = border - 1 if matlab else border
+    return image[..., start:h - border, start:w - border]
+
+
+def _check_size(gt: np.ndarray, conv: Convention, border: int) -> None:
+    h, w = gt.shape[-2:]
+    hc = h - 2 * border + (1 if conv.matlab_crop and border > 0 else 0)
+    wc = w - 2 * border + (1 if conv.matlab_crop and border > 0 else 0)
+    if min(hc, wc) < SSIM_MIN_SIDE:
+        raise InputError("gt", f"size {h}x{w} with a {border}-pixel border crop ({conv.name} convention)",
+                         f"at least {SSIM_MIN_SIDE}x{SSIM_MIN_SIDE} pixels left after the crop (SSIM window)",
+                         "Use a larger image or pass border=0 (--border 0).")
+
+
+# -- primitive metrics ----------------------------------------------------------------------
+def psnr(estimate: np.ndarray, reference: np.ndarray, *, data_range: float) -> float:
+    """skimage PSNR with an explicit ``data_range``; zero MSE gives :data:`PSNR_CAP_DB`."""
+    from skimage.metrics import peak_signal_noise_ratio
+
+    mse = float(np.mean((np.asarray(estimate, np.float64) - reference) ** 2))
+    if mse <= (data_range ** 2) * 10 ** (-PSNR_CAP_DB / 10):
+        return PSNR_CAP_DB
+    return float(peak_signal_noise_ratio(reference, estimate, data_range=data_range))
+
+
+def ssim(estimate: np.ndarray, reference: np.ndarray, *, data_range: float) -> float:
+    """skimage SSIM of one 2-D image, Gaussian window sigma 1.5, explicit ``data_range``."""
+    from skimage.metrics import structural_similarity
+
+    return float(structural_similarity(reference, estimate, data_range=data_range, gaussian_weights=True,
+                                       sigma=SSIM_SIGMA, use_sample_covariance=False))
+
+
+def _stokes_scaled(stokes: np.ndarray, scale: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """``(S0, S1, S2, data_range)`` in the convention's scaling (each ``(3, H, W)``)."""
+    if scale == "capssim":
+        return stokes[0], stokes[1], stokes[2], 2.0
+    return stokes[0] / 2.0, (stokes[1] + 1.0) / 2.0, (stokes[2] + 1.0) / 2.0, 1.0
+
+
+# -- the entry point ------------------------------------------------------------------------
+def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0: float | None = None,
+          min_dolp: float | None = None, border: int | None = None, with_ssim: bool = True,
+          lpips=None) -> dict[str, Any]:
+    """Score a ``(12, H, W)`` estimate against its ``(12, H, W)`` ground truth on [0, 1].
+
+    Parameters
+    ----------
+    estimate12, gt12
+        Float arrays (or torch tensors), channel ``c = 3*p + k``.
+    convention
+        ``"capssim"`` (default), ``"tokyotech"`` or ``"qiu"`` (module docstring).
+    min_s0, min_dolp
+        AoP mask thresholds on the ground truth's S0 (capssim scale, [0, 2]) and DoLP;
+        default: the convention's (capssim 0.02 and 0.05; tokyotech/qiu: no mask).
+        ``min_s0`` is also the dark guard of the DoLP maps (DoLP = 0 there).
+    border
+        Pixels cropped on each side; default: the convention's.
+    with_ssim
+        Skip the SSIMs (faster) when False.
+    lpips
+        An :class:`eval.lpips.LPIPS` model (user-supplied weights) or None.
+
+    Returns
+    -------
+    dict
+        ``psnr`` / ``ssim`` per channel name, ``psnr_mean``, ``ssim_mean``, ``cpsnr`` per
+        angle, ``s0_psnr``, ``s1_psnr``, ``s2_psnr``, ``dolp_psnr``, ``dolp_ssim``,
+        ``dolp_psnr_per_colour``, ``aop_rmse_deg``, ``aop_mae_deg``, ``aop_psnr``,
+        ``aop_fraction``, ``lpips_mean`` (or None), ``settings`` and ``notes``.
+    """
+    conv = get_convention(convention)
+    est, gt = check_pair(estimate12, gt12)
+    b = conv.border if border is None else int(border)
+    if b < 0:
+        raise InputError("border", b, "a non-negative number of pixels")
+    _check_size(gt, conv, b)
+    s0_guard = conv.min_s0 if min_s0 is None else float(min_s0)
+    dolp_min = conv.min_dolp if min_dolp is None else float(min_dolp)
+    notes: list[str] = []
+
+    est_c = crop_border(est, b, matlab=conv.matlab_crop)
+    gt_c = crop_border(gt, b, matlab=conv.matlab_crop)
+
+    out: dict[str, Any] = {"convention": conv.name}
+    out["psnr"] = {CHANNEL_NAMES[c]: psnr(est_c[c], gt_c[c], data_range=1.0) for c in range(N_CHANNELS)}
+    out["psnr_mean"] = float(np.mean(list(out["psnr"].values())))
+    if with_ssim:
+        out["ssim"] = {CHANNEL_NAMES[c]: ssim(est_c[c], gt_c[c], data_range=1.0) for c in range(N_CHANNELS)}
+        out["ssim_mean"] = float(np.mean(list(out["ssim"].values())))
+    else:
+        out["ssim"], out["ssim_mean"] = None, None
+    out["cpsnr"] = {str(a): psnr(est_c[3 * p:3 * p + 3], gt_c[3 * p:3 * p + 3], data_range=1.0)
+                    for p, a in enumerate(POLARIZER_ANGLES_DEG)}
+
+    # Stokes (computed on the full image, then cropped: pixelwise, so the order is immaterial)
+    st_e = stokes_from_12(est_c)  # (3 [S0,S1,S2], 3 [R,G,B], H, W)
+    st_g = stokes_from_12(gt_c)
+    e0, e1, e2, rng_s = _stokes_scaled(st_e, conv.stokes_scale)
+    g0, g1, g2, _ = _stokes_scaled(st_g, conv.stokes_scale)
+    out["s0_psnr"] = psnr(e0, g0, data_range=rng_s)
+    out["s1_psnr"] = psnr(e1, g1, data_range=rng_s)
+    out["s2_psnr"] = psnr(e2, g2, data_range=rng_s)
+
+    # DoLP per colour, clipped to [0, 1]; dark guard on each image's own S0
+    guard = s0_guard if s0_guard is not None else 0.0
+    d_e = dolp(st_e, min_s0=guard, fill=0.0)
+    d_g = dolp(st_g, min_s0=guard, fill=0.0)
+    out["dolp_psnr"] = psnr(d_e, d_g, data_range=1.0)
+    out["dolp_psnr_per_colour"] = {COLOURS[k]: psnr(d_e[k], d_g[k], data_range=1.0) for k in range(3)}
+    out["dolp_ssim"] = float(np.mean([ssim(d_e[k], d_g[k], data_range=1.0) for k in range(3)])) if with_ssim else None
+
+    # AoP per colour, wrap-aware, pooled; mask from the ground truth only
+    a_e, a_g = aop_deg(st_e), aop_deg(st_g)
+    diff = angle_difference_deg(a_e, a_g)
+    mask = np.ones_like(d_g, dtype=bool)
+    if s0_guard is not None:
+        mask &= st_g[0] > s0_guard
+    if dolp_min is not None:
+        mask &= d_g > dolp_min
+    if not np.any(np.hypot(st_g[1], st_g[2]) > 0):
+        mask[:] = False
+        notes.append("AoP undefined: the ground truth has S1 = S2 = 0 (DoLP = 0) at every pixel.")
+    elif not mask.any():
+        notes.append(f"AoP undefined: no ground-truth pixel has S0 > {s0_guard} and DoLP > {dolp_min}.")
+    out["aop_fraction"] = float(mask.mean())
+    if mask.any():
+        dm = diff[mask]
+        rmse = float(np.sqrt(np.mean(dm ** 2)))
+        out["aop_rmse_deg"] = rmse
+        out["aop_mae_deg"] = float(np.mean(np.abs(dm)))
+        out["aop_psnr"] = PSNR_CAP_DB if rmse <= 180.0 * 10 ** (-PSNR_CAP_DB / 20) else float(20 * math.log10(180.0 / rmse))
+    else:
+        out["aop_rmse_deg"] = out["aop_mae_deg"] = out["aop_psnr"] = None
+
+    if lpips is not None:
+        out["lpips"] = {str(a): float(lpips.distance(est_c[3 * p:3 * p + 3], gt_c[3 * p:3 * p + 3]))
+                        for p, a in enumerate(POLARIZER_ANGLES_DEG)}
+        out["lpips_mean"] = float(np.mean(list(out["lpips"].values())))
+    else:
+        out["lpips"], out["lpips_mean"] = None, None
+
+    out["settings"] = {"border": b, "matlab_crop": conv.matlab_crop, "stokes_scale": conv.stokes_scale,
+                       "min_s0": s0_guard, "min_dolp": dolp_min, "psnr_cap_db": PSNR_CAP_DB,
+                       "ssim": {"gaussian_sigma": SSIM_SIGMA, "K1": 0.01, "K2": 0.03} if with_ssim else None,
+                       "scored_shape": list(gt_c.shape), "dolp": "per colour, clipped to [0, 1]",
+                       "aop": "per colour, wrap-aware, pooled over R,G,B"}
+    out["notes"] = notes
+    return out
+
+
+def flatten(result: dict[str, Any], *, prefix: str = "") -> dict[str, float | None]:
+    """Scalar metrics of a :func:`score` result as ``{"psnr_mean": ..., "psnr.0-R": ...}``."""
+    flat: dict[str, float | None] = {}
+    for key, value in result.items():
+        if key in ("settings", "notes", "convention"):
+            continue
+        if isinstance(value, dict):
+            for sub, v in value.items():
+                flat[f"{prefix}{key}.{sub}"] = None if v is None else float(v)
+        elif value is None or isinstance(value, (int, float)):
+            flat[f"{prefix}{key}"] = None if value is None else float(value)
+    return flat
+
+
+def convention_table() -> list[dict]:
+    """The conventions as rows (for the README and ``capssim evaluate --help``)."""
+    return [asdict(c) for c in CONVENTIONS.values()]

@@ -1,0 +1,192 @@
+"""``report.md`` of a benchmark run: tables per scene and noise level, plots, skips, verdict."""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from capssim.imageio import atomic_write_text
+
+log = logging.getLogger(__name__)
+
+#: columns of the per-group tables: (metric key, header, digits)
+TABLE_COLUMNS = [
+    ("psnr_mean", "PSNR", 2), ("ssim_mean", "SSIM", 4), ("s0_psnr", "S0", 2), ("s1_psnr", "S1", 2),
+    ("s2_psnr", "S2", 2), ("dolp_psnr", "DoLP", 2), ("dolp_ssim", "DoLP SSIM", 3), ("aop_rmse_deg", "AoP RMSE", 2),
+    ("aop_mae_deg", "AoP MAE", 2), ("mtf_magnification_hv", "SR mag. hv", 2),
+    ("mtf_magnification_diagonal", "SR mag. diag", 2),
+]
+
+
+def _slug(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("_")
+
+
+def _mean(values):
+    vals = [v for v in values if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def _fmt(v, digits=2):
+    return "-" if v is None else f"{v:.{digits}f}"
+
+
+def group_records(records: list[dict]) -> dict[tuple[str, str], list[dict]]:
+    groups: dict[tuple[str, str], list[dict]] = defaultdict(list)
+    for r in records:
+        if r["status"] == "ok":
+            groups[(r["scene"], r["noise"])].append(r)
+    return dict(groups)
+
+
+def results_table(recs: list[dict], methods: list[str]) -> str:
+    have = [c for c in TABLE_COLUMNS if any(r["metrics"].get(c[0]) is not None for r in recs)]
+    header = ["method"] + [h for _, h, _ in have] + ["time (s)", "peak RSS (MB)", "seeds"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    by_method = defaultdict(list)
+    for r in recs:
+        by_method[r["method"]].append(r)
+    for m in methods:
+        rs = by_method.get(m)
+        if not rs:
+            continue
+        cells = [m] + [_fmt(_mean(r["metrics"].get(k) for r in rs), d) for k, _, d in have]
+        cells += [_fmt(_mean(r.get("wall_time_s") for r in rs), 2), _fmt(_mean(r.get("peak_rss_mb") for r in rs), 0),
+                  str(len(rs))]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def stage_table(recs: list[dict], methods: list[str]) -> str:
+    stages = []
+    for r in recs:
+        for s in (r.get("stages_s") or {}):
+            if s not in stages:
+                stages.append(s)
+    if not stages:
+        return ""
+    lines = ["| method | " + " | ".join(stages) + " | total |", "|" + "---|" * (len(stages) + 2)]
+    for m in methods:
+        rs = [r for r in recs if r["method"] == m]
+        if not rs:
+            continue
+        cells = [_fmt(_mean((r.get("stages_s") or {}).get(s) for r in rs), 2) for s in stages]
+        lines.append(f"| {m} | " + " | ".join(cells) + f" | {_fmt(_mean(r.get('wall_time_s') for r in rs), 2)} |")
+    return "\n".join(lines)
+
+
+def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
+    """Write ``OUTPUT/report.md`` (and ``OUTPUT/plots/*.png`` when ``plots``)."""
+    output = Path(output)
+    plot_dir = output / "plots"
+    spec, env = run.spec, run.environment
+    methods = [m["label"] for m in spec["methods"]]
+    recs = run.records
+    ok = [r for r in recs if r["status"] == "ok"]
+    groups = group_records(recs)
+    git = env.get("git", {})
+    lines = [f"# capssim benchmark: suite `{spec['name']}`", ""]
+    if spec.get("description"):
+        lines += [str(spec["description"]).strip(), ""]
+    lines += [
+        f"- suite file: `{spec['path']}` (sha256 {spec['sha256'][:12]})",
+        f"- cases: {len(recs)} planned, {len(ok)} scored, "
+        f"{sum(r['status'] == 'skipped' for r in recs)} skipped, {run.n_errors} failed; this invocation took "
+        f"{run.wall_time_s:.1f} s (cached captures and completed cases are reused)",
+        f"- metric convention: `{recs[0]['convention'] if recs else spec.get('convention')}` "
+        "(definitions: README, section 'Scoring')",
+        f"- git {git.get('revision') or 'unknown'}{' (dirty)' if git.get('dirty') else ''}; "
+        f"CPU {env.get('cpu')} x{env.get('cpu_count')} (torch threads {env.get('torch_threads')}); "
+        f"GPU {env.get('gpu') or 'none'}; device {env.get('device')}",
+        "- versions: " + ", ".join(f"{k} {v}" for k, v in env.get("versions", {}).items()),
+        "- timings are wall-clock on a possibly shared machine: compare them within one run only.",
+        "",
+    ]
+    if run.notes:
+        lines += ["## Substitutions", ""] + [f"- {n}" for n in run.notes] + [""]
+    if verdict is not None:
+        lines += ["## Regression check", "", "```", verdict.text(), "```", ""]
+
+    lines += ["## Results", "",
+              "Means over seeds. PSNR in dB (12-channel mean; S0/S1/S2/DoLP pooled over R,G,B); AoP errors in "
+              "degrees over the masked pixels; SR magnification from the Siemens-star MTF (limit resolution in "
+              "cycles per Bayer sub-image pixel / 0.5). Time = the method's wall time.", ""]
+    plot_paths: dict[str, list[tuple[str, Path]]] = defaultdict(list)
+    if plots and ok:
+        from eval import plots as P
+
+        for metric, label, hib, name in (("psnr_mean", "PSNR (dB, 12-ch mean)", True, "speed_vs_psnr.png"),
+                                         ("dolp_psnr", "DoLP PSNR (dB)", True, "speed_vs_dolp.png"),
+                                         ("aop_rmse_deg", "AoP RMSE (deg)", False, "speed_vs_aop.png")):
+            try:
+                p = P.speed_vs_error(ok, plot_dir / name, metric=metric, label=label, higher_is_better=hib,
+                                     methods=methods)
+                if p:
+                    plot_paths["speed"].append((label, p))
+            except Exception as exc:  # a plot must never lose the results
+                log.warning("plot %s failed: %s", name, exc)
+    for (scene, noise), rs in sorted(groups.items()):
+        lines += [f"### {scene} / {noise}", "", results_table(rs, methods), ""]
+        st = stage_table(rs, methods)
+        if st:
+            lines += ["Time per stage (s):", "", st, ""]
+        if not plots:
+            continue
+        first_seed = min(r["seed"] for r in rs)
+        rs0 = [r for r in rs if r["seed"] == first_seed]
+        try:
+            from capssim.capture import read_capture
+            from capssim.imageio import read_tiff
+            from eval import plots as P
+
+            capture = read_capture(rs0[0]["capture"], require_gt=True)
+            estimates = {}
+            for m in methods:
+                r = next((x for x in rs0 if x["method"] == m), None)
+                if r is not None and Path(r["recon"]).is_file():
+                    estimates[m] = read_tiff(r["recon"])
+            star = rs0[0].get("star")
+            centre = None
+            if star and star.get("center_rowcol") is None and rs0[0].get("gt_mtf"):
+                centre = rs0[0]["gt_mtf"]["center_rowcol"]
+            elif star:
+                centre = star["center_rowcol"]
+            if star and centre is not None:  # frame the star's fine core, where SR matters
+                radius = 4 * star["cycles"] / np.pi  # sub-image Nyquist radius in HR px
+                centre = (centre[0], centre[1] + 0.9 * radius)
+            p = P.crops(capture.gt, estimates, plot_dir / f"crops_{_slug(scene)}_{_slug(noise)}.png",
+                        title=f"{scene} / {noise} / seed {first_seed}", center_rowcol=centre)
+            lines += [f"![crops {scene} {noise}](plots/{p.name})", ""]
+            if any(r.get("mtf") for r in rs0):
+                p = P.mtf_curves(rs0[0].get("gt_mtf"), {r["method"]: r["mtf"] for r in rs0 if r.get("mtf")},
+                                 plot_dir / f"mtf_{_slug(scene)}_{_slug(noise)}.png", title=f"{scene} / {noise}",
+                                 methods=methods)
+                if p:
+                    lines += [f"![MTF {scene} {noise}](plots/{p.name})", ""]
+        except Exception as exc:  # a plot must never lose the results
+            log.warning("plots of %s/%s failed: %s", scene, noise, exc)
+            lines += [f"(plots of this group failed: {exc})", ""]
+    if plot_paths["speed"]:
+        lines += ["## Speed vs error", "",
+                  "One point per method (mean over seeds); the dashed step line is the Pareto front "
+                  "(no other method is both faster and better).", ""]
+        lines += [f"![{label}](plots/{p.name})" for label, p in plot_paths["speed"]] + [""]
+    skipped = [r for r in recs if r["status"] == "skipped"]
+    if skipped:
+        lines += ["## Skipped cases", "", "| case | reason |", "|---|---|"]
+        lines += [f"| {r['key']} | {r.get('reason')} |" for r in skipped] + [""]
+    errors = [r for r in recs if r["status"] == "error"]
+    if errors:
+        lines += ["## Failed cases", ""]
+        for r in errors:
+            lines += [f"### {r['key']}", "", "```", (r.get("traceback") or r.get("reason") or "").strip(), "```", ""]
+    notes = sorted({n for r in ok for n in r.get("notes", [])})
+    if notes:
+        lines += ["## Metric notes", ""] + [f"- {n}" for n in notes] + [""]
+    path = output / "report.md"
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
