@@ -208,16 +208,19 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     calls = []
 
     def render_capture(scene, *, size=256, spp=None, seed=0, sensor=None, variant="auto", dofp_layout="sony",
-                       scene_params=None, geometry_params=None, target_noise=None, record_timing=True, progress=None):
+                       scene_params=None, geometry_params=None, target_noise=None, record_timing=True, progress=None,
+                       psf=None, extinction_ratio=None):
         calls.append(dict(scene=scene, size=size, spp=spp, seed=seed, variant=variant, scene_params=scene_params,
-                          geometry_params=geometry_params, record_timing=record_timing))
+                          geometry_params=geometry_params, record_timing=record_timing, psf=psf,
+                          extinction_ratio=extinction_ratio))
         gt = smooth_random_scene(size, seed=seed % 1000)
         return simulate_capture(gt, sensor or make_sensor("none"), seed=seed, dofp_layout=dofp_layout,
                                 kind="rendered", source={"scene": scene})
 
     fake = types.ModuleType("capssim.render")
     fake.render_capture = render_capture
-    fake.list_scenes = lambda: {"materials": {}, "siemens-star": {}}
+    info = lambda **defaults: types.SimpleNamespace(defaults=defaults)
+    fake.list_scenes = lambda: {"materials": info(material="gold", rotation_deg=0.0), "siemens-star": info(cycles=72)}
     monkeypatch.setitem(sys.modules, "capssim.render", fake)
     monkeypatch.setattr(capssim, "render", fake, raising=False)
     path = tmp_path / "config.yaml"
@@ -231,6 +234,8 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
             scene_params: {material: {choice: [gold, pplastic]}, rotation_deg: {uniform: [0, 90]}}
             geometry_params: {depth_m: {uniform: [2, 10]}}
             sensor: {noise: gaussian, sigma: 0.01}
+            extinction_ratio: 50
+            psf_sigma_hr_px: 0.7
           - scene: siemens-star
             size: 16
     """))
@@ -242,7 +247,9 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     first = calls[0]
     assert first["scene"] == "materials" and first["spp"] == 8 and first["scene_params"]["material"] in ("gold", "pplastic")
     assert 2 <= first["geometry_params"]["depth_m"] < 10 and 0 <= first["scene_params"]["rotation_deg"] < 90
+    assert first["extinction_ratio"] == 50 and first["psf"] == {"type": "gaussian", "sigma_hr_px": 0.7}
     assert calls[1]["scene_params"] is None and calls[1]["spp"] is None
+    assert calls[1]["psf"] is None and calls[1]["extinction_ratio"] is None  # the renderer's defaults
     records = records_by_index(out)
     assert "render_s" in records[0]["timing"]
     meta = json.loads((out / "samples" / "000000" / "meta.json").read_text())
@@ -250,6 +257,10 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     again = tmp_path / "again"
     again.mkdir()
     assert generate_sample(cfg.sample_spec(2), str(again))["files"] == records[2]["files"]
+    # scene parameters are checked against the scene's own
+    path.write_text(path.read_text().replace("rotation_deg:", "rotaton_deg:"))
+    with pytest.raises(InputError, match=r"sources\[0\]\.scene_params\.rotaton_deg.*material, rotation_deg"):
+        load_config(path)
 
 
 def _wait_for_lines(manifest: Path, n: int, proc: subprocess.Popen, timeout: float) -> int:

@@ -54,8 +54,10 @@ SIZE_MULTIPLE = 4
 DEFAULT_SCENE_SIZE = 64
 #: keys a source may take over from ``defaults``
 SHARED_KEYS = ("sensor", "dofp_layout", "pose", "psf_sigma_hr_px", "extinction_ratio")
-#: shared keys that only ground-truth sources use (render draws its own aperture errors and optics)
-GT_ONLY_KEYS = ("pose", "psf_sigma_hr_px", "extinction_ratio")
+#: shared keys that only ground-truth sources use (render draws its own aperture errors from geometry_params)
+GT_ONLY_KEYS = ("pose",)
+#: shared keys passed to ``render_capture`` (as ``psf=`` / ``extinction_ratio=``) when set
+RENDER_OPTICS_KEYS = ("psf_sigma_hr_px", "extinction_ratio")
 
 
 def _dofp(value):
@@ -239,6 +241,8 @@ class DatasetConfig:
             fields = draw_tree({k: v for k, v in src.spec.items()
                                 if k in ("size", "spp", "target_noise", "scene_params", "geometry_params")},
                                self.seed, index, src.key)
+            for key in RENDER_OPTICS_KEYS:  # None: the renderer's default
+                params[key] = drawn.get(key)
             params["source"] = {
                 "type": "scene", "name": src.label, "scene": src.spec["scene"],
                 "size": int(fields.get("size", DEFAULT_SCENE_SIZE)), "spp": fields.get("spp"),
@@ -329,7 +333,7 @@ def _parse(raw, base_dir: Path, config_file, default_name) -> DatasetConfig:
         set_gt_only = [k for k in GT_ONLY_KEYS if k in defaults]
         if set_gt_only:
             log.info("defaults %s apply to ground-truth sources only; rendered scenes draw their own "
-                     "aperture errors and optics (set them in geometry_params)", ", ".join(set_gt_only))
+                     "aperture errors (set them in geometry_params)", ", ".join(set_gt_only))
     for src in sources:
         sensor = src.spec.get("sensor", defaults.get("sensor")) or {}
         sensor_path = join(src.key, "sensor") if "sensor" in src.spec else "defaults.sensor"
@@ -355,8 +359,9 @@ def _parse_source(raw, index: int, base_dir: Path, selection: str) -> Source:
             if k in raw:
                 raise ConfigError(join(key, k), "a value for a rendered scene",
                                   "this key only in ground-truth (gt) sources",
-                                  "Rendered scenes draw their aperture errors and optics in capssim.render; "
-                                  "set them in geometry_params.")
+                                  "Rendered scenes draw their aperture errors in capssim.render; "
+                                  "set them in geometry_params (baseline_m, tilt_max_deg, roll_max_deg, "
+                                  "focal_scale_max).")
     spec = (GT_SOURCE_SPEC if has_gt else SCENE_SOURCE_SPEC).check(raw, key)
     if selection == "cycle" and "weight" in spec:
         raise ConfigError(join(key, "weight"), show(spec["weight"]), "no weight with selection: cycle",
@@ -366,11 +371,15 @@ def _parse_source(raw, index: int, base_dir: Path, selection: str) -> Source:
         written, resolved = _expand_gt(spec["gt"], base_dir, join(key, "gt"))
         label = spec.get("name") or (Path(written[0]).name if len(written) == 1 else spec["gt"])
         return Source(index, "gt", label, weight, spec, written, resolved)
-    _check_scene(spec["scene"], join(key, "scene"))
+    _check_scene(spec, key)
     return Source(index, "scene", spec.get("name") or spec["scene"], weight, spec)
 
 
-def _check_scene(name: str, key: str) -> None:
+def _check_scene(spec: dict, source_key: str) -> None:
+    """The scene exists, its scene_params are its own, and render_capture takes the optics keys."""
+    import inspect
+
+    name, key = spec["scene"], join(source_key, "scene")
     try:
         _, list_scenes = render_api()
     except RenderUnavailable as exc:
@@ -383,6 +392,18 @@ def _check_scene(name: str, key: str) -> None:
         close = difflib.get_close_matches(name, known, n=1)
         raise ConfigError(key, f"unknown scene {name!r}", f"one of {', '.join(known)}",
                           (f"Did you mean {close[0]!r}? " if close else "") + "'capssim scenes' lists them.")
+    defaults = getattr(list_scenes()[name], "defaults", None)
+    if isinstance(defaults, dict):
+        for param in spec.get("scene_params") or {}:
+            if param not in defaults:
+                raise ConfigError(join(join(source_key, "scene_params"), param), "an unknown parameter",
+                                  f"a parameter of scene {name!r}: {', '.join(sorted(defaults)) or 'none'}")
+    render_capture, _ = render_api()
+    accepted = inspect.signature(render_capture).parameters
+    for k, arg in (("psf_sigma_hr_px", "psf"), ("extinction_ratio", "extinction_ratio")):
+        if k in spec and arg not in accepted:
+            raise ConfigError(join(source_key, k), "a value for a rendered scene",
+                              f"no {k} here: this capssim.render takes no {arg!r} argument")
 
 
 def _is_gt(path: Path) -> bool:

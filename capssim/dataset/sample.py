@@ -164,12 +164,18 @@ def build_capture(spec: dict):
 
         render_capture, _ = render_api()
         _apply_render_threads()
+        optics = {}
+        if params.get("psf_sigma_hr_px") is not None:
+            sigma = params["psf_sigma_hr_px"]
+            optics["psf"] = {"type": "gaussian", "sigma_hr_px": sigma} if sigma > 0 else {"type": "none"}
+        if params.get("extinction_ratio") is not None:
+            optics["extinction_ratio"] = params["extinction_ratio"]
         t = time.perf_counter()
         capture = render_capture(src["scene"], size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]),
                                  sensor=sensor, variant=src["variant"], dofp_layout=params["dofp_layout"],
                                  scene_params=src["scene_params"] or None,
                                  geometry_params=src["geometry_params"] or None,
-                                 target_noise=src["target_noise"], record_timing=False)
+                                 target_noise=src["target_noise"], record_timing=False, **optics)
         timing["render_s"] = time.perf_counter() - t
         capture.meta["dataset"] = dataset_meta
     return capture, timing
