@@ -332,7 +332,7 @@ def _parse(raw, base_dir: Path, config_file, default_name) -> DatasetConfig:
     if any(s.kind == "scene" for s in sources):
         set_gt_only = [k for k in GT_ONLY_KEYS if k in defaults]
         if set_gt_only:
-            log.info("defaults %s apply to ground-truth sources only; rendered scenes draw their own "
+            log.debug("defaults %s apply to ground-truth sources only; rendered scenes draw their own "
                      "aperture errors (set them in geometry_params)", ", ".join(set_gt_only))
     for src in sources:
         sensor = src.spec.get("sensor", defaults.get("sensor")) or {}
