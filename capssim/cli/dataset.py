@@ -1,0 +1,121 @@
+"""``capssim dataset``: generate (or finish) a synthetic dataset on Dask, or verify one."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def _fmt_duration(seconds: float | None) -> str:
+    if seconds is None:
+        return "-"
+    seconds = int(round(seconds))
+    h, rem = divmod(seconds, 3600)
+    m, s = divmod(rem, 60)
+    return f"{h}:{m:02d}:{s:02d}"
+
+
+def _verify(out: Path) -> int:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from capssim.dataset.verify import verify_dataset
+
+    with Progress(TextColumn("verifying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  transient=True, disable=not sys.stderr.isatty()) as bar:
+        task = bar.add_task("verify", total=None)
+        report = verify_dataset(out, progress=lambda done, total: bar.update(task, completed=done, total=total))
+    typer.echo(report.summary())
+    return 0 if report.ok else 1
+
+
+def dataset(
+    config: Optional[Path] = typer.Argument(None, help="Dataset config (YAML). With --verify and no -o: the dataset folder."),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="Dataset folder to create or finish."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-w",
+                                          help="Local Dask workers (processes, 1 thread each; default: one per core). "
+                                               "0 runs in this process without Dask."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler",
+                                            help="Address of an existing Dask scheduler, e.g. tcp://host:8786."),
+    compute_threads: Optional[int] = typer.Option(None, "--compute-threads",
+                                                  help="torch/OpenMP/Mitsuba threads per worker "
+                                                       "(default: cores // workers locally, 1 on a cluster)."),
+    verify: bool = typer.Option(False, "--verify", help="Check every sample against the manifest (after generating, "
+                                                         "if CONFIG is given); exit 1 on corruption."),
+    dry_run: bool = typer.Option(False, "--dry-run", help="Check the config and print the first samples' parameters."),
+) -> None:
+    """Generate a synthetic dataset from a YAML config (resumable; rerun to finish), or verify one.
+
+    \b
+    capssim dataset CONFIG -o OUT [--workers N | --scheduler ADDRESS] [--verify]
+    capssim dataset --verify OUT
+    """
+    from capssim.errors import InputError
+
+    if verify and output is None:
+        if config is None:
+            raise InputError("dataset", "nothing", "a dataset folder", "Run: capssim dataset --verify OUT")
+        raise typer.Exit(_verify(config))
+    if config is None:
+        raise InputError("CONFIG", "nothing", "a dataset config file (YAML)",
+                         "Run: capssim dataset CONFIG -o OUT (see examples/dataset-small.yaml).")
+    if workers is not None and scheduler is not None:
+        raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
+
+    from capssim.dataset.config import load_config
+
+    cfg = load_config(config)
+    if dry_run:
+        import json
+
+        typer.echo(f"config {config}: {cfg.samples} samples, {len(cfg.sources)} sources, seed {cfg.seed}, "
+                   f"fingerprint {cfg.fingerprint()[:12]}")
+        for index in range(min(cfg.samples, 5)):
+            spec = cfg.sample_spec(index)
+            typer.echo(f"{spec['name']}: seed {spec['seed']} {json.dumps(spec['params'], sort_keys=True)}")
+        return
+    if output is None:
+        raise InputError("-o/--output", "nothing", "the dataset folder to create or finish", "Add -o OUT.")
+    if not logging.getLogger().isEnabledFor(logging.DEBUG):
+        import distributed  # noqa: F401  (it configures its loggers on import; quieten them after)
+
+        for name in ("distributed", "bokeh", "tornado"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    from capssim.dataset.generate import generate_dataset
+
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("{task.fields[status]}"), transient=False) as bar:
+        task = bar.add_task(f"dataset {cfg.name}", total=cfg.samples, status="starting workers...")
+
+        def on_progress(p):
+            rate = f"{p.rate_per_hour:.0f} samples/h" if p.rate_per_hour else "- samples/h"
+            failed = f", {p.failed} failed" if p.failed else ""
+            bar.update(task, completed=p.done, status=f"{rate}, ETA {_fmt_duration(p.eta_s)}{failed}")
+
+        result = generate_dataset(cfg, output, workers=workers, scheduler=scheduler, compute_threads=compute_threads,
+                                  progress=on_progress)
+    rate = result.samples_per_hour
+    where = "in this process" if result.workers == 0 else f"on {result.workers} Dask workers"
+    typer.echo(f"{output}: {result.already_done + result.generated}/{result.total} samples "
+               f"({result.already_done} from earlier runs, {result.generated} made {where}"
+               f"{f', {rate:.0f} samples/h' if rate else ''}), {len(result.removed)} leftovers removed, "
+               f"{result.wall_s:.1f} s")
+    status = 0
+    if result.failed:
+        for index, error in sorted(result.failed.items()):
+            typer.echo(f"FAILED sample {index}: {error}", err=True)
+        typer.echo(f"{len(result.failed)} samples failed; rerun the same command to retry them.", err=True)
+        status = 1
+    if verify:
+        status = max(status, _verify(output))
+    raise typer.Exit(status)
+
+
+def register(app: typer.Typer) -> None:
+    app.command("dataset")(dataset)

@@ -1,0 +1,209 @@
+"""Making one sample (runs on a Dask worker): capture -> folder (temp name, renamed) -> checksums.
+
+A sample is a function of its spec (:meth:`DatasetConfig.sample_spec`) only, so regenerating it
+on any worker gives the same bytes: the TIFFs are written without dates (``write_tiff``), and
+``meta.json`` holds no wall times (rendered captures use ``record_timing=False``; timings go
+to the manifest instead).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import logging
+import math
+import os
+import socket
+import time
+from pathlib import Path
+
+import numpy as np
+
+from capssim.dataset.augment import rotate_flip_twelve
+from capssim.errors import InputError
+
+log = logging.getLogger(__name__)
+
+THREAD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
+                   "VECLIB_MAXIMUM_THREADS", "DRJIT_NUM_THREADS")
+_render_threads: int | None = None
+
+
+def limit_threads(n: int) -> None:
+    """Limit this process's compute threads (OpenMP/BLAS, torch, Dr.Jit/Mitsuba) to ``n``.
+
+    Called once per Dask worker so that workers x threads does not exceed the cores.
+    """
+    global _render_threads
+    n = max(1, int(n))
+    for var in THREAD_ENV_VARS:
+        os.environ[var] = str(n)
+    import torch
+
+    torch.set_num_threads(n)
+    try:
+        torch.set_num_interop_threads(n)
+    except RuntimeError:  # only allowed before any inter-op work; harmless otherwise
+        pass
+    _render_threads = n
+    import sys
+
+    if "drjit" in sys.modules:
+        sys.modules["drjit"].set_thread_count(n)
+
+
+def _apply_render_threads() -> None:
+    if _render_threads is not None:
+        import drjit
+
+        if drjit.thread_count() != _render_threads:
+            drjit.set_thread_count(_render_threads)
+
+
+@functools.lru_cache(maxsize=4)
+def _read_gt_cached(path: str):
+    from capssim.imageio import read_gt_scene
+
+    gt, info = read_gt_scene(path)
+    gt.setflags(write=False)
+    return gt, info
+
+
+def crop_ground_truth(full: np.ndarray, source: dict) -> tuple[np.ndarray, dict]:
+    """Crop (centred or at the drawn position) and augment a GT image for a sample.
+
+    ``source`` holds ``size`` (None: whole image, trimmed to a multiple of 4 by simulate),
+    ``crop_position`` (``center``/``random``), ``crop_uv`` (two numbers in [0, 1) that
+    place a random crop), ``rot90`` and ``flip``. Returns the image and what was done.
+    """
+    h, w = full.shape[1:]
+    size = source.get("size")
+    info: dict = {"source_height": int(h), "source_width": int(w)}
+    if size is not None:
+        if size > min(h, w):
+            raise InputError(f"size of source {source.get('name')!r}", size,
+                             f"at most the ground-truth size {h}x{w} of {source.get('path')}",
+                             "Lower size, or use size: null for the whole image.")
+        if source.get("crop_position", "center") == "random":
+            u, v = source["crop_uv"]
+            top = min(int(math.floor(u * (h - size + 1))), h - size)
+            left = min(int(math.floor(v * (w - size + 1))), w - size)
+        else:
+            top, left = (h - size) // 2, (w - size) // 2
+        full = full[:, top:top + size, left:left + size]
+        info.update(crop=int(size), crop_offset_rowcol=[int(top), int(left)])
+    rot90, flip = int(source.get("rot90", 0)), bool(source.get("flip", False))
+    gt = rotate_flip_twelve(full, rot90=rot90, flip=flip)
+    info.update(rot90=rot90, flip=flip)
+    return np.array(gt, dtype=np.float32, copy=True), info
+
+
+def file_sha256(path: Path, *, chunk: int = 1 << 20) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def checksum_folder(folder: Path) -> dict:
+    """``{relative/path: {"sha256": hex, "bytes": n}}`` of every file under ``folder``, sorted."""
+    folder = Path(folder)
+    out = {}
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        out[path.relative_to(folder).as_posix()] = {"sha256": file_sha256(path), "bytes": path.stat().st_size}
+    return out
+
+
+def fsync_folder(folder: Path) -> None:
+    """Flush every file of ``folder``, the folder and its parent to disk."""
+    for path in sorted(Path(folder).rglob("*")):
+        if path.is_file():
+            fd = os.open(path, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+    for d in (Path(folder), Path(folder).parent):
+        fd = os.open(d, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def build_capture(spec: dict):
+    """The :class:`~capssim.capture.Capture` of a sample spec, and a timing dict (seconds)."""
+    from capssim.dataset.config import make_sample_sensor
+
+    params = spec["params"]
+    src = params["source"]
+    sensor = make_sample_sensor(params["sensor"])
+    dataset_meta = {"name": spec["dataset"], "index": spec["index"], "master_seed": spec["master_seed"],
+                    "params": params}
+    timing: dict = {}
+    if src["type"] == "gt":
+        from capssim.simulate import PoseRanges, simulate_capture
+
+        t = time.perf_counter()
+        full, info = _read_gt_cached(spec["resolved"]["gt_path"])
+        gt, crop_info = crop_ground_truth(full, src)
+        timing["load_s"] = time.perf_counter() - t
+        source = {"type": info["type"], "path": src["path"], "bit_depth": info.get("bit_depth"), **crop_info}
+        if "files" in info:
+            source["files"] = info["files"]
+        psf_sigma = params["psf_sigma_hr_px"]
+        psf = {"type": "gaussian", "sigma_hr_px": psf_sigma} if psf_sigma > 0 else {"type": "none"}
+        t = time.perf_counter()
+        capture = simulate_capture(gt, sensor, seed=spec["seed"], psf=psf, dofp_layout=params["dofp_layout"],
+                                   extinction_ratio=params["extinction_ratio"], pose_ranges=PoseRanges(**params["pose"]),
+                                   source=source, extra_meta={"dataset": dataset_meta})
+        timing["simulate_s"] = time.perf_counter() - t
+    else:
+        from capssim.dataset.config import render_api
+
+        render_capture, _ = render_api()
+        _apply_render_threads()
+        optics = {}
+        if params.get("psf_sigma_hr_px") is not None:
+            sigma = params["psf_sigma_hr_px"]
+            optics["psf"] = {"type": "gaussian", "sigma_hr_px": sigma} if sigma > 0 else {"type": "none"}
+        if params.get("extinction_ratio") is not None:
+            optics["extinction_ratio"] = params["extinction_ratio"]
+        t = time.perf_counter()
+        capture = render_capture(src["scene"], size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]),
+                                 sensor=sensor, variant=src["variant"], dofp_layout=params["dofp_layout"],
+                                 scene_params=src["scene_params"] or None,
+                                 geometry_params=src["geometry_params"] or None,
+                                 target_noise=src["target_noise"], record_timing=False, **optics)
+        timing["render_s"] = time.perf_counter() - t
+        capture.meta["dataset"] = dataset_meta
+    return capture, timing
+
+
+def render_seed(seed: int) -> int:
+    """The 32-bit seed given to the renderer (the low bits of the sample's 63-bit seed)."""
+    return int(seed) & 0xFFFFFFFF
+
+
+def generate_sample(spec: dict, samples_dir: str) -> dict:
+    """Make sample ``spec`` under ``samples_dir/NAME`` and return its manifest record (without
+    ``finished_at``). The folder is built under a temporary name and renamed when complete;
+    an existing folder of that name (an unlisted leftover) is replaced."""
+    from capssim.capture import write_capture
+
+    t0 = time.perf_counter()
+    capture, timing = build_capture(spec)
+    t = time.perf_counter()
+    folder = Path(samples_dir) / spec["name"]
+    write_capture(folder, capture, overwrite=True)
+    fsync_folder(folder)
+    timing["write_s"] = time.perf_counter() - t
+    t = time.perf_counter()
+    files = checksum_folder(folder)
+    timing["checksum_s"] = time.perf_counter() - t
+    timing["total_s"] = time.perf_counter() - t0
+    return {"index": spec["index"], "name": spec["name"], "seed": spec["seed"],
+            "source": spec["params"]["source"]["name"], "params": spec["params"], "files": files,
+            "timing": {k: round(v, 6) for k, v in timing.items()},
+            "worker": f"{socket.gethostname()}:{os.getpid()}"}
