@@ -722,7 +722,8 @@ def write_baseline(run: BenchRun, path: str | Path) -> int:
     cases = {}
     for r in run.ok_records():
         cases[r["key"]] = {"metrics": {k: v for k, v in r["metrics"].items() if v is not None},
-                           "wall_time_s": r.get("wall_time_s")}
+                           "wall_time_s": r.get("wall_time_s"),
+                           "render_variant": (r.get("capture_info") or {}).get("render_variant")}
     if not cases:
         raise InputError("update-baseline", "a run without any successful case", "at least one scored case")
     baseline = {"schema": BASELINE_SCHEMA, "version": 1, "suite": run.spec["name"], "suite_sha256": run.spec["sha256"],
@@ -798,6 +799,12 @@ def check_against_baseline(run: BenchRun, baseline_path: str | Path) -> Verdict:
             continue
         if rec["status"] == "error":
             failures.append(f"{key}: error ({rec.get('reason')})")
+            continue
+        base_variant = stored.get("render_variant")
+        run_variant = (rec.get("capture_info") or {}).get("render_variant")
+        if base_variant and run_variant and base_variant != run_variant:
+            # another Mitsuba variant draws other Monte-Carlo samples: not the same capture
+            not_compared.append(f"{key} (rendered with {run_variant}, baseline with {base_variant})")
             continue
         compared.append(key)
         cur = rec["metrics"]

@@ -44,7 +44,8 @@ def expand_methods(names: List[str], capture_path: Path) -> list[str]:
 
 
 def reconstruct(
-    capture: Path = typer.Argument(..., help="Capture folder (from 'capssim simulate' or 'capssim render')."),
+    capture: Optional[Path] = typer.Argument(None, help="Capture folder (from 'capssim simulate' or "
+                                                        "'capssim render'); not needed with --list."),
     method: List[str] = typer.Option(["caps"], "--method", "-m",
                                      help="Method name; repeat for several, or 'all'. "
                                           "'capssim reconstruct --list' shows them."),
@@ -67,6 +68,9 @@ def reconstruct(
         for name, spec in available_methods().items():
             typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}")
         return
+    if capture is None:
+        raise typer.BadParameter("missing the CAPTURE folder (e.g. 'capssim reconstruct runs/cap -m caps'); "
+                                 "only --list runs without one", param_hint="CAPTURE")
     names = expand_methods(method, capture)
     options = parse_options(option)
     if iterations is not None:
