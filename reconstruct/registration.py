@@ -102,7 +102,8 @@ def _as_tensor(x, name: str, device) -> torch.Tensor:
 def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str = "similarity",
                              device="cpu", window_radius: int = 3, stokes_weight: float = 1.0,
                              stokes_levels: int = 2, max_iterations: int = 60,
-                             min_correlation: float = 0.3) -> RegistrationResult:
+                             min_correlation: float = 0.3, robust_power: float = 4.0, robust_levels: int = 2,
+                             robust_passes: int = 2, presmooth_sigma: float = 0.0) -> RegistrationResult:
     """Estimate the 16 HR reference -> sub-image homographies from the 16 Bayer sub-images.
 
     Parameters
@@ -176,6 +177,10 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
 
     raw = mosaic_from_sub_images(x)
     lum = binomial_luminance(raw)
+    if presmooth_sigma > 0:
+        from reconstruct.registration_core import gaussian_blur
+
+        lum = gaussian_blur(lum, presmooth_sigma)
     raw_sat = mosaic_from_sub_images(sat.to(dtype))
     valid = (F.max_pool2d(raw_sat[:, None], 3, stride=1, padding=1)[:, 0] <= 0).to(dtype)
     rh, rw = raw.shape[1:]
@@ -228,7 +233,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
             warn("registration: the Stokes-consistency term needs all four apertures; using local correlation only")
         reg = register_stack(lum[0], lum[active], ref_valid=valid[0], moving_valid=valid[active], model=used,
                              window_radius=window_radius, stokes_weight=stokes, stokes_levels=stokes_levels,
-                             max_iterations=max_iterations)
+                             max_iterations=max_iterations, robust_power=robust_power,
+                             robust_levels=robust_levels, robust_passes=robust_passes)
         rmat = raw_matrix()
         rinv = np.linalg.inv(rmat)
         for j, n in enumerate(active):

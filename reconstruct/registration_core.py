@@ -238,8 +238,10 @@ class LevelCriterion:
     """
 
     def __init__(self, ref, moving, ref_valid, moving_valid, *, scale: int, window_radius: int, model: str,
-                 centre, radius: float, eps: float, stokes_weight: float = 0.0, margin: float = 1.5):
+                 centre, radius: float, eps: float, stokes_weight: float = 0.0, margin: float = 1.5,
+                 robust_power: float = 0.0):
         self.ref = ref
+        self.robust_power = robust_power
         self.coef = spline_coefficients(moving)
         self.ref_valid = ref_valid
         self.moving_valid = moving_valid
@@ -282,12 +284,26 @@ class LevelCriterion:
             # windows whose centre is valid and at least half filled
             n = box_sum(w[:, None], self.r)[:, 0]
             self.window = w * (n > 0.5 * (2 * self.r + 1) ** 2).to(w.dtype)
+            if self.robust_power > 0:
+                self.window = self.window * self.window_r2(warped).clamp(0, 1) ** self.robust_power
             mean = box_sum((w * warped)[:, None], self.r)[:, 0] / n.clamp_min(1e-9)
             var = box_sum((w * warped * warped)[:, None], self.r)[:, 0] / n.clamp_min(1e-9) - mean * mean
             self.moving_variance = ((self.window * var.clamp_min(0)).sum(dim=(1, 2))
                                     / self.window.sum(dim=(1, 2)).clamp_min(1.0))
             self.norm = float(self.ref[self.ref_valid > 0].var()) if bool((self.ref_valid > 0).sum() > 1) else 1.0
             self.norm = max(self.norm, 1e-12)
+
+    def window_r2(self, warped: torch.Tensor) -> torch.Tensor:
+        """``(B, H, W)`` R^2 of the local affine fit ``a * reference + b`` of each window."""
+        w = self.weights
+        r = self.ref[None].expand_as(warped)
+        s = box_sum(torch.stack([w, w * r, w * warped, w * r * r, w * warped * warped, w * r * warped], 1), self.r)
+        n = s[:, 0].clamp_min(1e-9)
+        mr, mm = s[:, 1] / n, s[:, 2] / n
+        vr = (s[:, 3] / n - mr * mr).clamp_min(0)
+        vm = (s[:, 4] / n - mm * mm).clamp_min(0)
+        c = s[:, 5] / n - mr * mm
+        return c * c / ((vr + self.eps) * (vm + self.eps))
 
     def local_r2(self, warped: torch.Tensor) -> torch.Tensor:
         """``(B,)`` share of the warped moving images' local variance explained by local affine fits of the reference."""
@@ -364,7 +380,8 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
                    moving_valid: torch.Tensor | None = None, model: str = "similarity", window_radius: int = 3,
                    stokes_weight: float = 0.0, stokes_levels: int = 2, max_iterations: int = 60,
                    min_level_size: int = 24, max_levels: int = 5, coarse_peaks: int = 3,
-                   border: int = 3, initial: torch.Tensor | None = None) -> StackRegistration:
+                   border: int = 3, initial: torch.Tensor | None = None, robust_power: float = 0.0,
+                   robust_levels: int = 2, robust_passes: int = 2) -> StackRegistration:
     """Register ``moving`` ``(B, H, W)`` to ``ref`` ``(H, W)`` (float64 tensors on one device).
 
     ``ref_valid``/``moving_valid`` (1 = usable pixel) mask saturated or otherwise bad pixels.
@@ -394,7 +411,7 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     sigma = noise_sigma(torch.cat([ref[None], moving]))
     info: dict = {"levels": [], "pyramid_levels": levels, "noise_sigma": [float(v) for v in sigma]}
 
-    def criterion(level: int, stokes: float, m: str = model, r: int | None = None):
+    def criterion(level: int, stokes: float, m: str = model, r: int | None = None, robust: float = 0.0):
         s = 2 ** level
         rv = pyr_ref_valid[level][0].clone()
         lb = max(1, int(math.ceil(border / s)))
@@ -405,7 +422,7 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
         eps = float(((2.0 * sigma.max()) / s) ** 2) + 1e-12
         return LevelCriterion(pyr_ref[level][0], pyr_mov[level], rv, pyr_mov_valid[level], scale=s,
                               window_radius=rad, model=m, centre=centre, radius=radius, eps=eps,
-                              stokes_weight=stokes)
+                              stokes_weight=stokes, robust_power=robust)
 
     # coarse stage: candidates from phase correlation, judged by the criterion at the coarsest level
     t_coarse = time.perf_counter()
@@ -450,6 +467,13 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
             p = p_new
         else:
             log.warning("registration: non-finite parameters at pyramid level %d; kept the previous estimate", level)
+        if robust_power > 0 and level < robust_levels:
+            rcrit = criterion(level, stokes, robust=robust_power)
+            for _ in range(robust_passes):  # IRLS: window weights R^2^k frozen at the current estimate
+                p_new, it2, ev2 = minimize(rcrit, p, max_iterations=max_iterations)
+                iters, evals = iters + it2, evals + ev2
+                if bool(torch.isfinite(p_new).all()):
+                    p = p_new
         info["levels"].append({"level": level, "size": list(crit.shape), "window_radius": crit.r,
                                "stokes_weight": stokes, "iterations": iters, "evaluations": evals,
                                "time_s": time.perf_counter() - t1,
