@@ -376,12 +376,59 @@ def _pyramid(img: torch.Tensor, valid: torch.Tensor, levels: int):
     return imgs, vals
 
 
+def _final_r2(criterion, level: int, p: torch.Tensor) -> torch.Tensor:
+    crit = criterion(level, 0.0)
+    crit.fix_weights(p)
+    with torch.no_grad():
+        return crit.local_r2(spline_sample(crit.coef, crit.coords(p)))
+
+
+def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iterations, info,
+            margin: float = 0.02) -> torch.Tensor:
+    """Images whose final local R^2 is below ``threshold`` (a wrong basin: periodic or
+    self-similar targets such as a Siemens star) restart from more phase-correlation peaks of
+    the full-resolution gradient images, each refined on the finest level (translation, then
+    the full model); the restart is kept when its final R^2 is higher by ``margin``."""
+    r2 = _final_r2(criterion, 0, p)
+    bad = ~(r2 >= threshold)
+    record = {"threshold": threshold, "r2_before": r2.tolist(), "rescued": []}
+    if not bool(bad.any()):
+        info["rescue"] = record
+        return p
+    shifts, heights = phase_correlation_peaks(gradient_magnitude(ref[None])[0], gradient_magnitude(moving),
+                                              peaks=peaks)
+    # every start refined by translation on level 1 (cheap) and scored there; the best start per
+    # image is then refined with the full model on level 0 and kept if it beats the old estimate
+    lvl = 1 if len(info["levels"]) > 1 else 0
+    best_t, best_s = p[:, :2].clone(), torch.full_like(r2, -math.inf)
+    crit_t = criterion(lvl, 0.0, "translation")
+    for k in range(shifts.shape[1]):
+        pt, _, _ = minimize(crit_t, shifts[:, k].contiguous(), max_iterations=30)
+        crit_t.fix_weights(pt)
+        with torch.no_grad():
+            score = crit_t.local_r2(spline_sample(crit_t.coef, crit_t.coords(pt)))
+        take = torch.isfinite(pt).all(1) & (score > best_s)
+        best_t = torch.where(take[:, None], pt, best_t)
+        best_s = torch.where(take, score, best_s)
+    start = torch.cat([best_t, torch.zeros_like(p[:, 2:])], 1)
+    cand, _, _ = minimize(criterion(0, 0.0), start, max_iterations=max_iterations)
+    score = _final_r2(criterion, 0, cand)
+    better = bad & torch.isfinite(cand).all(1) & (score > r2 + margin)
+    p = torch.where(better[:, None], cand, p)
+    r2 = torch.where(better, score, r2)
+    record["rescued"] = [int(i) for i in torch.nonzero(better).flatten()]
+    record["r2_after"] = r2.tolist()
+    info["rescue"] = record
+    return p
+
+
 def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.Tensor | None = None,
                    moving_valid: torch.Tensor | None = None, model: str = "similarity", window_radius: int = 3,
                    stokes_weight: float = 0.0, stokes_levels: int = 2, max_iterations: int = 60,
                    min_level_size: int = 24, max_levels: int = 5, coarse_peaks: int = 3,
                    border: int = 3, initial: torch.Tensor | None = None, robust_power: float = 0.0,
-                   robust_levels: int = 2, robust_passes: int = 2) -> StackRegistration:
+                   robust_levels: int = 2, robust_passes: int = 2, full_model_levels: int = 2,
+                   rescue_below: float = 0.7, rescue_peaks: int = 8) -> StackRegistration:
     """Register ``moving`` ``(B, H, W)`` to ``ref`` ``(H, W)`` (float64 tensors on one device).
 
     ``ref_valid``/``moving_valid`` (1 = usable pixel) mask saturated or otherwise bad pixels.
@@ -460,9 +507,16 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
 
     for level in range(levels - 1, -1, -1):
         stokes = stokes_weight if level < stokes_levels else 0.0
-        crit = criterion(level, stokes)
         t1 = time.perf_counter()
-        p_new, iters, evals = minimize(crit, p, max_iterations=max_iterations)
+        if level >= full_model_levels and model != "translation":
+            # coarse levels: translation only (a Siemens star is nearly invariant to scale and
+            # rotation about its centre; the full model from the start drifts along that valley)
+            crit = criterion(level, stokes, "translation")
+            p_new, iters, evals = minimize(crit, p[:, :2].contiguous(), max_iterations=max_iterations)
+            p_new = torch.cat([p_new, p[:, 2:]], 1)
+        else:
+            crit = criterion(level, stokes)
+            p_new, iters, evals = minimize(crit, p, max_iterations=max_iterations)
         if bool(torch.isfinite(p_new).all()):
             p = p_new
         else:
@@ -478,6 +532,9 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
                                "stokes_weight": stokes, "iterations": iters, "evaluations": evals,
                                "time_s": time.perf_counter() - t1,
                                "valid_pixels": [int(v) for v in crit.weights.sum(dim=(1, 2))]})
+    if rescue_below > 0 and initial is None:
+        p = _rescue(p, ref, moving, criterion, model=model, threshold=rescue_below, peaks=rescue_peaks,
+                    max_iterations=max_iterations, info=info)
     crit = criterion(0, 0.0)
     crit.fix_weights(p)
     with torch.no_grad():
