@@ -50,7 +50,7 @@ def test_smooth_scene_with_true_warps_is_accurate():
     border = 8  # replicate border outside each aperture's field of view
     crop = (slice(None), slice(border, -border), slice(border, -border))
     psnr = _psnr(out.image[crop], gt[crop])
-    assert psnr > 38.0, psnr
+    assert psnr > 45.0, psnr
     # registration matters: ignoring the warps (all identity) must be clearly worse
     import copy
 

@@ -185,7 +185,8 @@ def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext
                  description="Camera-array baseline: Menon 2007 demosaicking per aperture, CAPS registration, "
                              "bicubic x2 resampling onto the reference grid (one resampling per aperture)")
 def caps_naive(capture, *, context: RunContext) -> MethodOutput:
-    opts, _ = NaiveOptions.from_options(context.options)
+    with context.timer.stage("setup"):  # option parsing; the first call imports colour-demosaicing (~1 s)
+        opts, _ = NaiveOptions.from_options(context.options)
     rgb, warps, reg_record = demosaic_and_register(capture, context, opts)
     hr_shape = capture.hr_shape
     with context.timer.stage("resample"):

@@ -79,7 +79,8 @@ def load_upsampler(path: str | None, device: torch.device, *, scale: float = 1.0
                  description="Camera-array baseline with a user-supplied x2 SR model (TorchScript/ONNX, option "
                              "model=PATH) per channel after demosaicking; bicubic without a model")
 def caps_sisr(capture, *, context: RunContext) -> MethodOutput:
-    opts, rest = NaiveOptions.from_options(context.options, extra=("model", "model_channels", "model_scale"))
+    with context.timer.stage("setup"):  # option parsing; the first call imports colour-demosaicing (~1 s)
+        opts, rest = NaiveOptions.from_options(context.options, extra=("model", "model_channels", "model_scale"))
     channels = _coerce("model_channels", rest.get("model_channels", 1), int)
     if channels not in (1, 3):
         raise InputError("model_channels", channels, "1 (per channel) or 3 (RGB per aperture)")
