@@ -108,6 +108,8 @@ def test_bad_options_give_clear_errors():
         reconstruct(capture, "caps-naive", true_warps=True, colour="x")
     with pytest.raises(InputError):
         reconstruct(capture, "caps-naive", true_warps=True, clip="maybe")
+    out, _ = reconstruct(capture, "caps-naive", true_warps=True, iterations=5)  # a caps option: ignored
+    assert out.image.shape == (12, 32, 32)
 
 
 class _BicubicX2(torch.nn.Module):

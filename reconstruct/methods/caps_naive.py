@@ -26,7 +26,8 @@ posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
 Output ``(12, 2H, 2W)`` float32, channel ``c = 3 p + k`` (aperture/polarizer p, colour k).
 Saturated pixels are used as they are (no masking): this is the naive pipeline.
 
-Options (``-O KEY=VALUE``): ``bayer_method``, ``clip``.
+Options (``-O KEY=VALUE``): ``bayer_method``, ``clip``. Options of ``caps`` (e.g. ``iterations``
+from ``capssim reconstruct -m all --iterations N``) are ignored with a warning; others are errors.
 
 :func:`caps_sisr` in :mod:`reconstruct.methods.caps_sisr` replaces step 3's upsampling by a
 user-supplied x2 single-image SR model and reuses steps 1-2 from here.
@@ -43,7 +44,7 @@ import torch.nn.functional as F
 
 from capssim.errors import InputError, UnknownNameError
 from reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
-from reconstruct.methods.caps import _coerce, lr_homographies, mean_psnr
+from reconstruct.methods.caps import CapsOptions, _coerce, lr_homographies, mean_psnr
 from reconstruct.registry import MethodOutput, RunContext, register_method
 
 log = logging.getLogger(__name__)
@@ -66,6 +67,9 @@ def _bayer_function(name: str):
     return key, table[key]
 
 
+_CAPS_OPTION_NAMES = frozenset(f.name for f in fields(CapsOptions))
+
+
 @dataclass
 class NaiveOptions:
     bayer_method: str = "menon2007"
@@ -82,6 +86,8 @@ class NaiveOptions:
                 values[name] = _coerce(name, raw, type(getattr(cls, name)))
             elif name in extra:
                 rest[name] = raw
+            elif name in _CAPS_OPTION_NAMES:  # e.g. --iterations with -m all: meaningless here
+                log.warning("option %s is a caps option; ignored by this method", key)
             else:
                 raise UnknownNameError("option", key, sorted(known | set(extra)))
         opts = cls(**values)
