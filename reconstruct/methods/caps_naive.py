@@ -1,0 +1,205 @@
+"""``caps-naive``: the plain camera-array pipeline (the paper's non-joint baseline, section 5.2).
+
+Reference: the "demosaic, register, upsample" camera-array baseline of "Joint constraints of
+guided filtering based confidence and nonlocal sparse tensor for color polarization
+super-resolution imaging", Optics Express 32(2), 2364 (2024), section 5.2, with the Bayer
+demosaicking of Menon, Andriani, Calvagno, "Demosaicing with directional filtering and a
+posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
+
+1. Demosaick each aperture's RGGB raw frame ``(H, W)`` on its own (``bayer_method``:
+   ``menon2007`` (default), ``malvar2004`` or ``bilinear``, all from ``colour-demosaicing``),
+   clipped to [0, 1] -> ``(4, 3, H, W)``; each frame is mirror-padded by 6 pixels with its
+   Bayer phase kept (:func:`demosaic_apertures`), so constant images stay exact at the border.
+2. Registration: the 16 HR-reference -> sub-image homographies of the CAPS method
+   (:func:`reconstruct.methods.caps.lr_homographies`: estimated by ``reconstruct.registration``,
+   or the stored ones under ``--true-warps``). Aperture n's warp ``H_n`` (HR reference ->
+   aperture-HR) is the mean of the four ``S_q^-1 H_{4n+q}`` (identical for true warps; the
+   mean averages the per-site estimation noise).
+3. One bicubic resampling per aperture onto the HR reference grid ``(2H, 2W)``: HR pixel
+   ``(x, y)`` samples the demosaicked frame at raw coordinates ``R H_n (x, y, 1)``, where
+   ``R = capssim.homography.raw_matrix()`` (aperture-HR -> raw pixel), i.e. the x2 upsampling
+   and the registration warp composed into one map (torch ``grid_sample``, bicubic with
+   ``a = -0.75``, replicate border; the same kernel as ``F.interpolate(mode='bicubic')``).
+   Pixels of the reference grid outside an aperture's field of view get its border values.
+   The result is clipped to [0, 1] (``clip=false`` keeps the bicubic overshoot).
+
+Output ``(12, 2H, 2W)`` float32, channel ``c = 3 p + k`` (aperture/polarizer p, colour k).
+Saturated pixels are used as they are (no masking): this is the naive pipeline.
+
+Options (``-O KEY=VALUE``): ``bayer_method``, ``clip``. Options of ``caps`` (e.g. ``iterations``
+from ``capssim reconstruct -m all --iterations N``) are ignored with a warning; others are errors.
+
+:func:`caps_sisr` in :mod:`reconstruct.methods.caps_sisr` replaces step 3's upsampling by a
+user-supplied x2 single-image SR model and reuses steps 1-2 from here.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, fields
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from capssim.errors import InputError, UnknownNameError
+from reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
+from reconstruct.methods.caps import CapsOptions, _coerce, lr_homographies, mean_psnr
+from reconstruct.registry import MethodOutput, RunContext, register_method
+
+log = logging.getLogger(__name__)
+
+REFERENCE = (CAPS_REFERENCE + " (camera-array baseline, 5.2); Bayer demosaicking: Menon, Andriani, Calvagno, "
+             "IEEE TIP 16(1) 2007 (colour-demosaicing)")
+
+#: the selectable Bayer demosaicking algorithms of colour-demosaicing
+BAYER_METHODS = ("menon2007", "malvar2004", "bilinear")
+
+
+def _bayer_function(name: str):
+    import colour_demosaicing as cd
+
+    key = str(name).strip().lower().replace("-", "").replace("_", "")
+    table = {"menon2007": cd.demosaicing_CFA_Bayer_Menon2007, "malvar2004": cd.demosaicing_CFA_Bayer_Malvar2004,
+             "bilinear": cd.demosaicing_CFA_Bayer_bilinear}
+    if key not in table:
+        raise UnknownNameError("bayer_method", name, list(BAYER_METHODS))
+    return key, table[key]
+
+
+_CAPS_OPTION_NAMES = frozenset(f.name for f in fields(CapsOptions))
+
+
+@dataclass
+class NaiveOptions:
+    bayer_method: str = "menon2007"
+    clip: bool = True
+
+    @classmethod
+    def from_options(cls, options: dict, extra: tuple = ()) -> tuple["NaiveOptions", dict]:
+        """Parse the options of this class; return it and the leftover options named in ``extra``."""
+        known = {f.name for f in fields(cls)}
+        values, rest = {}, {}
+        for key, raw in (options or {}).items():
+            name = str(key).replace("-", "_")
+            if name in known:
+                values[name] = _coerce(name, raw, type(getattr(cls, name)))
+            elif name in extra:
+                rest[name] = raw
+            elif name in _CAPS_OPTION_NAMES:  # e.g. --iterations with -m all: meaningless here
+                log.warning("option %s is a caps option; ignored by this method", key)
+            else:
+                raise UnknownNameError("option", key, sorted(known | set(extra)))
+        opts = cls(**values)
+        opts.bayer_method = _bayer_function(opts.bayer_method)[0]
+        return opts, rest
+
+
+#: mirror padding (raw pixels, even) around each frame before demosaicking
+BAYER_PAD = 6
+
+
+def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007") -> np.ndarray:
+    """``(4, H, W)`` RGGB raw frames on [0, 1] -> ``(4, 3, H, W)`` float32 RGB, clipped to [0, 1].
+
+    Each frame is mirror-padded by :data:`BAYER_PAD` pixels (``np.pad`` ``reflect``, an even
+    width, so every padded pixel keeps its Bayer colour) and cropped back after demosaicking:
+    colour-demosaicing's own ``scipy.ndimage`` border handling mixes colour planes at the
+    image border (its bilinear method is off by up to 0.6 on a constant 0.5 there).
+    """
+    _, fn = _bayer_function(bayer_method)
+    raw = np.asarray(raw)
+    if raw.ndim != 3 or raw.shape[1] < 2 or raw.shape[2] < 2:
+        raise InputError("raw", f"shape {raw.shape}", "(N, H, W) RGGB frames with H, W >= 2")
+    pad = min(BAYER_PAD, raw.shape[1] - 1, raw.shape[2] - 1) // 2 * 2  # even: keeps the RGGB phase
+    padded = np.pad(raw.astype(np.float64), ((0, 0), (pad, pad), (pad, pad)), mode="reflect")
+    rgb = np.stack([np.moveaxis(np.asarray(fn(padded[n], "RGGB")), -1, 0) for n in range(raw.shape[0])])
+    rgb = rgb[..., pad:pad + raw.shape[1], pad:pad + raw.shape[2]]
+    return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0).astype(np.float32)
+
+
+def aperture_warps(lr_h: np.ndarray) -> np.ndarray:
+    """``(16, 3, 3)`` HR reference -> sub-image  ->  ``(4, 3, 3)`` HR reference -> aperture-HR.
+
+    Each aperture's warp is the mean of the four warps its Bayer sites imply (normalized to
+    ``h[2, 2] = 1``); the four are identical for true warps.
+    """
+    from capssim.homography import aperture_from_lr
+
+    per_site = aperture_from_lr(lr_h)
+    per_site = per_site / per_site[:, 2:3, 2:3]
+    return per_site.reshape(4, 4, 3, 3).mean(axis=1)
+
+
+def sampling_grid(homographies: np.ndarray, out_hw: tuple[int, int], in_hw: tuple[int, int],
+                  device: torch.device) -> torch.Tensor:
+    """``grid_sample`` grid ``(B, Hout, Wout, 2)``: output pixel ``(x, y)`` reads input ``h (x, y, 1)``.
+
+    ``homographies`` ``(B, 3, 3)`` map output pixel -> input pixel coordinates (x=col, y=row,
+    pixel centres on integers); normalized for ``align_corners=True``.
+    """
+    hout, wout = out_hw
+    hin, win = in_hw
+    h = torch.as_tensor(np.asarray(homographies), dtype=torch.float64, device=device)
+    ys, xs = torch.meshgrid(torch.arange(hout, dtype=torch.float64, device=device),
+                            torch.arange(wout, dtype=torch.float64, device=device), indexing="ij")
+    pts = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)  # (Hout, Wout, 3)
+    src = torch.einsum("bij,hwj->bhwi", h, pts)
+    sx, sy = src[..., 0] / src[..., 2], src[..., 1] / src[..., 2]
+    gx = 2 * sx / max(win - 1, 1) - 1
+    gy = 2 * sy / max(hin - 1, 1) - 1
+    return torch.stack([gx, gy], dim=-1).to(torch.float32)
+
+
+def bicubic_warp(images: torch.Tensor, homographies: np.ndarray, out_hw: tuple[int, int]) -> torch.Tensor:
+    """``(B, C, Hin, Win)`` -> ``(B, C, Hout, Wout)``: bicubic samples at ``h_b (x, y, 1)``, replicate border."""
+    grid = sampling_grid(homographies, out_hw, tuple(images.shape[-2:]), images.device)
+    return F.grid_sample(images, grid, mode="bicubic", padding_mode="border", align_corners=True)
+
+
+def demosaic_and_register(capture, context: RunContext, opts: NaiveOptions):
+    """Steps 1-2: ``(4, 3, H, W)`` demosaicked frames (tensor on the context device), the
+    ``(4, 3, 3)`` aperture warps (HR reference -> aperture-HR) and the registration record."""
+    timer = context.timer
+    with timer.stage("demosaic"):
+        rgb = demosaic_apertures(capture.caps_float(), bayer_method=opts.bayer_method)
+        rgb = torch.from_numpy(rgb).to(context.device)
+    with timer.stage("registration"):
+        lr_images, lr_saturated = capture.lr_images()
+        lr_h, reg_record = lr_homographies(capture, context, images=lr_images, saturated=lr_saturated)
+        warps = aperture_warps(lr_h)
+    return rgb, warps, reg_record
+
+
+def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext, params: dict,
+           reg_record: dict, extra: dict | None = None) -> MethodOutput:
+    """Clip, flatten to 12 channels ``c = 3 p + k``, copy to the host, record."""
+    with context.timer.stage("to_host"):
+        if opts.clip:
+            image = image.clamp(0.0, 1.0)
+        image = image.reshape(12, *image.shape[-2:])
+        out = {"registration": reg_record, **(extra or {})}
+        psnr = mean_psnr(capture, image)
+        if psnr is not None:
+            out["psnr_db"] = psnr
+        host = image.to("cpu", torch.float32).numpy()
+    params = {"bayer_method": opts.bayer_method, "clip": opts.clip, **params}
+    return MethodOutput(image=host, params=params, extra=out)
+
+
+@register_method("caps-naive", input_kind="caps", reference=REFERENCE,
+                 description="Camera-array baseline: Menon 2007 demosaicking per aperture, CAPS registration, "
+                             "bicubic x2 resampling onto the reference grid (one resampling per aperture)")
+def caps_naive(capture, *, context: RunContext) -> MethodOutput:
+    with context.timer.stage("setup"):  # option parsing; the first call imports colour-demosaicing (~1 s)
+        opts, _ = NaiveOptions.from_options(context.options)
+    rgb, warps, reg_record = demosaic_and_register(capture, context, opts)
+    hr_shape = capture.hr_shape
+    with context.timer.stage("resample"):
+        from capssim.homography import raw_matrix
+
+        to_raw = np.stack([raw_matrix() @ h for h in warps])  # HR reference -> raw pixel of aperture n
+        image = bicubic_warp(rgb, to_raw, hr_shape)  # (4, 3, 2H, 2W)
+    params = {"resampling": "bicubic (a=-0.75), x2 upsampling and registration warp composed, replicate border",
+              "aperture_warps": warps.tolist()}
+    return finish(capture, image, opts, context, params, reg_record)
