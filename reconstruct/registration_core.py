@@ -293,8 +293,8 @@ class LevelCriterion:
             self.norm = float(self.ref[self.ref_valid > 0].var()) if bool((self.ref_valid > 0).sum() > 1) else 1.0
             self.norm = max(self.norm, 1e-12)
 
-    def window_r2(self, warped: torch.Tensor) -> torch.Tensor:
-        """``(B, H, W)`` R^2 of the local affine fit ``a * reference + b`` of each window."""
+    def local_moments(self, warped: torch.Tensor):
+        """Per-window variances of the reference and the warped images and their covariance, ``(B, H, W)`` each."""
         w = self.weights
         r = self.ref[None].expand_as(warped)
         s = box_sum(torch.stack([w, w * r, w * warped, w * r * r, w * warped * warped, w * r * warped], 1), self.r)
@@ -302,19 +302,16 @@ class LevelCriterion:
         mr, mm = s[:, 1] / n, s[:, 2] / n
         vr = (s[:, 3] / n - mr * mr).clamp_min(0)
         vm = (s[:, 4] / n - mm * mm).clamp_min(0)
-        c = s[:, 5] / n - mr * mm
+        return vr, vm, s[:, 5] / n - mr * mm
+
+    def window_r2(self, warped: torch.Tensor) -> torch.Tensor:
+        """``(B, H, W)`` R^2 of the local affine fit ``a * reference + b`` of each window."""
+        vr, vm, c = self.local_moments(warped)
         return c * c / ((vr + self.eps) * (vm + self.eps))
 
     def local_r2(self, warped: torch.Tensor) -> torch.Tensor:
         """``(B,)`` share of the warped moving images' local variance explained by local affine fits of the reference."""
-        w = self.weights
-        r = self.ref[None].expand_as(warped)
-        s = box_sum(torch.stack([w, w * r, w * warped, w * r * r, w * warped * warped, w * r * warped], 1), self.r)
-        n = s[:, 0].clamp_min(1e-9)
-        mr, mm = s[:, 1] / n, s[:, 2] / n
-        vr = (s[:, 3] / n - mr * mr).clamp_min(0)
-        vm = (s[:, 4] / n - mm * mm).clamp_min(0)
-        c = s[:, 5] / n - mr * mm
+        vr, vm, c = self.local_moments(warped)
         explained = (self.window * c * c / (vr + self.eps)).sum(dim=(1, 2))
         total = (self.window * (vm + self.eps)).sum(dim=(1, 2)).clamp_min(1e-30)
         return explained / total
