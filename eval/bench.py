@@ -11,7 +11,8 @@ A suite (``eval/suites/NAME.yaml`` or any YAML path; README "Benchmarks") names:
   when this one's data or renderer is unavailable) and ``psf_sigma`` (HR px, default 0.5);
 * ``noise``: ``{name, model: none|gaussian|poisson-gaussian, sigma, preset}``;
 * ``seeds``: list of integers (poses, noise and render seeds);
-* ``methods``: names, or ``{name, label, options, true_warps}`` for variants.
+* ``methods``: names, or ``{name, label, options, true_warps, registration}`` for variants
+  (``registration``: a :data:`reconstruct.registration.REGISTRATION_MODES` name).
 
 Every case is ``(scene, noise, seed, method)``. Captures are built once per
 ``(scene, noise, seed)`` and cached under ``CACHE/captures/<sha256>`` (the hash covers the
@@ -126,10 +127,15 @@ def load_suite(name_or_path: str | Path) -> dict:
     for m in spec["methods"]:
         entry = {"name": m} if isinstance(m, str) else dict(m)
         if "name" not in entry:
-            raise InputError("suite methods", repr(m), "a method name or {name, label, options, true_warps}")
+            raise InputError("suite methods", repr(m),
+                             "a method name or {name, label, options, true_warps, registration}")
         entry.setdefault("label", entry["name"])
         entry.setdefault("options", {})
         entry.setdefault("true_warps", False)
+        entry.setdefault("registration", "local-correlation")
+        from reconstruct.registration import registration_mode_arguments
+
+        registration_mode_arguments(entry["registration"])  # UnknownNameError lists the modes
         methods.append(entry)
     if len({m["label"] for m in methods}) != len(methods):
         raise InputError("suite methods", [m["label"] for m in methods], "unique labels (give variants a 'label')")
@@ -654,7 +660,7 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
                             raise Unavailable("this capture has no DoFP frame")
                         with PeakMemory(device=dev) as mem:
                             out, record = reconstruct(capture, m["name"], device=dev, true_warps=bool(m["true_warps"]),
-                                                      **m["options"])
+                                                      registration=m["registration"], **m["options"])
                         write_reconstruction(entry.path, m["label"], out.image, record)
                         scored = M.score(out.image, capture.gt, convention=conv)
                         rec.update(status="ok", metrics=M.flatten(scored), notes=scored["notes"],

@@ -99,11 +99,27 @@ def _as_tensor(x, name: str, device) -> torch.Tensor:
     return t.to(device)
 
 
+#: named registration modes (``capssim reconstruct --registration NAME``) -> keyword arguments of
+#: :func:`estimate_lr_homographies`
+REGISTRATION_MODES: dict[str, dict] = {
+    "local-correlation": {},
+    "stokes-subspace": {"stokes_subspace_std": 0.01},
+}
+
+
+def registration_mode_arguments(name: str) -> dict:
+    """Keyword arguments of :func:`estimate_lr_homographies` for a :data:`REGISTRATION_MODES` name."""
+    if name not in REGISTRATION_MODES:
+        raise UnknownNameError("registration mode", name, list(REGISTRATION_MODES))
+    return dict(REGISTRATION_MODES[name])
+
+
 def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str = "similarity",
                              device="cpu", window_radius: int = 3, stokes_weight: float = 1.0,
                              stokes_levels: int = 2, max_iterations: int = 60,
                              min_correlation: float = 0.3, robust_power: float = 4.0, robust_levels: int = 2,
-                             robust_passes: int = 2, presmooth_sigma: float = 0.0) -> RegistrationResult:
+                             robust_passes: int = 2, presmooth_sigma: float = 0.0,
+                             stokes_subspace_std: float = 0.0) -> RegistrationResult:
     """Estimate the 16 HR reference -> sub-image homographies from the 16 Bayer sub-images.
 
     Parameters
@@ -129,6 +145,11 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
         L-BFGS iterations per pyramid level.
     min_correlation
         below this final local R^2 an aperture is flagged unreliable (warning + flag).
+    stokes_subspace_std
+        > 0: end with the Stokes-subspace refinement (``registration_core`` docstring), moving
+        only along directions the Stokes residual fixes to within this many raw pixels
+        (:data:`REGISTRATION_MODES` ``stokes-subspace`` uses 0.01). For physically consistent
+        data (rendered scenes); it makes qiu-kettle worse (README 'Registration').
 
     Returns
     -------
@@ -163,6 +184,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
         sat = torch.zeros(x.shape, dtype=torch.bool, device=dev)
     if not (stokes_weight >= 0 and np.isfinite(stokes_weight)):
         raise InputError("stokes_weight", stokes_weight, "a finite number >= 0")
+    if not (stokes_subspace_std >= 0 and np.isfinite(stokes_subspace_std)):
+        raise InputError("stokes_subspace_std", stokes_subspace_std, "a finite number >= 0 (0: off)")
     dtype = torch.float64
     x = x.to(dtype)
 
@@ -231,10 +254,13 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
         stokes = stokes_weight if len(active) == 3 else 0.0
         if stokes_weight > 0 and stokes == 0.0:
             warn("registration: the Stokes-consistency term needs all four apertures; using local correlation only")
+        if stokes_subspace_std > 0 and len(active) != 3:
+            warn("registration: the Stokes-subspace refinement needs all four apertures; skipped")
         reg = register_stack(lum[0], lum[active], ref_valid=valid[0], moving_valid=valid[active], model=used,
                              window_radius=window_radius, stokes_weight=stokes, stokes_levels=stokes_levels,
                              max_iterations=max_iterations, robust_power=robust_power,
-                             robust_levels=robust_levels, robust_passes=robust_passes)
+                             robust_levels=robust_levels, robust_passes=robust_passes,
+                             stokes_subspace_std=stokes_subspace_std)
         rmat = raw_matrix()
         rinv = np.linalg.inv(rmat)
         for j, n in enumerate(active):
@@ -259,7 +285,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
 
 
 # -- benchmark ------------------------------------------------------------------------------------------
-def bench(capture_paths, *, stokes_weight: float = 1.0, device="cpu") -> list[dict]:
+def bench(capture_paths, *, stokes_weight: float = 1.0, stokes_subspace_std: float = 0.0,
+          device="cpu") -> list[dict]:
     """Registration error (HR px, :func:`capssim.homography.registration_error_hr_px`) and time per capture.
 
     Returns one row per capture: median / max error over the 16 images, the mean error per
@@ -274,7 +301,8 @@ def bench(capture_paths, *, stokes_weight: float = 1.0, device="cpu") -> list[di
         images, saturated = cap.lr_images()
         t0 = time.perf_counter()
         res = estimate_lr_homographies(images.astype(np.float32), hr_shape=cap.hr_shape, saturated=saturated,
-                                       stokes_weight=stokes_weight, device=device)
+                                       stokes_weight=stokes_weight, stokes_subspace_std=stokes_subspace_std,
+                                       device=device)
         elapsed = time.perf_counter() - t0
         err = registration_error_hr_px(res.lr_homographies, cap.true_lr_homographies(), cap.hr_shape)
         rows.append({"capture": str(path), "median_hr_px": float(np.median(err)), "max_hr_px": float(err.max()),
@@ -290,9 +318,12 @@ def _main(argv=None) -> int:
                                  description="Registration benchmark: error vs true warps and time per capture.")
     ap.add_argument("--bench", nargs="+", metavar="CAPTURE", required=True, help="capture folders")
     ap.add_argument("--stokes-weight", type=float, default=1.0)
+    ap.add_argument("--mode", default="local-correlation", choices=list(REGISTRATION_MODES),
+                    help="registration mode (stokes-subspace: for physically consistent data)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
-    rows = bench(args.bench, stokes_weight=args.stokes_weight, device=args.device)
+    rows = bench(args.bench, stokes_weight=args.stokes_weight, device=args.device,
+                 **registration_mode_arguments(args.mode))
     print(f"{'capture':<40} {'median':>8} {'max':>8} {'ap0':>7} {'ap1':>7} {'ap2':>7} {'ap3':>7} {'time s':>7}")
     for r in rows:
         a = r["per_aperture_hr_px"]

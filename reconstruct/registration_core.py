@@ -28,6 +28,15 @@ differ from theirs in a spatially varying way (other polarizer angles, other col
     constrains (S0 texture fixes ``d90 - d45 - d135``, S1 texture ``d90``, S2 texture
     ``d45 - d135``).
 
+* **Stokes-subspace refinement** (optional, ``stokes_subspace_std > 0``): the local-correlation
+  term is biased wherever DoLP/AoP vary (the analyzer images then differ in shape, not only in
+  gain), while the Stokes term alone is unbiased for physically consistent data but does not fix
+  every direction. A last Gauss-Newton stage on the Stokes residual alone moves the parameters
+  only along the directions it determines to within ``stokes_subspace_std`` px (noise-predicted).
+  It assumes ``I0 + I90 = I45 + I135`` holds in the data with equal aperture gains: true for
+  rendered scenes and for ground truths that obey it, not for ground truths taken as four
+  sequential rotating-polarizer shots (qiu-kettle breaks it by 0.9 % of S0 and gets worse).
+
 All coordinates are ``(x=col, y=row)`` with pixel centres on integers.
 """
 
@@ -419,13 +428,59 @@ def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iteration
     return p
 
 
+def _stokes_subspace_refine(p, criterion, *, max_std: float, iterations: int, info) -> torch.Tensor:
+    """Gauss-Newton steps on the Stokes residual ``I0 + I90 - I45 - I135`` alone (finest level),
+    restricted to the eigen-directions of its Gauss-Newton Hessian ``J^T J`` along which the
+    predicted standard deviation ``sqrt(s^2 / lambda)`` (``s^2``: residual mean square) is below
+    ``max_std`` raw (level-0) pixels. The other directions (e.g. the two of the three shifts per
+    axis that S0 texture alone cannot fix) keep the local-correlation estimate. ``J`` by central
+    differences (one column per parameter: 3 x P evaluations, no per-pixel loop)."""
+    crit = criterion(0, 1.0)
+    crit.fix_weights(p)
+    w = crit.weights.prod(dim=0).sqrt()
+    shape = p.shape
+
+    def residual(flat):
+        warped = spline_sample(crit.coef, crit.coords(flat.view(shape)))
+        return (w * (crit.ref + warped[1] - warped[0] - warped[2])).flatten()
+
+    n_eff = float(w.square().sum().clamp_min(1.0))
+    record = {"max_std_px": max_std, "steps": []}
+    for _ in range(iterations):
+        flat = p.flatten().detach()
+        r0 = residual(flat)
+        step = 1e-3
+        cols = []
+        for k in range(flat.numel()):
+            e = torch.zeros_like(flat)
+            e[k] = step
+            cols.append((residual(flat + e) - residual(flat - e)) / (2 * step))
+        jac = torch.stack(cols, 1)
+        hess = jac.T @ jac
+        grad = jac.T @ r0
+        lam, vec = torch.linalg.eigh(hess)
+        s2 = float(r0.square().sum()) / n_eff
+        std = torch.sqrt(s2 / lam.clamp_min(1e-30))
+        keep = std < max_std
+        coef = -(vec.T @ grad) / lam.clamp_min(1e-30)
+        delta = vec[:, keep] @ coef[keep]
+        record["steps"].append({"kept_directions": int(keep.sum()), "std_px": std.tolist(),
+                                "step_norm": float(delta.norm())})
+        p = (flat + delta).view(shape)
+        if float(delta.norm()) < 1e-4:
+            break
+    info["stokes_subspace"] = record
+    return p
+
+
 def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.Tensor | None = None,
                    moving_valid: torch.Tensor | None = None, model: str = "similarity", window_radius: int = 3,
                    stokes_weight: float = 0.0, stokes_levels: int = 2, max_iterations: int = 60,
                    min_level_size: int = 24, max_levels: int = 5, coarse_peaks: int = 3,
                    border: int = 3, initial: torch.Tensor | None = None, robust_power: float = 0.0,
                    robust_levels: int = 2, robust_passes: int = 2, full_model_levels: int = 2,
-                   rescue_below: float = 0.7, rescue_peaks: int = 8) -> StackRegistration:
+                   rescue_below: float = 0.7, rescue_peaks: int = 8, stokes_subspace_std: float = 0.0,
+                   stokes_subspace_iterations: int = 4) -> StackRegistration:
     """Register ``moving`` ``(B, H, W)`` to ``ref`` ``(H, W)`` (float64 tensors on one device).
 
     ``ref_valid``/``moving_valid`` (1 = usable pixel) mask saturated or otherwise bad pixels.
@@ -433,6 +488,7 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     levels; it needs ``B == 3`` moving images at 45, 90, 135 deg and a 0 deg reference.
     ``border``: reference pixels this close to the edge are ignored (full-resolution pixels).
     ``initial``: ``(B, P)`` starting parameters (skips the coarse stage).
+    ``stokes_subspace_std > 0`` (needs ``B == 3``) ends with :func:`_stokes_subspace_refine`.
     """
     t0 = time.perf_counter()
     dev, dtype = ref.device, ref.dtype
@@ -532,6 +588,9 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     if rescue_below > 0 and initial is None:
         p = _rescue(p, ref, moving, criterion, model=model, threshold=rescue_below, peaks=rescue_peaks,
                     max_iterations=max_iterations, info=info)
+    if stokes_subspace_std > 0 and b == 3:
+        p = _stokes_subspace_refine(p, criterion, max_std=stokes_subspace_std,
+                                    iterations=stokes_subspace_iterations, info=info)
     crit = criterion(0, 0.0)
     crit.fix_weights(p)
     with torch.no_grad():

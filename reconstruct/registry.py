@@ -59,6 +59,7 @@ class RunContext:
     timer: StageTimer
     options: dict = field(default_factory=dict)
     true_warps: bool = False
+    registration: str = "local-correlation"  # reconstruct.registration.REGISTRATION_MODES
     progress: Callable[[int, int, str], None] | None = None
 
     def report(self, done: int, total: int, message: str = "") -> None:
@@ -143,14 +144,19 @@ def resolve_device(device: str | torch.device = "cpu") -> torch.device:
 
 
 def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
-                progress: Callable[[int, int, str], None] | None = None, **options) -> tuple[MethodOutput, dict]:
+                registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None, **options) -> tuple[MethodOutput, dict]:
     """Run ``method`` on ``capture``; return its output and the record written to ``NAME.json``."""
     spec = get_method(method)
     dev = resolve_device(device)
+    if spec.input_kind == "caps" and not true_warps:
+        from reconstruct.registration import registration_mode_arguments
+
+        registration_mode_arguments(registration)  # UnknownNameError lists the modes
     if spec.input_kind == "dofp" and capture.dofp_raw is None:
         raise CaptureFormatError(f"method {method!r} needs dofp_raw.tiff, which this capture lacks.")
     timer = StageTimer(dev)
-    ctx = RunContext(device=dev, timer=timer, options=dict(options), true_warps=true_warps, progress=progress)
+    ctx = RunContext(device=dev, timer=timer, options=dict(options), true_warps=true_warps,
+                     registration=registration, progress=progress)
     t0 = time.perf_counter()
     with torch.no_grad():
         out = spec.function(capture, context=ctx)
@@ -169,6 +175,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         "input": spec.input_kind,
         "device": str(dev),
         "true_warps": true_warps,
+        "registration_mode": None if true_warps or spec.input_kind != "caps" else registration,
         "options": options,
         "params": out.params,
         "wall_time_s": total,

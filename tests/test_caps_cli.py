@@ -55,3 +55,17 @@ def test_list_and_all(capture_dir):
     assert res.exit_code == 0 and "caps-iccp" in res.output
     names = expand_methods(["all"], capture_dir)
     assert {"caps", "caps-no-cagf", "caps-no-nlstr", "caps-iccp"} <= set(names)
+
+
+def test_registration_mode_option(capture_dir):
+    """``--registration`` reaches the estimate and is recorded; an unknown mode is a clear error."""
+    runner = CliRunner()
+    res = runner.invoke(app, ["reconstruct", str(capture_dir), "-m", "caps-no-nlstr", "--iterations", "2",
+                              "--registration", "stokes-subspace", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    record = json.loads((capture_dir / "recon" / "caps-no-nlstr.json").read_text())
+    assert record["registration_mode"] == "stokes-subspace"
+    assert record["registration"]["mode"] == "stokes-subspace"
+    assert np.isfinite(record["registration"]["error_hr_px_median"])
+    res = runner.invoke(app, ["reconstruct", str(capture_dir), "-m", "caps", "--registration", "fast"])
+    assert res.exit_code != 0 and "stokes-subspace" in str(res.exception)

@@ -53,6 +53,10 @@ def reconstruct(
     iterations: Optional[int] = typer.Option(None, "--iterations", help="ADMM iterations (paper: 25)."),
     true_warps: bool = typer.Option(False, "--true-warps",
                                     help="Use the homographies stored in meta.json instead of estimating them."),
+    registration: str = typer.Option("local-correlation", "--registration",
+                                     help="Registration mode when warps are estimated: local-correlation "
+                                          "(default) | stokes-subspace (physically consistent data such as "
+                                          "rendered scenes; see README 'Registration')."),
     option: List[str] = typer.Option([], "--option", "-O", help="Method option KEY=VALUE (repeatable)."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
@@ -85,7 +89,8 @@ def reconstruct(
             def report(done: int, total: int, message: str = "", task=task) -> None:
                 bar.update(task, completed=done, total=total, message=message)
 
-            record = run_method(capture, name, device=device, true_warps=true_warps, progress=report, **options)
+            record = run_method(capture, name, device=device, true_warps=true_warps, registration=registration,
+                                progress=report, **options)
         reg = record.get("registration", {})
         err = reg.get("error_hr_px_median")
         rows.append((name, record["wall_time_s"], err))

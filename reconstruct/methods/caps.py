@@ -161,19 +161,21 @@ def lr_homographies(capture, context: RunContext, *, images: np.ndarray, saturat
         record = {"source": "true (meta.json)"}
     else:
         try:
-            from reconstruct.registration import estimate_lr_homographies
+            from reconstruct.registration import estimate_lr_homographies, registration_mode_arguments
         except ImportError as exc:
             raise CapssimError(
                 "estimated warps need reconstruct.registration, which is not available in this build "
                 f"({exc}); pass --true-warps (true_warps=True) to use the homographies stored in meta.json."
             ) from exc
         result = estimate_lr_homographies(images.astype(np.float32), hr_shape=hr_shape, saturated=saturated,
-                                          model="similarity", device=str(context.device))
+                                          model="similarity", device=str(context.device),
+                                          **registration_mode_arguments(context.registration))
         est = np.asarray(result.lr_homographies, dtype=np.float64)
         if est.shape != (16, 3, 3) or not np.all(np.isfinite(est)):
             raise CapssimError(f"registration returned invalid homographies (shape {est.shape}, "
                                f"finite: {bool(np.all(np.isfinite(est)))})")
-        record = {"source": "estimated (reconstruct.registration)"}
+        record = {"source": "estimated (reconstruct.registration)", "mode": context.registration,
+                  "time_s": result.diagnostics.get("time_s")}
     if truth_known(capture):
         err = registration_error_hr_px(est, capture.true_lr_homographies(), hr_shape)
         record.update({"error_hr_px_median": float(np.median(err)), "error_hr_px_max": float(np.max(err)),
