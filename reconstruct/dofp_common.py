@@ -282,6 +282,23 @@ def residual_interpolation(guide: torch.Tensor, samples: torch.Tensor, mask: tor
     return tentative + residual
 
 
+def polarization_residual_interpolation(guide: torch.Tensor, pol_rgb: torch.Tensor, layout="sony", *,
+                                        eps: float, weight_floor: float, clip_max: float) -> torch.Tensor:
+    """Fill the four polarizer lattices of every colour plane by :func:`residual_interpolation`.
+
+    ``guide`` ``(3, H, W)``: the full-resolution guide of each colour; ``pol_rgb`` ``(3, H, W)``:
+    the colour planes, each sampled on the four polarizer lattices of ``layout``. Returns
+    ``(4 [angle], 3 [colour], H, W)``; lattice pixels keep their samples, the rest is clipped
+    to ``[0, clip_max]`` (the overshoot of the residual step).
+    """
+    height, width = pol_rgb.shape[-2:]
+    masks = polarization_masks(height, width, layout, device=pol_rgb.device, dtype=pol_rgb.dtype)  # (4, H, W)
+    shape = (4, 3, height, width)
+    out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None], eps=eps,
+                                 weight_floor=weight_floor, clip_max=clip_max)
+    return torch.where(masks[:, None] > 0, pol_rgb[None], out.clamp(0.0, clip_max))
+
+
 def gaussian_one_sided(sigma: float, *, taps: int = 5, like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Normalized one-sided Gaussian weights on offsets ``-(taps-1)..0`` and ``0..taps-1``."""
     x = torch.arange(-(taps - 1), taps, dtype=like.dtype, device=like.device)

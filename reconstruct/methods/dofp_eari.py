@@ -56,7 +56,7 @@ import torch
 
 from capssim.capture import Capture
 from reconstruct.dofp_common import (as_output, check_mosaic, clip_ceiling, correlate, merge_submosaics,
-                                     polarization_masks, residual_interpolation, ri_bayer_demosaic, split_submosaics,
+                                     polarization_residual_interpolation, ri_bayer_demosaic, split_submosaics,
                                      stack_12)
 from reconstruct.registry import MethodOutput, RunContext, register_method
 
@@ -118,11 +118,7 @@ def demosaic_dofp_eari(mosaic, *, layout="sony", device: str | torch.device | No
     with stage("edge_aware_guide"):
         guide = edge_aware_guide(pol_rgb, edge_eps=edge_eps)  # (3, H, W)
     with stage("polarization_ri"):
-        masks = polarization_masks(*x.shape, layout, device=x.device, dtype=x.dtype)  # (4, H, W)
-        shape = (4, 3, *x.shape)
-        out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None], **kw)
-        # clip the overshoot of the residual step; lattice pixels keep their values
-        out = torch.where(masks[:, None] > 0, pol_rgb[None], out.clamp(0.0, ceiling))
+        out = polarization_residual_interpolation(guide, pol_rgb, layout, **kw)  # (4, 3, H, W)
     return as_output(stack_12(out), mosaic)
 
 

@@ -41,7 +41,7 @@ from capssim.capture import Capture
 from capssim.conventions import dofp_layout
 from capssim.errors import InputError
 from reconstruct.dofp_common import (angle_offsets, as_output, check_mosaic, clip_ceiling, merge_submosaics,
-                                     polarization_masks, residual_interpolation, ri_bayer_demosaic, ri_green,
+                                     polarization_residual_interpolation, ri_bayer_demosaic, ri_green,
                                      split_submosaics, stack_12)
 from reconstruct.methods.dofp_eari import DEFAULTS
 from reconstruct.registry import MethodOutput, RunContext, register_method
@@ -155,10 +155,7 @@ def demosaic_dofp_igri2(mosaic, *, layout="sony", device: str | torch.device | N
     with stage("intensity_guide"):
         guide = intensity_guide(pol_rgb, layout, sigma=bayer_sigma, **kw)
     with stage("polarization_ri"):
-        masks = polarization_masks(*x.shape, layout, device=x.device, dtype=x.dtype)
-        shape = (4, 3, *x.shape)
-        out = residual_interpolation(guide.expand(shape), pol_rgb.expand(shape), masks[:, None], **kw)
-        out = torch.where(masks[:, None] > 0, pol_rgb[None], out.clamp(0.0, ceiling))
+        out = polarization_residual_interpolation(guide, pol_rgb, layout, **kw)
     return as_output(stack_12(out), mosaic)
 
 
