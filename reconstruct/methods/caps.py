@@ -35,6 +35,8 @@ import numpy as np
 import torch
 
 from capssim.errors import CapssimError, InputError, UnknownNameError
+from reconstruct.admm import ADMMParameters
+from reconstruct.nlstr import NLSTRParameters
 from reconstruct.registry import MethodOutput, RunContext, register_method
 
 log = logging.getLogger(__name__)
@@ -46,27 +48,27 @@ REFERENCE = "Optics Express 32(2) 2364 (2024), sections 3-5"
 class CapsOptions:
     """Every option of the CAPS methods, with the paper's defaults (section 5.1, DESIGN.md)."""
 
-    # ADMM (section 4, 5.1)
-    iterations: int = 25
-    mu0: float = 0.5
-    grow_rate: float = 0.1
-    grow_step: int = 5
-    dt: float = 1.0
-    n_similar: int = 40
-    n_similar_step: int = 5
-    n_similar_min: int = 10
-    rematch_change: float = 0.02
-    rematch_min_gap: int = 2
-    rematch_max_gap: int = 10
-    # NLSTR (section 3.3)
-    block: int = 8
-    stride: int = 4
-    search_radius: int = 7
-    c1: float = 0.002
-    c2: float = 0.02
-    adaptive: str = "element"
-    weight_bandwidth: float = 1.0
-    strip_mb: float = 48.0
+    # ADMM (section 4, 5.1): defaults from reconstruct.admm.ADMMParameters
+    iterations: int = ADMMParameters.iterations
+    mu0: float = ADMMParameters.mu0
+    grow_rate: float = ADMMParameters.grow_rate
+    grow_step: int = ADMMParameters.grow_step
+    dt: float = ADMMParameters.dt
+    n_similar: int = ADMMParameters.n_similar
+    n_similar_step: int = ADMMParameters.n_similar_step
+    n_similar_min: int = ADMMParameters.n_similar_min
+    rematch_change: float = ADMMParameters.rematch_change
+    rematch_min_gap: int = ADMMParameters.rematch_min_gap
+    rematch_max_gap: int = ADMMParameters.rematch_max_gap
+    # NLSTR (section 3.3): defaults from reconstruct.nlstr.NLSTRParameters
+    block: int = NLSTRParameters.block
+    stride: int = NLSTRParameters.stride
+    search_radius: int = NLSTRParameters.search_radius
+    c1: float = NLSTRParameters.c1
+    c2: float = NLSTRParameters.c2
+    adaptive: str = NLSTRParameters.adaptive
+    weight_bandwidth: float = NLSTRParameters.weight_bandwidth
+    strip_mb: float = 48.0  # NLSTR working-set bound per strip (MiB)
     # CAGF (section 3.2)
     nu: float = 0.2
     cagf_radius: int = 4
@@ -88,21 +90,19 @@ class CapsOptions:
             values[name] = _coerce(name, raw, type(getattr(cls, name)))
         return cls(**values)
 
-    def admm_parameters(self):
-        from reconstruct.admm import ADMMParameters
+    def admm_parameters(self) -> ADMMParameters:
+        return ADMMParameters(**{f.name: getattr(self, f.name) for f in fields(ADMMParameters)})
 
-        return ADMMParameters(iterations=self.iterations, mu0=self.mu0, grow_rate=self.grow_rate,
-                              grow_step=self.grow_step, dt=self.dt, n_similar=self.n_similar,
-                              n_similar_step=self.n_similar_step, n_similar_min=self.n_similar_min,
-                              rematch_change=self.rematch_change, rematch_min_gap=self.rematch_min_gap,
-                              rematch_max_gap=self.rematch_max_gap)
+    def nlstr_parameters(self) -> NLSTRParameters:
+        shared = {f.name: getattr(self, f.name) for f in fields(NLSTRParameters) if hasattr(self, f.name)}
+        return NLSTRParameters(**shared, strip_bytes=int(self.strip_mb * 2**20))
 
-    def nlstr_parameters(self):
-        from reconstruct.nlstr import NLSTRParameters
-
-        return NLSTRParameters(block=self.block, stride=self.stride, search_radius=self.search_radius, c1=self.c1,
-                               c2=self.c2, adaptive=self.adaptive, weight_bandwidth=self.weight_bandwidth,
-                               strip_bytes=int(self.strip_mb * 2**20))
+    def validated_parameters(self) -> tuple[ADMMParameters, NLSTRParameters]:
+        """The ADMM and NLSTR parameters, each checked (:class:`InputError` on a bad value)."""
+        admm_params, nl_params = self.admm_parameters(), self.nlstr_parameters()
+        admm_params.validate()
+        nl_params.validate()
+        return admm_params, nl_params
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -215,10 +215,7 @@ def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: 
     from reconstruct.rearrange import observations_from_capture
 
     opts = CapsOptions.from_options(context.options)
-    admm_params = opts.admm_parameters()
-    admm_params.validate()
-    nl_params = opts.nlstr_parameters()
-    nl_params.validate()
+    admm_params, nl_params = opts.validated_parameters()
     dev, timer = context.device, context.timer
     hr_shape = capture.hr_shape
     with timer.stage("rearrange"):

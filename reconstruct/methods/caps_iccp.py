@@ -72,10 +72,7 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
 
     options = dict(context.options)
     opts = CapsOptions.from_options(options, c1=0.001, c2=0.01)
-    admm_params = opts.admm_parameters()
-    admm_params.validate()
-    nl_params = opts.nlstr_parameters()
-    nl_params.validate()
+    admm_params, nl_params = opts.validated_parameters()
     dev, timer = context.device, context.timer
     hr_shape = capture.hr_shape
     with timer.stage("demosaic"):
