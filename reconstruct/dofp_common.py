@@ -402,6 +402,34 @@ def ri_bayer_demosaic(raw: torch.Tensor, *, eps: float, weight_floor: float, cli
     return torch.stack([red, green, blue], dim=-3)
 
 
+def run_dofp_method(capture, context, demosaic, defaults: dict):
+    """The registered-method body shared by the residual-interpolation DoFP methods.
+
+    Reads the options ``precision`` (``float32`` | ``float64``) and the float parameters named
+    in ``defaults`` from ``context.options``, demosaicks ``capture.dofp_float()`` with
+    ``demosaic(mosaic, *, layout, dtype, timer, **params)`` on ``context.device`` and returns
+    the :class:`~reconstruct.registry.MethodOutput` with the parameters used.
+    """
+    from reconstruct.registry import MethodOutput
+
+    opts = dict(context.options)
+    precision = opts.pop("precision", "float32")
+    if precision not in ("float32", "float64"):
+        raise InputError("precision", precision, "float32 or float64")
+    params = {k: float(opts.pop(k, v)) for k, v in defaults.items()}
+    with context.timer.stage("load"):
+        mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
+        n_saturated = int(capture.dofp_saturated().sum())
+    image = demosaic(mosaic, layout=capture.dofp_layout, dtype=getattr(torch, precision), timer=context.timer,
+                     **params)
+    with context.timer.stage("to_host"):
+        image = image.to("cpu", torch.float32).numpy()
+    return MethodOutput(image=image, params={"layout": [list(r) for r in capture.dofp_layout], "precision": precision,
+                                             **params},
+                        extra={"n_saturated_pixels": n_saturated,
+                               "saturation_handling": "none (interpolation uses saturated samples as they are)"})
+
+
 def clip_ceiling(mosaic: torch.Tensor) -> float:
     """Upper clip of intermediate estimates: 1 (full scale), or the mosaic maximum if larger."""
     return max(1.0, float(mosaic.max()))

@@ -56,8 +56,8 @@ import torch
 
 from capssim.capture import Capture
 from reconstruct.dofp_common import (as_output, check_mosaic, clip_ceiling, correlate, merge_submosaics,
-                                     polarization_residual_interpolation, ri_bayer_demosaic, split_submosaics,
-                                     stack_12)
+                                     polarization_residual_interpolation, ri_bayer_demosaic, run_dofp_method,
+                                     split_submosaics, stack_12)
 from reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "
@@ -131,21 +131,4 @@ def dofp_eari(capture: Capture, *, context: RunContext) -> MethodOutput:
     Options (``context.options``): ``eps``, ``weight_floor``, ``edge_eps``, ``bayer_sigma``,
     ``precision`` (``float32`` | ``float64``).
     """
-    opts = dict(context.options)
-    precision = opts.pop("precision", "float32")
-    if precision not in ("float32", "float64"):
-        from capssim.errors import InputError
-
-        raise InputError("precision", precision, "float32 or float64")
-    params = {k: float(opts.pop(k, v)) for k, v in DEFAULTS.items()}
-    with context.timer.stage("load"):
-        mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
-        n_saturated = int(capture.dofp_saturated().sum())
-    image = demosaic_dofp_eari(mosaic, layout=capture.dofp_layout, dtype=getattr(torch, precision),
-                               timer=context.timer, **params)
-    with context.timer.stage("to_host"):
-        image = image.to("cpu", torch.float32).numpy()
-    return MethodOutput(image=image, params={"layout": [list(r) for r in capture.dofp_layout], "precision": precision,
-                                             **params},
-                        extra={"n_saturated_pixels": n_saturated,
-                               "saturation_handling": "none (interpolation uses saturated samples as they are)"})
+    return run_dofp_method(capture, context, demosaic_dofp_eari, DEFAULTS)

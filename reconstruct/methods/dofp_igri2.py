@@ -42,7 +42,7 @@ from capssim.conventions import dofp_layout
 from capssim.errors import InputError
 from reconstruct.dofp_common import (angle_offsets, as_output, check_mosaic, clip_ceiling, merge_submosaics,
                                      polarization_residual_interpolation, ri_bayer_demosaic, ri_green,
-                                     split_submosaics, stack_12)
+                                     run_dofp_method, split_submosaics, stack_12)
 from reconstruct.methods.dofp_eari import DEFAULTS
 from reconstruct.registry import MethodOutput, RunContext, register_method
 
@@ -167,19 +167,5 @@ def dofp_igri2(capture: Capture, *, context: RunContext) -> MethodOutput:
 
     Options (``context.options``): ``eps``, ``weight_floor``, ``bayer_sigma``, ``precision``.
     """
-    opts = dict(context.options)
-    precision = opts.pop("precision", "float32")
-    if precision not in ("float32", "float64"):
-        raise InputError("precision", precision, "float32 or float64")
-    params = {k: float(opts.pop(k, DEFAULTS[k])) for k in ("eps", "weight_floor", "bayer_sigma")}
-    with context.timer.stage("load"):
-        mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
-        n_saturated = int(capture.dofp_saturated().sum())
-    image = demosaic_dofp_igri2(mosaic, layout=capture.dofp_layout, dtype=getattr(torch, precision),
-                                timer=context.timer, **params)
-    with context.timer.stage("to_host"):
-        image = image.to("cpu", torch.float32).numpy()
-    return MethodOutput(image=image, params={"layout": [list(r) for r in capture.dofp_layout], "precision": precision,
-                                             **params},
-                        extra={"n_saturated_pixels": n_saturated,
-                               "saturation_handling": "none (interpolation uses saturated samples as they are)"})
+    return run_dofp_method(capture, context, demosaic_dofp_igri2,
+                           {k: DEFAULTS[k] for k in ("eps", "weight_floor", "bayer_sigma")})
