@@ -175,7 +175,6 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         "input": spec.input_kind,
         "device": str(dev),
         "true_warps": true_warps,
-        "registration_mode": None if true_warps or spec.input_kind != "caps" else registration,
         "options": options,
         "params": out.params,
         "wall_time_s": total,

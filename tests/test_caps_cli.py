@@ -64,7 +64,6 @@ def test_registration_mode_option(capture_dir):
                               "--registration", "stokes-subspace", "--no-progress"])
     assert res.exit_code == 0, res.output
     record = json.loads((capture_dir / "recon" / "caps-no-nlstr.json").read_text())
-    assert record["registration_mode"] == "stokes-subspace"
     assert record["registration"]["mode"] == "stokes-subspace"
     assert np.isfinite(record["registration"]["error_hr_px_median"])
     res = runner.invoke(app, ["reconstruct", str(capture_dir), "-m", "caps", "--registration", "fast"])
