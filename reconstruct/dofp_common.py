@@ -402,6 +402,14 @@ def ri_bayer_demosaic(raw: torch.Tensor, *, eps: float, weight_floor: float, cli
     return torch.stack([red, green, blue], dim=-3)
 
 
+def reject_unknown_options(leftover: dict, known: Sequence[str]) -> None:
+    """Raise :class:`~capssim.errors.UnknownNameError` when ``leftover`` holds an option not in ``known``."""
+    from capssim.errors import UnknownNameError
+
+    for key in leftover:
+        raise UnknownNameError("option", str(key), list(known) or ["(this method takes no options)"])
+
+
 def run_dofp_method(capture, context, demosaic, defaults: dict):
     """The registered-method body shared by the residual-interpolation DoFP methods.
 
@@ -416,7 +424,16 @@ def run_dofp_method(capture, context, demosaic, defaults: dict):
     precision = opts.pop("precision", "float32")
     if precision not in ("float32", "float64"):
         raise InputError("precision", precision, "float32 or float64")
-    params = {k: float(opts.pop(k, v)) for k, v in defaults.items()}
+    params = {}
+    for key, default in defaults.items():
+        raw = opts.pop(key, default)
+        try:
+            params[key] = float(raw)
+        except (TypeError, ValueError):
+            raise InputError(key, raw, "a number", f"Pass e.g. -O {key}={default}.") from None
+        if not np.isfinite(params[key]):
+            raise InputError(key, raw, "a finite number", f"Pass e.g. -O {key}={default}.")
+    reject_unknown_options(opts, ["precision", *defaults])
     with context.timer.stage("load"):
         mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
         n_saturated = int(capture.dofp_saturated().sum())

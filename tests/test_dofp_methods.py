@@ -292,3 +292,21 @@ def test_eari_options_through_the_registry(scene64):
     assert np.all(np.isfinite(out.image))
     with pytest.raises(InputError, match="precision"):
         reconstruct(capture, "dofp-eari", precision="half")
+
+
+@pytest.mark.parametrize("method, options, match", [
+    ("dofp-eari", {"epss": 1e-3}, "unknown option 'epss'.*valid names are: .*eps"),
+    ("dofp-igri2", {"iterations": 3}, "unknown option 'iterations'"),
+    ("dofp-bilinear", {"eps": 1e-3}, "unknown option 'eps'.*no options"),
+    ("dofp-eari", {"eps": "tiny"}, "eps.*a number"),
+    ("dofp-igri2", {"eps": "nan"}, "eps.*finite"),
+])
+def test_dofp_methods_reject_unknown_or_bad_options(scene64, method, options, match):
+    from capssim.errors import UnknownNameError
+    from capssim.sensor import make_sensor
+    from capssim.simulate import simulate_capture
+    from reconstruct.registry import reconstruct
+
+    capture = simulate_capture(scene64, make_sensor("none"), seed=1, psf={"type": "none"})
+    with pytest.raises((UnknownNameError, InputError), match=match):
+        reconstruct(capture, method, **options)

@@ -82,7 +82,10 @@ def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device 
                  description="DoFP colour-polarization camera, two-step bilinear demosaicking (Bayer, then polarization)",
                  reference=REFERENCE)
 def dofp_bilinear(capture: Capture, *, context: RunContext) -> MethodOutput:
-    """Demosaick ``capture.dofp_float()`` with :func:`demosaic_dofp_bilinear`; layout from meta.json."""
+    """Demosaick ``capture.dofp_float()`` with :func:`demosaic_dofp_bilinear`; layout from meta.json (no options)."""
+    from reconstruct.dofp_common import reject_unknown_options
+
+    reject_unknown_options(context.options, [])
     with context.timer.stage("load"):
         mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
         n_saturated = int(capture.dofp_saturated().sum())
