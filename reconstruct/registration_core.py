@@ -428,6 +428,60 @@ def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iteration
     return p
 
 
+#: Malus's law ``I0 + I90 = I45 + I135``: each analyzer image (moving index 0, 1, 2 = 45, 90,
+#: 135 deg) as ``sign_ref * I0 + sum sign_k * I_k`` of the others
+STOKES_PREDICTION = {0: (1.0, {1: 1.0, 2: -1.0}), 1: (-1.0, {0: 1.0, 2: 1.0}), 2: (1.0, {1: 1.0, 0: -1.0})}
+
+
+def _stokes_prediction_rescue(p, ref, moving, ref_valid, moving_valid, criterion, *, threshold: float,
+                              register, info, margin: float = 0.05) -> torch.Tensor:
+    """An analyzer image that still matches the 0 deg reference poorly (final local R^2 below
+    ``threshold``: strong polarization texture, e.g. photoelastic plastics, makes it look unlike
+    the 0 deg image) is registered instead to its prediction from the other three by Malus's
+    law, ``I45 = I0 + I90 - I135`` etc., warped with their (well-matched) estimates: the
+    prediction shows the same polarization texture. Kept when its R^2 against the prediction
+    beats the old estimate's by ``margin``. Needs the two other images to match well."""
+    crit = criterion(0, 0.0)
+    crit.fix_weights(p)
+    with torch.no_grad():
+        warped = spline_sample(crit.coef, crit.coords(p))
+        r2 = crit.local_r2(warped)
+    bad = [j for j in range(3) if not bool(r2[j] >= threshold)]
+    record = {"threshold": threshold, "r2_to_reference": r2.tolist(), "tried": []}
+    info["stokes_prediction"] = record
+    if len(bad) != 1:
+        return p
+    j = bad[0]
+    sign_ref, others = STOKES_PREDICTION[j]
+    pred = sign_ref * ref
+    valid = ref_valid.clone()
+    for k, sign in others.items():
+        pred = pred + sign * warped[k]
+        valid = valid * crit.weights[k]
+    if float(valid.sum()) < 0.25 * valid.numel():
+        record["tried"].append({"image": j, "skipped": "prediction valid on too few pixels"})
+        return p
+    sub = register(pred, moving[j:j + 1], ref_valid=valid, moving_valid=moving_valid[j:j + 1])
+    cand = torch.as_tensor(sub.params, dtype=p.dtype, device=p.device)
+    # both estimates judged against the prediction
+    pcrit = criterion(0, 0.0)
+    pcrit.ref, pcrit.ref_valid = pred, valid
+    pcrit.coef = pcrit.coef[j:j + 1]
+    pcrit.moving_valid = pcrit.moving_valid[j:j + 1]
+    scores = []
+    for q in (p[j:j + 1], cand):
+        pcrit.fix_weights(q)
+        with torch.no_grad():
+            scores.append(float(pcrit.local_r2(spline_sample(pcrit.coef, pcrit.coords(q)))[0]))
+    take = bool(torch.isfinite(cand).all()) and scores[1] > scores[0] + margin
+    record["tried"].append({"image": j, "r2_to_prediction_before": scores[0], "r2_to_prediction_after": scores[1],
+                            "kept": take, "params": cand[0].tolist()})
+    if take:
+        p = p.clone()
+        p[j] = cand[0]
+    return p
+
+
 def _stokes_subspace_refine(p, criterion, *, max_std: float, iterations: int, info) -> torch.Tensor:
     """Gauss-Newton steps on the Stokes residual ``I0 + I90 - I45 - I135`` alone (finest level),
     restricted to the eigen-directions of its Gauss-Newton Hessian ``J^T J`` along which the
@@ -480,7 +534,7 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
                    border: int = 3, initial: torch.Tensor | None = None, robust_power: float = 0.0,
                    robust_levels: int = 2, robust_passes: int = 2, full_model_levels: int = 2,
                    rescue_below: float = 0.7, rescue_peaks: int = 8, stokes_subspace_std: float = 0.0,
-                   stokes_subspace_iterations: int = 4) -> StackRegistration:
+                   stokes_subspace_iterations: int = 4, robust_window_radius: int | None = None) -> StackRegistration:
     """Register ``moving`` ``(B, H, W)`` to ``ref`` ``(H, W)`` (float64 tensors on one device).
 
     ``ref_valid``/``moving_valid`` (1 = usable pixel) mask saturated or otherwise bad pixels.
@@ -575,7 +629,7 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
         else:
             log.warning("registration: non-finite parameters at pyramid level %d; kept the previous estimate", level)
         if robust_power > 0 and level < robust_levels:
-            rcrit = criterion(level, stokes, robust=robust_power)
+            rcrit = criterion(level, stokes, robust=robust_power, r=robust_window_radius)
             for _ in range(robust_passes):  # IRLS: window weights R^2^k frozen at the current estimate
                 p_new, it2, ev2 = minimize(rcrit, p, max_iterations=max_iterations)
                 iters, evals = iters + it2, evals + ev2
@@ -588,6 +642,17 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     if rescue_below > 0 and initial is None:
         p = _rescue(p, ref, moving, criterion, model=model, threshold=rescue_below, peaks=rescue_peaks,
                     max_iterations=max_iterations, info=info)
+    if rescue_below > 0 and initial is None and b == 3:
+        def register(r, m, *, ref_valid, moving_valid):
+            return register_stack(r, m, ref_valid=ref_valid, moving_valid=moving_valid, model=model,
+                                  window_radius=window_radius, max_iterations=max_iterations,
+                                  min_level_size=min_level_size, max_levels=max_levels, coarse_peaks=coarse_peaks,
+                                  border=border, robust_power=robust_power, robust_levels=robust_levels,
+                                  robust_passes=robust_passes, full_model_levels=full_model_levels,
+                                  rescue_below=rescue_below, rescue_peaks=rescue_peaks,
+                                  robust_window_radius=robust_window_radius)
+        p = _stokes_prediction_rescue(p, ref, moving, ref_valid, moving_valid, criterion, threshold=rescue_below,
+                                      register=register, info=info)
     if stokes_subspace_std > 0 and b == 3:
         p = _stokes_subspace_refine(p, criterion, max_std=stokes_subspace_std,
                                     iterations=stokes_subspace_iterations, info=info)

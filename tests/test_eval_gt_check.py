@@ -49,6 +49,25 @@ def test_a_moved_analyzer_image_is_measured():
     for other in (report["alignment"][0], report["alignment"][2]):
         assert other["mean_displacement_px"] < 0.02
     assert report["stokes"]["per_colour"][1]["rms_percent_of_s0"] > 0.5
+    chk = report["alignment_check"]
+    assert chk["reliable"]
+    assert chk["stokes_rms_percent_aligned"] < chk["stokes_rms_percent_unaligned"] / 3
+
+
+def test_a_wrong_alignment_is_flagged_unreliable():
+    import torch
+
+    from eval.gt_check import _alignment_check
+
+    scene = torch.as_tensor(shifted_scene(0.0, 0.0, dolp_max=0.6), dtype=torch.float64).reshape(4, 3, 96, 96)
+    lum = scene.mean(dim=1)
+    valid = torch.ones(96, 96, dtype=torch.float64)
+    wrong = np.stack([np.eye(3)] * 3)
+    wrong[0, 0, 2] = 1.5                                                 # 45 deg image 1.5 px off
+    chk = _alignment_check(lum, valid, wrong)
+    assert not chk["reliable"]
+    assert chk["stokes_rms_percent_aligned"] > chk["stokes_rms_percent_unaligned"]
+    assert _alignment_check(lum, valid, np.stack([np.eye(3)] * 3))["reliable"]
 
 
 def test_the_quantization_floor_is_not_an_inconsistency():

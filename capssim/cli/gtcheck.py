@@ -55,10 +55,17 @@ def gt_check(
     typer.echo("Stokes residual I0+I90-I45-I135, % of S0 (quantization floor, low-frequency share): "
                + ", ".join(f"{s['colour']} {s['rms_percent_of_s0']:.2f} ({s['quantization_floor_percent']:.2f}, "
                            f"{s['low_frequency_share']:.2f})" for s in st["per_colour"]))
+    chk = report["alignment_check"]
+    typer.echo(f"alignment check: luminance Stokes residual {chk['stokes_rms_percent_unaligned']:.2f} % of S0 as given, "
+               f"{chk['stokes_rms_percent_aligned']:.2f} % after the alignment -> "
+               + ("plausible" if chk["reliable"] else "UNRELIABLE (polarization texture misleads the estimate)"))
     g = st["gains"]
     typer.echo(f"best gains g45 {g['g45']:.4f}, g90 {g['g90']:.4f}, g135 {g['g135']:.4f} "
                f"(residual after the fit {st['rms_percent_after_gain_fit']:.2f} % of S0); {report['time_s']:.1f} s")
     if write_aligned is not None:
+        if not chk["reliable"]:
+            typer.echo("warning: writing an aligned ground truth from an alignment estimate that raises the Stokes "
+                       "residual; it is probably worse than the original", err=True)
         write_tiff(write_aligned, aligned_ground_truth(image, report["alignment_matrices"], device=dev))
         typer.echo(f"wrote {write_aligned}")
     if as_json is not None:
