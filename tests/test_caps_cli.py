@@ -68,3 +68,14 @@ def test_registration_mode_option(capture_dir):
     assert np.isfinite(record["registration"]["error_hr_px_median"])
     res = runner.invoke(app, ["reconstruct", str(capture_dir), "-m", "caps", "--registration", "fast"])
     assert res.exit_code != 0 and "stokes-subspace" in str(res.exception)
+
+
+def test_iterations_flag_is_not_passed_to_dofp_methods(capture_dir):
+    # 'reconstruct CAP -m all --iterations N' (README) reaches the DoFP methods, which take no such option
+    res = CliRunner().invoke(app, ["reconstruct", str(capture_dir), "-m", "caps-no-nlstr", "-m", "dofp-bilinear",
+                                   "-m", "dofp-eari", "--true-warps", "--iterations", "2", "--no-progress"])
+    assert res.exit_code == 0, res.output
+    assert "--iterations does not apply to the DoFP method dofp-eari" in res.output
+    record = json.loads((capture_dir / "recon" / "caps-no-nlstr.json").read_text())
+    assert record["params"]["iterations"] == 2
+    assert (capture_dir / "recon" / "dofp-bilinear.tiff").exists()

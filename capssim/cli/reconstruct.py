@@ -65,7 +65,7 @@ def reconstruct(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from reconstruct.registry import available_methods, run_method
+    from reconstruct.registry import available_methods, get_method, run_method
 
     console = Console(stderr=True)
     if list_methods:
@@ -77,10 +77,14 @@ def reconstruct(
                                  "only --list runs without one", param_hint="CAPTURE")
     names = expand_methods(method, capture)
     options = parse_options(option)
-    if iterations is not None:
-        options["iterations"] = iterations
     rows = []
     for name in names:
+        method_options = dict(options)
+        if iterations is not None:  # ADMM iterations: the CAPS-input methods' option; DoFP methods take none
+            if get_method(name).input_kind == "caps":
+                method_options["iterations"] = iterations
+            else:
+                typer.echo(f"note: --iterations does not apply to the DoFP method {name}; not passed", err=True)
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                       TextColumn("{task.fields[message]}"), TimeElapsedColumn(), console=console,
                       disable=not progress, transient=False) as bar:
@@ -90,7 +94,7 @@ def reconstruct(
                 bar.update(task, completed=done, total=total, message=message)
 
             record = run_method(capture, name, device=device, true_warps=true_warps, registration=registration,
-                                progress=report, **options)
+                                progress=report, **method_options)
         reg = record.get("registration", {})
         err = reg.get("error_hr_px_median")
         rows.append((name, record["wall_time_s"], err))
