@@ -96,6 +96,16 @@ def _describe(matrices: np.ndarray, shape) -> list[dict]:
     return rows
 
 
+def _moving_coords(matrices, shape, device) -> torch.Tensor:
+    """``(3, H, W, 2)`` moving-image ``(x, y)`` of every reference pixel under ``matrices`` ``(3, 3, 3)``."""
+    h, w = shape
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=device),
+                            torch.arange(w, dtype=torch.float64, device=device), indexing="ij")
+    pts = torch.stack([xs.flatten(), ys.flatten(), torch.ones(h * w, dtype=torch.float64, device=device)])
+    q = torch.as_tensor(np.asarray(matrices), dtype=torch.float64, device=device) @ pts     # (3, 3, HW)
+    return (q[:, :2] / q[:, 2:]).transpose(1, 2).reshape(len(q), h, w, 2)
+
+
 def _alignment_check(lum: torch.Tensor, valid: torch.Tensor, matrices: np.ndarray, *, margin: int = 8) -> dict:
     """RMS luminance Stokes residual (% of mean S0) before and after resampling the 45/90/135 deg
     images with the estimated alignment. A true offset between the shots always leaves a
@@ -104,14 +114,8 @@ def _alignment_check(lum: torch.Tensor, valid: torch.Tensor, matrices: np.ndarra
     slightly)."""
     from reconstruct.registration_core import spline_coefficients, spline_sample
 
-    dev = lum.device
     h, w = lum.shape[1:]
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=dev),
-                            torch.arange(w, dtype=torch.float64, device=dev), indexing="ij")
-    pts = torch.stack([xs.flatten(), ys.flatten(), torch.ones(h * w, dtype=torch.float64, device=dev)])
-    g = torch.as_tensor(np.asarray(matrices), dtype=torch.float64, device=dev)
-    q = g @ pts                                                           # (3, 3, HW)
-    xy = (q[:, :2] / q[:, 2:]).transpose(1, 2).reshape(3, h, w, 2)
+    xy = _moving_coords(matrices, (h, w), lum.device)
     inside = ((xy[..., 0] >= 0) & (xy[..., 0] <= w - 1) & (xy[..., 1] >= 0) & (xy[..., 1] <= h - 1)).all(0)
     warped = spline_sample(spline_coefficients(lum[1:]), xy)
     m = valid.bool() & inside
@@ -250,14 +254,11 @@ def aligned_ground_truth(gt, matrices, *, device="cpu") -> np.ndarray:
     dev = torch.device(device)
     h, w = arr.shape[1:]
     x = torch.as_tensor(arr, dtype=torch.float64, device=dev)
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64, device=dev),
-                            torch.arange(w, dtype=torch.float64, device=dev), indexing="ij")
-    pts = torch.stack([xs.flatten(), ys.flatten(), torch.ones(h * w, dtype=torch.float64, device=dev)])
+    coords = _moving_coords(g, (h, w), dev)
+    coords = torch.stack([coords[..., 0].clamp(0, w - 1), coords[..., 1].clamp(0, h - 1)], -1)
     out = x.clone()
     for j in range(3):
-        q = torch.as_tensor(g[j], device=dev) @ pts
-        xy = (q[:2] / q[2:]).T.reshape(1, h, w, 2)
-        xy = torch.stack([xy[..., 0].clamp(0, w - 1), xy[..., 1].clamp(0, h - 1)], -1)
+        xy = coords[j:j + 1]
         sl = slice(3 * (j + 1), 3 * (j + 2))
         out[sl] = spline_sample(spline_coefficients(x[sl]), xy.expand(3, h, w, 2))
     return out.clamp(0.0, 1.0).to(torch.float32).cpu().numpy()

@@ -42,6 +42,7 @@ All coordinates are ``(x=col, y=row)`` with pixel centres on integers.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -269,6 +270,15 @@ class LevelCriterion:
         self.weights = None
         self.norm = None
 
+    def against(self, ref: torch.Tensor, ref_valid: torch.Tensor, index: int) -> "LevelCriterion":
+        """The same criterion for moving image ``index`` alone against another reference on the same grid."""
+        crit = copy.copy(self)
+        crit.ref, crit.ref_valid = ref, ref_valid
+        crit.coef = self.coef[index:index + 1]
+        crit.moving_valid = self.moving_valid[index:index + 1]
+        crit.weights = crit.norm = None
+        return crit
+
     def coords(self, p: torch.Tensor) -> torch.Tensor:
         """Moving-image level coordinates ``(B, H, W, 2)`` of every reference level pixel."""
         g = params_to_matrices(p, self.model, self.centre, self.radius)
@@ -464,10 +474,7 @@ def _stokes_prediction_rescue(p, ref, moving, ref_valid, moving_valid, criterion
     sub = register(pred, moving[j:j + 1], ref_valid=valid, moving_valid=moving_valid[j:j + 1])
     cand = torch.as_tensor(sub.params, dtype=p.dtype, device=p.device)
     # both estimates judged against the prediction
-    pcrit = criterion(0, 0.0)
-    pcrit.ref, pcrit.ref_valid = pred, valid
-    pcrit.coef = pcrit.coef[j:j + 1]
-    pcrit.moving_valid = pcrit.moving_valid[j:j + 1]
+    pcrit = crit.against(pred, valid, j)
     scores = []
     for q in (p[j:j + 1], cand):
         pcrit.fix_weights(q)
