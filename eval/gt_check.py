@@ -18,7 +18,9 @@ image:
   clipped in any image left out): shift at the image centre (px, ``x`` = column), rotation
   (deg), scale (parts per million) and the mean displacement over the frame (px). The same
   is repeated on the weakly polarized pixels only (block DoLP < ``dolp_max``) as a
-  cross-check: where the two disagree, polarization texture biases the estimate. The estimate
+  cross-check: where the two disagree, polarization texture biases the estimate (skipped below
+  :data:`MIN_WEAKLY_POLARIZED_SHARE` of the frame: on qiu-cellphonecases 256, 6 % of weakly
+  polarized pixels let it drift 13-36 px). The estimate
   assumes the four images share their structure up to a local gain; strong polarization
   texture biases it (a consistent synthetic scene with smooth random DoLP up to 0.6 and random
   AoP, 96 px: up to 0.13 px apparent offset, ``tests/test_eval_gt_check.py``; qiu-cellphonecases,
@@ -57,6 +59,9 @@ log = logging.getLogger(__name__)
 #: that quantization of the four images leaves (``2 q / sqrt(12)``, ``q`` one code: 0.45 % of an
 #: S0 of 0.5 for 8-bit images)
 CONSISTENT_STOKES_PERCENT = 0.5
+
+#: smallest share of weakly polarized pixels for the cross-check alignment (fewer let it drift)
+MIN_WEAKLY_POLARIZED_SHARE = 0.2
 
 
 def _check_gt(gt) -> np.ndarray:
@@ -183,7 +188,7 @@ def check_ground_truth(gt, *, dolp_max: float = 0.1, bit_depth: int = 0, device=
     result["alignment"] = _describe(reg.matrices, arr.shape[1:])
     result["alignment_matrices"] = reg.matrices.tolist()
     result["alignment_check"] = _alignment_check(lum, valid, reg.matrices)
-    if float(weak.mean()) > 0.05:
+    if float(weak.mean()) >= MIN_WEAKLY_POLARIZED_SHARE:
         reg_weak = register_stack(lum[0], lum[1:], ref_valid=weak, moving_valid=valid.expand(3, -1, -1),
                                   model="similarity", stokes_weight=0.0, robust_power=4.0, initial=torch.as_tensor(
                                       reg.params, dtype=torch.float64, device=dev))

@@ -18,7 +18,10 @@ Method (it replaces the paper's feature clustering, Crab-HFP, which the issue al
    phase-correlation candidates, then a coarse-to-fine refinement of a local-correlation
    criterion (local gain and offset per window, so polarizer angle and colour do not matter)
    plus the Stokes consistency ``I0 + I90 = I45 + I135`` on the finest levels, with
-   cubic-spline interpolation.
+   cubic-spline interpolation. Apertures that still match poorly restart from more
+   phase-correlation peaks, and then from a joint re-run dominated by the Stokes consistency
+   (kept if it lowers the Stokes residual by > 10 %; strong polarization texture such as
+   photoelastic fringes).
 
 Safeguards: constant / flat images, or frames too small for the model, fall back to the
 identity (or a smaller model) with a logged warning and a flag in ``diagnostics``; a poor
@@ -108,7 +111,8 @@ REGISTRATION_MODES: dict[str, dict] = {
 
 
 #: final local R^2 below which an aperture's estimate gets a warning (not the unreliable flag):
-#: right estimates on strongly polarized scenes reach 0.4-0.8, wrong ones 0.3-0.5
+#: right estimates on strongly polarized scenes reach 0.4-0.8, wrong ones 0.3-0.5 (apertures whose
+#: warp the Stokes-consistency rescue set get their own warning instead)
 WEAK_CORRELATION = 0.6
 
 
@@ -159,8 +163,9 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
     stokes_subspace_std
         > 0: end with the Stokes-subspace refinement (``registration_core`` docstring), moving
         only along directions the Stokes residual fixes to within this many raw pixels
-        (:data:`REGISTRATION_MODES` ``stokes-subspace`` uses 0.01). For physically consistent
-        data (rendered scenes); it makes qiu-kettle worse (README 'Registration').
+        (:data:`REGISTRATION_MODES` ``stokes-subspace`` uses 0.01). For Stokes-consistent data whose
+        polarization texture biases the default; it makes qiu-kettle and rendered scenes with sharp
+        colour edges worse (README 'Registration').
 
     Returns
     -------
@@ -274,6 +279,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
                              stokes_subspace_std=stokes_subspace_std, robust_window_radius=robust_window_radius)
         rmat = raw_matrix()
         rinv = np.linalg.inv(rmat)
+        joint = reg.info.get("stokes_joint", {})
+        rescued = set(joint.get("images", [])) if joint.get("kept") else set()
         for j, n in enumerate(active):
             g = reg.matrices[j]
             hn = rinv @ g @ rmat
@@ -284,7 +291,13 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
             aperture[n] = hn / hn[2, 2]
             per_ap[n]["correlation"] = float(reg.correlation[j])
             per_ap[n]["params_raw_px"] = [float(v) for v in reg.params[j]]
-            if not float(reg.correlation[j]) >= min_correlation:
+            if j in rescued:
+                warn(f"registration: aperture {n} ({45 * n} deg) matches the reference poorly (local R^2 = "
+                     f"{float(reg.correlation[j]):.3f}: strong polarization texture); its warp was set by the Stokes "
+                     f"consistency I0 + I90 = I45 + I135 (residual rms {joint['stokes_rms_before']:.4g} -> "
+                     f"{joint['stokes_rms_after']:.4g})")
+                per_ap[n]["stokes_rescued"] = True
+            elif not float(reg.correlation[j]) >= min_correlation:
                 warn(f"registration: aperture {n} ({45 * n} deg) matches the reference poorly (local R^2 = "
                      f"{float(reg.correlation[j]):.3f} < {min_correlation}); its warp is unreliable")
                 per_ap[n]["unreliable"] = True
@@ -335,7 +348,7 @@ def _main(argv=None) -> int:
     ap.add_argument("--bench", nargs="+", metavar="CAPTURE", required=True, help="capture folders")
     ap.add_argument("--stokes-weight", type=float, default=1.0)
     ap.add_argument("--mode", default="local-correlation", choices=list(REGISTRATION_MODES),
-                    help="registration mode (stokes-subspace: for physically consistent data)")
+                    help="registration mode (stokes-subspace: Stokes-consistent data with polarization texture)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
     rows = bench(args.bench, stokes_weight=args.stokes_weight, device=args.device,

@@ -438,55 +438,41 @@ def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iteration
     return p
 
 
-#: Malus's law ``I0 + I90 = I45 + I135``: each analyzer image (moving index 0, 1, 2 = 45, 90,
-#: 135 deg) as ``sign_ref * I0 + sum sign_k * I_k`` of the others
-STOKES_PREDICTION = {0: (1.0, {1: 1.0, 2: -1.0}), 1: (-1.0, {0: 1.0, 2: 1.0}), 2: (1.0, {1: 1.0, 0: -1.0})}
-
-
-def _stokes_prediction_rescue(p, ref, moving, ref_valid, moving_valid, criterion, *, threshold: float,
-                              register, info, margin: float = 0.05) -> torch.Tensor:
-    """An analyzer image that still matches the 0 deg reference poorly (final local R^2 below
-    ``threshold``: strong polarization texture, e.g. photoelastic plastics, makes it look unlike
-    the 0 deg image) is registered instead to its prediction from the other three by Malus's
-    law, ``I45 = I0 + I90 - I135`` etc., warped with their (well-matched) estimates: the
-    prediction shows the same polarization texture. Kept when its R^2 against the prediction
-    beats the old estimate's by ``margin``. Needs the two other images to match well."""
+def _stokes_joint_rescue(p, criterion, *, threshold: float, refine, info, weight: float = 100.0,
+                         margin: float = 0.1) -> torch.Tensor:
+    """Analyzer images that still match the 0 deg reference poorly (local R^2 below ``threshold``
+    after :func:`_rescue`; strong polarization texture such as photoelastic fringes makes them
+    look unlike the 0 deg image, and the local correlation then settles pixels off) take their
+    parameters from a joint re-run, started from the current estimate, in which the Stokes
+    consistency ``I0 + I90 = I45 + I135`` (weight ``weight``, on every pyramid level) dominates
+    the local correlation: that residual does not care how unlike the 0 deg image an analyzer
+    image looks. Kept when the Stokes residual (rms, finest level) falls by more than
+    ``margin`` (relative); the well-matched images keep their estimates. Works for one, two or
+    three poorly matched images (qiu-cellphonecases 256: 45 and 135 deg, 14-15 -> 0.2-0.4 HR px)."""
     crit = criterion(0, 0.0)
-    crit.fix_weights(p)
-    with torch.no_grad():
-        warped = spline_sample(crit.coef, crit.coords(p))
-        r2 = crit.local_r2(warped)
-    bad = [j for j in range(3) if not bool(r2[j] >= threshold)]
-    record = {"threshold": threshold, "r2_to_reference": r2.tolist(), "tried": []}
-    info["stokes_prediction"] = record
-    if len(bad) != 1:
-        return p
-    j = bad[0]
-    sign_ref, others = STOKES_PREDICTION[j]
-    pred = sign_ref * ref
-    valid = ref_valid.clone()
-    for k, sign in others.items():
-        pred = pred + sign * warped[k]
-        valid = valid * crit.weights[k]
-    if float(valid.sum()) < 0.25 * valid.numel():
-        record["tried"].append({"image": j, "skipped": "prediction valid on too few pixels"})
-        return p
-    sub = register(pred, moving[j:j + 1], ref_valid=valid, moving_valid=moving_valid[j:j + 1])
-    cand = torch.as_tensor(sub.params, dtype=p.dtype, device=p.device)
-    # both estimates judged against the prediction
-    pcrit = crit.against(pred, valid, j)
-    scores = []
-    for q in (p[j:j + 1], cand):
-        pcrit.fix_weights(q)
+
+    def measure(q):
+        crit.fix_weights(q)
         with torch.no_grad():
-            scores.append(float(pcrit.local_r2(spline_sample(pcrit.coef, pcrit.coords(q)))[0]))
-    take = bool(torch.isfinite(cand).all()) and scores[1] > scores[0] + margin
-    record["tried"].append({"image": j, "r2_to_prediction_before": scores[0], "r2_to_prediction_after": scores[1],
-                            "kept": take, "params": cand[0].tolist()})
-    if take:
-        p = p.clone()
-        p[j] = cand[0]
-    return p
+            warped = spline_sample(crit.coef, crit.coords(q))
+            return crit.local_r2(warped), float(crit.stokes_residual(warped).sqrt())
+
+    r2, before = measure(p)
+    bad = ~(r2 >= threshold)
+    record = {"threshold": threshold, "weight": weight, "images": [int(i) for i in torch.nonzero(bad).flatten()]}
+    info["stokes_joint"] = record
+    if not bool(bad.any()):
+        return p
+    joint = torch.as_tensor(refine(p, weight).params, dtype=p.dtype, device=p.device)
+    cand = torch.where(bad[:, None], joint, p)
+    if not bool(torch.isfinite(cand).all()):
+        record["skipped"] = "non-finite parameters"
+        return p
+    r2_after, after = measure(cand)
+    take = after < (1.0 - margin) * before
+    record.update({"stokes_rms_before": before, "stokes_rms_after": after, "r2_after": r2_after.tolist(),
+                   "kept": bool(take)})
+    return cand if take else p
 
 
 def _stokes_subspace_refine(p, criterion, *, max_std: float, iterations: int, info) -> torch.Tensor:
@@ -526,6 +512,7 @@ def _stokes_subspace_refine(p, criterion, *, max_std: float, iterations: int, in
         coef = -(vec.T @ grad) / lam.clamp_min(1e-30)
         delta = vec[:, keep] @ coef[keep]
         record["steps"].append({"kept_directions": int(keep.sum()), "std_px": std.tolist(),
+                                "residual_rms": math.sqrt(s2),
                                 "step_norm": float(delta.norm())})
         p = (flat + delta).view(shape)
         if float(delta.norm()) < 1e-4:
@@ -650,16 +637,14 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
         p = _rescue(p, ref, moving, criterion, model=model, threshold=rescue_below, peaks=rescue_peaks,
                     max_iterations=max_iterations, info=info)
     if rescue_below > 0 and initial is None and b == 3:
-        def register(r, m, *, ref_valid, moving_valid):
-            return register_stack(r, m, ref_valid=ref_valid, moving_valid=moving_valid, model=model,
-                                  window_radius=window_radius, max_iterations=max_iterations,
-                                  min_level_size=min_level_size, max_levels=max_levels, coarse_peaks=coarse_peaks,
-                                  border=border, robust_power=robust_power, robust_levels=robust_levels,
-                                  robust_passes=robust_passes, full_model_levels=full_model_levels,
-                                  rescue_below=rescue_below, rescue_peaks=rescue_peaks,
-                                  robust_window_radius=robust_window_radius)
-        p = _stokes_prediction_rescue(p, ref, moving, ref_valid, moving_valid, criterion, threshold=rescue_below,
-                                      register=register, info=info)
+        def refine(q, weight):
+            return register_stack(ref, moving, ref_valid=ref_valid, moving_valid=moving_valid, model=model,
+                                  window_radius=window_radius, stokes_weight=weight, stokes_levels=levels,
+                                  max_iterations=max_iterations, min_level_size=min_level_size,
+                                  max_levels=max_levels, border=border, initial=q, robust_power=0.0,
+                                  full_model_levels=full_model_levels, rescue_below=0.0)
+
+        p = _stokes_joint_rescue(p, criterion, threshold=rescue_below, refine=refine, info=info)
     if stokes_subspace_std > 0 and b == 3:
         p = _stokes_subspace_refine(p, criterion, max_std=stokes_subspace_std,
                                     iterations=stokes_subspace_iterations, info=info)

@@ -141,3 +141,14 @@ def test_cli_reports_and_writes_an_aligned_tiff(tmp_path):
     assert check_ground_truth(aligned)["alignment"][1]["mean_displacement_px"] < 0.02
     again = CliRunner().invoke(app, ["gt-check", str(src), "--json", str(rep)])
     assert again.exit_code != 0 and "--overwrite" in str(again.exception)
+
+
+def test_weak_polarization_cross_check_needs_enough_weakly_polarized_pixels():
+    from eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE
+
+    few = check_ground_truth(shifted_scene(0.0, 0.0), dolp_max=0.005)     # almost nothing that weak
+    assert few["weakly_polarized_share"] < MIN_WEAKLY_POLARIZED_SHARE
+    assert few["alignment_weakly_polarized"] is None
+    many = check_ground_truth(shifted_scene(0.0, 0.0), dolp_max=0.5)
+    assert many["weakly_polarized_share"] >= MIN_WEAKLY_POLARIZED_SHARE
+    assert len(many["alignment_weakly_polarized"]) == 3

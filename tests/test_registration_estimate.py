@@ -153,3 +153,54 @@ def test_registration_mode_names_and_bad_values():
         registration_mode_arguments("stokes")
     with pytest.raises(InputError, match="stokes_subspace_std"):
         estimate_lr_homographies(np.zeros((16, 8, 8), np.float32), hr_shape=(32, 32), stokes_subspace_std=-1.0)
+
+
+def _photoelastic(size, seed):
+    """Weak S0 texture under strong S1/S2 fringes (a smooth phase field, DoLP up to 0.5, R = G = B):
+    the 45 and 135 deg images look unlike the 0 deg one, as on qiu-cellphonecases."""
+    from scipy.ndimage import gaussian_filter
+
+    from capssim.polarization import twelve_from_stokes
+
+    rng = np.random.default_rng(seed)
+
+    def texture(sigma):
+        t = gaussian_filter(rng.random((size, size)), sigma)
+        return (t - t.mean()) / t.std()
+
+    s0 = 0.5 + 0.05 * texture(1.5)
+    phase = 12.0 * texture(6.0)
+    stokes = np.stack([s0, 0.225 * np.cos(phase), 0.36 * np.sin(phase)])[:, None].repeat(3, 1)
+    return twelve_from_stokes(stokes).astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_photoelastic_texture_is_registered_by_the_stokes_rescue(seed, monkeypatch):
+    """Two or three analyzer images match the 0 deg image poorly; the local correlation alone
+    lands pixels off, the Stokes-consistency rescue brings them back (README 'Registration')."""
+    import reconstruct.registration_core as core
+
+    size = 128
+    h = np.stack([similarity(s) for s in SHIFTS])
+    images, sat = _capture(_photoelastic(size, seed), h)
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    err = np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
+    assert err.max() < 0.05, err
+    joint = res.diagnostics["engine"]["stokes_joint"]
+    assert joint["kept"] and joint["stokes_rms_after"] < 0.5 * joint["stokes_rms_before"]
+    rescued = [a for a in res.diagnostics["apertures"] if a.get("stokes_rescued")]
+    assert len(rescued) >= 2 and not any(a.get("unreliable") for a in rescued)
+
+    monkeypatch.setattr(core, "_stokes_joint_rescue", lambda p, *args, **kwargs: p)
+    off = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    err_off = np.abs(off.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
+    assert err_off.max() > 0.5, err_off   # the case needs the rescue
+
+
+def test_stokes_rescue_is_not_tried_on_well_matched_apertures():
+    size = 128
+    h = np.stack([similarity(s) for s in SHIFTS])
+    images, sat = _capture(_unpolarized(size), h)
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    joint = res.diagnostics["engine"]["stokes_joint"]
+    assert joint["images"] == [] and "kept" not in joint

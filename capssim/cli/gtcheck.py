@@ -23,7 +23,7 @@ def gt_check(
     from capssim.errors import InputError
     from capssim.imageio import atomic_write_json, read_gt_scene, write_tiff
     from capssim.simulate import prepare_ground_truth
-    from eval.gt_check import aligned_ground_truth, check_ground_truth
+    from eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE, aligned_ground_truth, check_ground_truth
     from reconstruct.registry import resolve_device
 
     for name, path in (("--json", as_json), ("--write-aligned", write_aligned)):
@@ -51,6 +51,9 @@ def gt_check(
         typer.echo(f"{report['angles_deg'][j]:>3} deg  {row['shift_x_px']:8.3f} {row['shift_y_px']:8.3f} "
                    f"{row['rotation_deg']:9.4f} {row['scale_ppm']:10.0f} {row['mean_displacement_px']:8.3f}"
                    f"{cross} {100 * report['clipped_share'][j + 1]:10.2f}")
+    if weak is None:
+        typer.echo(f"weak-pol cross-check skipped: {100 * report['weakly_polarized_share']:.1f} % of the pixels are "
+                   f"weakly polarized (block DoLP < --dolp-max), it needs {100 * MIN_WEAKLY_POLARIZED_SHARE:.0f} %")
     st = report["stokes"]
     typer.echo("Stokes residual I0+I90-I45-I135, % of S0 (quantization floor, low-frequency share): "
                + ", ".join(f"{s['colour']} {s['rms_percent_of_s0']:.2f} ({s['quantization_floor_percent']:.2f}, "
