@@ -304,7 +304,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
             elif float(reg.correlation[j]) < WEAK_CORRELATION:
                 warn(f"registration: aperture {n} ({45 * n} deg) matches the reference weakly (local R^2 = "
                      f"{float(reg.correlation[j]):.3f} < {WEAK_CORRELATION}): strong polarization texture can put "
-                     "its warp pixels off (qiu-cellphonecases 256: 14 HR px); check the result or use --true-warps")
+                     "its warp pixels off, and the Stokes-consistency rescue did not lower the Stokes residual; "
+                     "check the result or use --true-warps")
                 per_ap[n]["weak_match"] = True
         diag["engine"] = reg.info
     diag["apertures"] = per_ap
