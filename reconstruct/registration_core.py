@@ -42,7 +42,6 @@ All coordinates are ``(x=col, y=row)`` with pixel centres on integers.
 
 from __future__ import annotations
 
-import copy
 import logging
 import math
 import time
@@ -270,15 +269,6 @@ class LevelCriterion:
         self.weights = None
         self.norm = None
 
-    def against(self, ref: torch.Tensor, ref_valid: torch.Tensor, index: int) -> "LevelCriterion":
-        """The same criterion for moving image ``index`` alone against another reference on the same grid."""
-        crit = copy.copy(self)
-        crit.ref, crit.ref_valid = ref, ref_valid
-        crit.coef = self.coef[index:index + 1]
-        crit.moving_valid = self.moving_valid[index:index + 1]
-        crit.weights = crit.norm = None
-        return crit
-
     def coords(self, p: torch.Tensor) -> torch.Tensor:
         """Moving-image level coordinates ``(B, H, W, 2)`` of every reference level pixel."""
         g = params_to_matrices(p, self.model, self.centre, self.radius)
@@ -392,11 +382,14 @@ def _pyramid(img: torch.Tensor, valid: torch.Tensor, levels: int):
     return imgs, vals
 
 
-def _final_r2(criterion, level: int, p: torch.Tensor) -> torch.Tensor:
-    crit = criterion(level, 0.0)
+def _final_fit(criterion, p: torch.Tensor, *, stokes: bool = False) -> tuple[torch.Tensor, float | None]:
+    """Finest-level local R^2 ``(B,)`` of the estimate ``p`` and, with ``stokes`` (``B == 3``), the
+    rms Stokes residual ``I0 + I90 - I45 - I135``."""
+    crit = criterion(0, 0.0)
     crit.fix_weights(p)
     with torch.no_grad():
-        return crit.local_r2(spline_sample(crit.coef, crit.coords(p)))
+        warped = spline_sample(crit.coef, crit.coords(p))
+        return crit.local_r2(warped), (float(crit.stokes_residual(warped).sqrt()) if stokes else None)
 
 
 def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iterations, info,
@@ -405,7 +398,7 @@ def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iteration
     self-similar targets such as a Siemens star) restart from more phase-correlation peaks of
     the full-resolution gradient images, each refined on the finest level (translation, then
     the full model); the restart is kept when its final R^2 is higher by ``margin``."""
-    r2 = _final_r2(criterion, 0, p)
+    r2, _ = _final_fit(criterion, p)
     bad = ~(r2 >= threshold)
     record = {"threshold": threshold, "r2_before": r2.tolist(), "rescued": []}
     if not bool(bad.any()):
@@ -428,7 +421,7 @@ def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iteration
         best_s = torch.where(take, score, best_s)
     start = torch.cat([best_t, torch.zeros_like(p[:, 2:])], 1)
     cand, _, _ = minimize(criterion(0, 0.0), start, max_iterations=max_iterations)
-    score = _final_r2(criterion, 0, cand)
+    score, _ = _final_fit(criterion, cand)
     better = bad & torch.isfinite(cand).all(1) & (score > r2 + margin)
     p = torch.where(better[:, None], cand, p)
     r2 = torch.where(better, score, r2)
@@ -449,15 +442,7 @@ def _stokes_joint_rescue(p, criterion, *, threshold: float, refine, info, weight
     image looks. Kept when the Stokes residual (rms, finest level) falls by more than
     ``margin`` (relative); the well-matched images keep their estimates. Works for one, two or
     three poorly matched images (qiu-cellphonecases 256: 45 and 135 deg, 14-15 -> 0.2-0.4 HR px)."""
-    crit = criterion(0, 0.0)
-
-    def measure(q):
-        crit.fix_weights(q)
-        with torch.no_grad():
-            warped = spline_sample(crit.coef, crit.coords(q))
-            return crit.local_r2(warped), float(crit.stokes_residual(warped).sqrt())
-
-    r2, before = measure(p)
+    r2, before = _final_fit(criterion, p, stokes=True)
     bad = ~(r2 >= threshold)
     record = {"threshold": threshold, "weight": weight, "images": [int(i) for i in torch.nonzero(bad).flatten()]}
     info["stokes_joint"] = record
@@ -468,7 +453,7 @@ def _stokes_joint_rescue(p, criterion, *, threshold: float, refine, info, weight
     if not bool(torch.isfinite(cand).all()):
         record["skipped"] = "non-finite parameters"
         return p
-    r2_after, after = measure(cand)
+    r2_after, after = _final_fit(criterion, cand, stokes=True)
     take = after < (1.0 - margin) * before
     record.update({"stokes_rms_before": before, "stokes_rms_after": after, "r2_after": r2_after.tolist(),
                    "kept": bool(take)})
@@ -648,13 +633,9 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     if stokes_subspace_std > 0 and b == 3:
         p = _stokes_subspace_refine(p, criterion, max_std=stokes_subspace_std,
                                     iterations=stokes_subspace_iterations, info=info)
-    crit = criterion(0, 0.0)
-    crit.fix_weights(p)
-    with torch.no_grad():
-        warped = spline_sample(crit.coef, crit.coords(p))
-        r2 = crit.local_r2(warped)
-        if b == 3:
-            info["stokes_residual_rms"] = float(crit.stokes_residual(warped).sqrt())
+    r2, stokes_rms = _final_fit(criterion, p, stokes=b == 3)
+    if stokes_rms is not None:
+        info["stokes_residual_rms"] = stokes_rms
     g = params_to_matrices(p, model, centre, radius)
     info["time_s"] = time.perf_counter() - t0
     return StackRegistration(params=p.cpu().numpy(), matrices=g.cpu().numpy(), correlation=r2.cpu().numpy(),
