@@ -8,12 +8,25 @@ sub-pixel offsets are known, so only the three aperture warps ``H_1..H_3`` (HR r
 
 Method (it replaces the paper's feature clustering, Crab-HFP, which the issue allows):
 
-1. **Registration image per aperture.** The four RGGB sub-images of aperture n are put back
-   into its raw mosaic ``(H, W)`` and filtered with the 3x3 binomial kernel
-   ``[1 2 1; 2 4 2; 1 2 1] / 16``. On an RGGB mosaic this returns the luminance
-   ``(R + 2G + B) / 4`` of locally constant colour at every raw pixel, whatever its Bayer
-   phase, centred on that pixel: no demosaicking and no Bayer-phase bias between apertures.
-   Pixels whose 3x3 support holds a saturated sample are masked.
+1. **Registration image per aperture** (``luminance=``). The four RGGB sub-images of aperture n
+   are put back into its raw mosaic ``(H, W)``.
+
+   - ``binomial`` (default): the mosaic is filtered with the 3x3 binomial kernel
+     ``[1 2 1; 2 4 2; 1 2 1] / 16``. On an RGGB mosaic this returns the luminance
+     ``(R + 2G + B) / 4`` of locally constant colour at every raw pixel, whatever its Bayer phase:
+     no demosaicking, and for grey content the same linear blur in every aperture. At colour
+     edges, though, the mosaic's chroma carriers leak into it as a pattern tied to the sensor
+     grid, different in each aperture, which biases the warp (the rendered colorchecker's ground
+     truth simulated with similarity warps: 0.066 HR px median; made grey: 0.003).
+   - ``ri-binomial`` (the ``ri-luminance`` mode): the mosaic is demosaicked by residual
+     interpolation (:func:`reconstruct.dofp_common.ri_bayer_demosaic`, Kiku et al. 2016), and its
+     luminance ``(R + 2G + B) / 4`` is filtered with the same kernel: ``binomial`` minus the leak
+     as the demosaicking estimates it (the colorchecker above: 0.017; rendered colorchecker 512:
+     0.076 -> 0.034). It is worse where the demosaicking errs: aliased high-frequency texture
+     (a 72-cycle Siemens star at 192 px: max 0.08 -> 0.43) and fine grey fringes.
+
+   Raw pixels with a saturated sample in their 3x3 neighbourhood are masked (for ``ri-binomial``
+   a 5x5 or 7x7 mask was worse on qiu-kettle: 0.148 / 0.151 against 0.144 HR px).
 2. **Registration** of apertures 1-3 to aperture 0 by :func:`reconstruct.registration_core.register_stack`:
    phase-correlation candidates, then a coarse-to-fine refinement of a local-correlation
    criterion (local gain and offset per window, so polarizer angle and colour do not matter)
@@ -90,6 +103,42 @@ def binomial_luminance(raw: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, k[None, None])[:, 0]
 
 
+def _mirror_index(n: int, pad: int, device) -> torch.Tensor:
+    """Indices of a length-``n`` axis mirrored by ``pad`` on each side (``x[-k] = x[k]``, repeated as needed)."""
+    i = torch.arange(-pad, n + pad, device=device)
+    if n == 1:
+        return torch.zeros_like(i)
+    period = 2 * (n - 1)
+    i = i.remainder(period)
+    return torch.where(i >= n, period - i, i)
+
+
+#: mirror padding (raw pixels, even: keeps the Bayer phase) around each frame before the RI demosaicking
+RI_PAD = 6
+
+
+def ri_binomial_luminance(raw: torch.Tensor) -> torch.Tensor:
+    """``(B, H, W)`` RGGB mosaics -> ``(B, H, W)``: 3x3 binomial filter of the luminance ``(R + 2G + B) / 4``
+    of the residual-interpolation demosaicking (the settings of ``dofp-eari``'s colour stage).
+
+    Frames are mirror-padded by :data:`RI_PAD` pixels (Bayer phase kept; any size >= 2 works).
+    """
+    from reconstruct.dofp_common import ri_bayer_demosaic
+    from reconstruct.methods.dofp_eari import DEFAULTS
+
+    _, hh, ww = raw.shape
+    iy, ix = _mirror_index(hh, RI_PAD, raw.device), _mirror_index(ww, RI_PAD, raw.device)
+    padded = raw[:, iy][:, :, ix]
+    rgb = ri_bayer_demosaic(padded, eps=DEFAULTS["eps"], weight_floor=DEFAULTS["weight_floor"],
+                            clip_max=max(1.0, float(raw.max())), sigma=DEFAULTS["bayer_sigma"])
+    rgb = rgb[..., RI_PAD:RI_PAD + hh, RI_PAD:RI_PAD + ww]
+    return binomial_luminance((rgb[:, 0] + 2 * rgb[:, 1] + rgb[:, 2]) / 4)
+
+
+#: registration images of the raw mosaics (``estimate_lr_homographies(luminance=...)``)
+LUMINANCE_METHODS = {"ri-binomial": ri_binomial_luminance, "binomial": binomial_luminance}
+
+
 # -- public API ----------------------------------------------------------------------------------------
 def _as_tensor(x, name: str, device) -> torch.Tensor:
     if isinstance(x, torch.Tensor):
@@ -107,6 +156,7 @@ def _as_tensor(x, name: str, device) -> torch.Tensor:
 REGISTRATION_MODES: dict[str, dict] = {
     "local-correlation": {},
     "stokes-subspace": {"stokes_subspace_std": 0.01},
+    "ri-luminance": {"luminance": "ri-binomial"},
 }
 
 
@@ -129,7 +179,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
                              min_correlation: float = 0.3, robust_power: float = 4.0, robust_levels: int = 2,
                              robust_passes: int = 2, presmooth_sigma: float = 0.0,
                              stokes_subspace_std: float = 0.0,
-                             robust_window_radius: int | None = 1) -> RegistrationResult:
+                             robust_window_radius: int | None = 1,
+                             luminance: str = "binomial") -> RegistrationResult:
     """Estimate the 16 HR reference -> sub-image homographies from the 16 Bayer sub-images.
 
     Parameters
@@ -167,6 +218,10 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
         polarization texture biases the default; it makes qiu-kettle and rendered scenes with sharp
         colour edges worse (README 'Registration').
 
+    luminance
+        the registration image of each aperture (:data:`LUMINANCE_METHODS`): ``binomial``
+        (default) or ``ri-binomial`` (module docstring, step 1; the ``ri-luminance`` mode).
+
     Returns
     -------
     RegistrationResult
@@ -176,6 +231,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
     t_start = time.perf_counter()
     if model not in MOTION_MODELS:
         raise UnknownNameError("registration model", model, list(MOTION_MODELS))
+    if luminance not in LUMINANCE_METHODS:
+        raise UnknownNameError("luminance", luminance, list(LUMINANCE_METHODS))
     dev = torch.device(device)
     x = _as_tensor(lr_images, "lr_images", dev)
     if x.ndim != 3 or x.shape[0] != N_LR_IMAGES:
@@ -205,17 +262,17 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
     dtype = torch.float64
     x = x.to(dtype)
 
-    diag: dict = {"method": "binomial luminance; phase correlation + pyramid local correlation "
+    diag: dict = {"method": f"{luminance} luminance; phase correlation + pyramid local correlation "
                             "+ Stokes consistency (cubic spline, L-BFGS)",
-                  "model_requested": model, "window_radius": window_radius, "stokes_weight": stokes_weight,
-                  "device": str(dev), "warnings": []}
+                  "luminance": luminance, "model_requested": model, "window_radius": window_radius,
+                  "stokes_weight": stokes_weight, "device": str(dev), "warnings": []}
 
     def warn(msg):
         log.warning(msg)
         diag["warnings"].append(msg)
 
     raw = mosaic_from_sub_images(x)
-    lum = binomial_luminance(raw)
+    lum = LUMINANCE_METHODS[luminance](raw)
     if presmooth_sigma > 0:
         from reconstruct.registration_core import gaussian_blur
 
@@ -316,7 +373,7 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
 
 # -- benchmark ------------------------------------------------------------------------------------------
 def bench(capture_paths, *, stokes_weight: float = 1.0, stokes_subspace_std: float = 0.0,
-          device="cpu") -> list[dict]:
+          device="cpu", luminance: str = "binomial") -> list[dict]:
     """Registration error (HR px, :func:`capssim.homography.registration_error_hr_px`) and time per capture.
 
     Returns one row per capture: median / max error over the 16 images, the mean error per
@@ -332,7 +389,7 @@ def bench(capture_paths, *, stokes_weight: float = 1.0, stokes_subspace_std: flo
         t0 = time.perf_counter()
         res = estimate_lr_homographies(images.astype(np.float32), hr_shape=cap.hr_shape, saturated=saturated,
                                        stokes_weight=stokes_weight, stokes_subspace_std=stokes_subspace_std,
-                                       device=device)
+                                       device=device, luminance=luminance)
         elapsed = time.perf_counter() - t0
         err = registration_error_hr_px(res.lr_homographies, cap.true_lr_homographies(), cap.hr_shape)
         rows.append({"capture": str(path), "median_hr_px": float(np.median(err)), "max_hr_px": float(err.max()),
@@ -349,7 +406,8 @@ def _main(argv=None) -> int:
     ap.add_argument("--bench", nargs="+", metavar="CAPTURE", required=True, help="capture folders")
     ap.add_argument("--stokes-weight", type=float, default=1.0)
     ap.add_argument("--mode", default="local-correlation", choices=list(REGISTRATION_MODES),
-                    help="registration mode (stokes-subspace: Stokes-consistent data with polarization texture)")
+                    help="registration mode (stokes-subspace: Stokes-consistent data with polarization texture; "
+                         "ri-luminance: sharp colour edges)")
     ap.add_argument("--device", default="cpu")
     args = ap.parse_args(argv)
     rows = bench(args.bench, stokes_weight=args.stokes_weight, device=args.device,

@@ -66,6 +66,7 @@ def test_params_follow_the_paper_and_the_ablation_switches():
     assert p["use_cagf"] and p["use_nlstr"]
     _, rec = reconstruct(cap, "caps-iccp", true_warps=True, iterations=1)
     assert (rec["params"]["c1"], rec["params"]["c2"]) == (0.001, 0.01)
+    assert rec["params"]["bayer_method"] == "ri"  # the paper's ICCP: the Bayer demosaicking of [15]
     _, rec = reconstruct(cap, "caps-no-cagf", true_warps=True, iterations=1)
     assert not rec["params"]["use_cagf"]
 

@@ -56,8 +56,9 @@ def reconstruct(
     registration: str = typer.Option("local-correlation", "--registration",
                                      help="Registration mode when warps are estimated: local-correlation "
                                           "(default) | stokes-subspace (Stokes-consistent data whose polarization "
-                                          "texture biases the default; worse on sharp colour edges; see README "
-                                          "'Registration')."),
+                                          "texture biases the default; worse on sharp colour edges) | ri-luminance "
+                                          "(registers demosaicked luminance: scenes with sharp colour edges; worse "
+                                          "on aliased fine texture); see README 'Registration'."),
     option: List[str] = typer.Option([], "--option", "-O", help="Method option KEY=VALUE (repeatable)."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),

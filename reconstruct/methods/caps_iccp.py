@@ -4,9 +4,11 @@
 monochromatic polarized images was performed independently per RGB channel, which
 employed the joint constraints of (2) and (3)" with ``c1 = 0.001``, ``c2 = 0.01``.
 
-1. each aperture's RGGB frame is demosaicked on its own (Menon et al. 2007, DDFAPD, from
-   ``colour-demosaicing``; the paper used the residual-interpolation demosaicking of
-   Morimatsu et al. [15], which this package does not have);
+1. each aperture's RGGB frame is demosaicked on its own by the Bayer demosaicking of [15]
+   (Morimatsu et al., EARI), i.e. its colour stage, the residual interpolation of Kiku et al.
+   (:func:`reconstruct.dofp_common.ri_bayer_demosaic`, the settings of ``dofp-eari``);
+   ``-O bayer_method=menon2007`` (or ``malvar2004``, ``bilinear``) swaps it
+   (:func:`reconstruct.methods.caps_naive.demosaic_apertures`);
 2. for each colour k, the 4 demosaicked frames (one per polarizer angle, raw resolution
    ``H x W``) are the observations of a 4-channel SR problem (polarizer angles of colour k)
    with the observation model ``IntegrateDecimate_2(Blur_psf(Warp_{H_n}(x_p)))``, i.e. the
@@ -29,15 +31,20 @@ from reconstruct.methods.caps import REFERENCE, CapsOptions, lr_homographies, me
 from reconstruct.registry import MethodOutput, RunContext, register_method
 
 
-def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+#: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
+DEFAULT_BAYER_METHOD = "ri"
+
+
+def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *,
+                       bayer_method: str = DEFAULT_BAYER_METHOD) -> tuple[np.ndarray, np.ndarray]:
     """``(4, H, W)`` RGGB frames -> ``(4, 3, H, W)`` RGB and ``(4, H, W)`` data weights."""
-    from colour_demosaicing import demosaicing_CFA_Bayer_Menon2007
     from scipy.ndimage import maximum_filter
 
-    rgb = np.stack([np.moveaxis(demosaicing_CFA_Bayer_Menon2007(raw[n].astype(np.float64), "RGGB"), -1, 0)
-                    for n in range(raw.shape[0])])
+    from reconstruct.methods.caps_naive import demosaic_apertures as demosaic
+
+    rgb = demosaic(raw, bayer_method=bayer_method)
     near_saturated = np.stack([maximum_filter(saturated[n].astype(np.uint8), size=3) > 0 for n in range(raw.shape[0])])
-    return np.clip(rgb, 0.0, 1.0).astype(np.float32), (~near_saturated).astype(np.float32)
+    return rgb, (~near_saturated).astype(np.float32)
 
 
 def aperture_sampling_operator(hr_shape, aperture_homographies, kernel):
@@ -59,8 +66,8 @@ def aperture_sampling_operator(hr_shape, aperture_homographies, kernel):
 
 
 @register_method("caps-iccp", input_kind="caps", reference=REFERENCE + " (ablation 'ICCP', 5.2)",
-                 description="CAPS ablation: cascade - demosaic each aperture, then SR per RGB channel on its 4 "
-                             "polarization images (c1=0.001, c2=0.01)")
+                 description="CAPS ablation: cascade - demosaic each aperture (residual interpolation), then SR per "
+                             "RGB channel on its 4 polarization images (c1=0.001, c2=0.01)")
 def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     from capssim.homography import aperture_from_lr, raw_matrix
     from reconstruct.admm import admm
@@ -70,14 +77,17 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     from reconstruct.nlstr import NonlocalSparseTensor
     from reconstruct.rearrange import Observations
 
+    from reconstruct.methods.caps_naive import _bayer_function
+
     options = dict(context.options)
+    bayer_method = _bayer_function(options.pop("bayer_method", options.pop("bayer-method", DEFAULT_BAYER_METHOD)))[0]
     opts = CapsOptions.from_options(options, c1=0.001, c2=0.01)
     admm_params, nl_params = opts.validated_parameters()
     dev, timer = context.device, context.timer
     hr_shape = capture.hr_shape
     with timer.stage("demosaic"):
         raw = capture.caps_float()
-        rgb, weights = demosaic_apertures(raw, capture.caps_saturated())
+        rgb, weights = demosaic_apertures(raw, capture.caps_saturated(), bayer_method=bayer_method)
         lr_images, lr_saturated = capture.lr_images()
     with timer.stage("registration"):
         homographies, reg_record = lr_homographies(capture, context, images=lr_images, saturated=lr_saturated)
@@ -115,7 +125,7 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
         inits[k::3] = init
         history.extend({**h, "colour": "RGB"[k]} for h in hist)
     params = opts.to_dict()
-    params.update({"psf": psf_record, "demosaicking": "Menon 2007 (colour-demosaicing)",
+    params.update({"psf": psf_record, "bayer_method": bayer_method,
                    "channels_per_problem": N_APERTURES, "n_groups": nlstr.n_ref, "strips": len(nlstr.strips)})
     extra = {"registration": reg_record}
     init_psnr = mean_psnr(capture, inits)

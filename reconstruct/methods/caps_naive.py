@@ -7,7 +7,8 @@ demosaicking of Menon, Andriani, Calvagno, "Demosaicing with directional filteri
 posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
 
 1. Demosaick each aperture's RGGB raw frame ``(H, W)`` on its own (``bayer_method``:
-   ``menon2007`` (default), ``malvar2004`` or ``bilinear``, all from ``colour-demosaicing``),
+   ``menon2007`` (default), ``malvar2004`` or ``bilinear``, from ``colour-demosaicing``, or
+   ``ri``, the residual interpolation of :func:`reconstruct.dofp_common.ri_bayer_demosaic`),
    clipped to [0, 1] -> ``(4, 3, H, W)``; each frame is mirror-padded by 6 pixels with its
    Bayer phase kept (:func:`demosaic_apertures`), so constant images stay exact at the border.
 2. Registration: the 16 HR-reference -> sub-image homographies of the CAPS method
@@ -52,16 +53,33 @@ log = logging.getLogger(__name__)
 REFERENCE = (CAPS_REFERENCE + " (camera-array baseline, 5.2); Bayer demosaicking: Menon, Andriani, Calvagno, "
              "IEEE TIP 16(1) 2007 (colour-demosaicing)")
 
-#: the selectable Bayer demosaicking algorithms of colour-demosaicing
-BAYER_METHODS = ("menon2007", "malvar2004", "bilinear")
+#: the selectable Bayer demosaicking algorithms: residual interpolation (``ri``, Kiku et al. 2016, the
+#: colour stage of EARI [15]; :func:`reconstruct.dofp_common.ri_bayer_demosaic`) and three of colour-demosaicing
+BAYER_METHODS = ("ri", "menon2007", "malvar2004", "bilinear")
+
+
+def ri_demosaic_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
+    """``(H, W)`` RGGB frame -> ``(H, W, 3)`` RGB by residual interpolation (colour-demosaicing's signature).
+
+    The settings are those of ``dofp-eari``'s colour stage (:data:`reconstruct.methods.dofp_eari.DEFAULTS`).
+    """
+    from reconstruct.dofp_common import ri_bayer_demosaic
+    from reconstruct.methods.dofp_eari import DEFAULTS
+
+    if pattern != "RGGB":
+        raise InputError("pattern", pattern, "'RGGB' (the CAPS sensors' Bayer layout)")
+    x = torch.from_numpy(np.ascontiguousarray(cfa, dtype=np.float64))
+    rgb = ri_bayer_demosaic(x, eps=DEFAULTS["eps"], weight_floor=DEFAULTS["weight_floor"],
+                            clip_max=max(1.0, float(x.max())), sigma=DEFAULTS["bayer_sigma"])
+    return rgb.permute(1, 2, 0).numpy()
 
 
 def _bayer_function(name: str):
     import colour_demosaicing as cd
 
     key = str(name).strip().lower().replace("-", "").replace("_", "")
-    table = {"menon2007": cd.demosaicing_CFA_Bayer_Menon2007, "malvar2004": cd.demosaicing_CFA_Bayer_Malvar2004,
-             "bilinear": cd.demosaicing_CFA_Bayer_bilinear}
+    table = {"ri": ri_demosaic_frame, "menon2007": cd.demosaicing_CFA_Bayer_Menon2007,
+             "malvar2004": cd.demosaicing_CFA_Bayer_Malvar2004, "bilinear": cd.demosaicing_CFA_Bayer_bilinear}
     if key not in table:
         raise UnknownNameError("bayer_method", name, list(BAYER_METHODS))
     return key, table[key]
@@ -107,11 +125,14 @@ def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007") -> n
     colour-demosaicing's own ``scipy.ndimage`` border handling mixes colour planes at the
     image border (its bilinear method is off by up to 0.6 on a constant 0.5 there).
     """
-    _, fn = _bayer_function(bayer_method)
+    key, fn = _bayer_function(bayer_method)
     raw = np.asarray(raw)
     if raw.ndim != 3 or raw.shape[1] < 2 or raw.shape[2] < 2:
         raise InputError("raw", f"shape {raw.shape}", "(N, H, W) RGGB frames with H, W >= 2")
-    pad = min(BAYER_PAD, raw.shape[1] - 1, raw.shape[2] - 1) // 2 * 2  # even: keeps the RGGB phase
+    if key == "ri":  # 11 x 11 MLRI windows need >= 12 px: numpy reflects repeatedly on small frames
+        pad = BAYER_PAD
+    else:
+        pad = min(BAYER_PAD, raw.shape[1] - 1, raw.shape[2] - 1) // 2 * 2  # even: keeps the RGGB phase
     padded = np.pad(raw.astype(np.float64), ((0, 0), (pad, pad), (pad, pad)), mode="reflect")
     rgb = np.stack([np.moveaxis(np.asarray(fn(padded[n], "RGGB")), -1, 0) for n in range(raw.shape[0])])
     rgb = rgb[..., pad:pad + raw.shape[1], pad:pad + raw.shape[2]]
