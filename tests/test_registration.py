@@ -113,3 +113,26 @@ def test_siemens_star_is_registered_despite_its_self_similarity():
     assert np.median(err) < 0.1, err
     assert err.max() < 0.3, err
     assert res.diagnostics["engine"]["rescue"]["rescued"]
+
+
+def test_bench_reports_the_error_against_content_warps(tmp_path):
+    """``--content-alignment``: identity gt-check matrices give content warps = stored warps; a shifted
+    ground truth moves them by the shift; a record without matrices is a clear error."""
+    from capssim.capture import write_capture
+    from capssim.homography import registration_error_hr_px
+    from reconstruct.registration import bench, content_lr_homographies
+
+    cap = simulate_capture(textured_scene(64, seed=4), make_sensor("gaussian", sigma=0.0), seed=1)
+    write_capture(tmp_path / "cap", cap)
+    eye = np.eye(3).tolist()
+    (row,) = bench([tmp_path / "cap"], content_alignment={"alignment_matrices": [eye] * 3})
+    assert row["content_median_hr_px"] == pytest.approx(row["median_hr_px"])
+    assert row["content_vs_true_median_hr_px"] == pytest.approx(0.0, abs=1e-9)
+    shift = np.eye(3)
+    shift[0, 2] = 0.5  # ground-truth content 0.5 HR px off in x in every analyzer image
+    content = content_lr_homographies(cap, [shift] * 3)
+    gap = registration_error_hr_px(content, cap.true_lr_homographies(), cap.hr_shape)
+    np.testing.assert_allclose(gap[4:], 0.5, atol=0.02)
+    np.testing.assert_allclose(gap[:4], 0.0, atol=1e-9)
+    with pytest.raises(InputError, match="content_alignment"):
+        bench([tmp_path / "cap"], content_alignment={"verdict": "ok"})
