@@ -11,19 +11,24 @@ Method (it replaces the paper's feature clustering, Crab-HFP, which the issue al
 1. **Registration image per aperture** (``luminance=``). The four RGGB sub-images of aperture n
    are put back into its raw mosaic ``(H, W)``.
 
-   - ``binomial`` (default): the mosaic is filtered with the 3x3 binomial kernel
+   - ``binomial``: the mosaic is filtered with the 3x3 binomial kernel
      ``[1 2 1; 2 4 2; 1 2 1] / 16``. On an RGGB mosaic this returns the luminance
      ``(R + 2G + B) / 4`` of locally constant colour at every raw pixel, whatever its Bayer phase:
      no demosaicking, and for grey content the same linear blur in every aperture. At colour
      edges, though, the mosaic's chroma carriers leak into it as a pattern tied to the sensor
      grid, different in each aperture, which biases the warp (the rendered colorchecker's ground
      truth simulated with similarity warps: 0.066 HR px median; made grey: 0.003).
-   - ``ri-binomial`` (the ``ri-luminance`` mode): the mosaic is demosaicked by residual
+   - ``ri-binomial``: the mosaic is demosaicked by residual
      interpolation (:func:`reconstruct.dofp_common.ri_bayer_demosaic`, Kiku et al. 2016), and its
      luminance ``(R + 2G + B) / 4`` is filtered with the same kernel: ``binomial`` minus the leak
      as the demosaicking estimates it (the colorchecker above: 0.017; rendered colorchecker 512:
      0.076 -> 0.034). It is worse where the demosaicking errs: aliased high-frequency texture
      (a 72-cycle Siemens star at 192 px: max 0.08 -> 0.43) and fine grey fringes.
+   - ``auto`` (default): step 2 runs on both, and the warps whose registered images obey
+     ``I0 + I90 = I45 + I135`` better (lower Stokes residual rms) are kept: the image with fewer
+     aperture-specific artifacts. It picked the better or an equal estimate on every capture measured
+     except qiu-cellphonecases 256 (README 'Registration'); it doubles the registration time.
+     With fewer than four usable apertures it is ``binomial``.
 
    Raw pixels with a saturated sample in their 3x3 neighbourhood are masked (for ``ri-binomial``
    a 5x5 or 7x7 mask was worse on qiu-kettle: 0.148 / 0.151 against 0.144 HR px).
@@ -155,8 +160,9 @@ def _as_tensor(x, name: str, device) -> torch.Tensor:
 #: :func:`estimate_lr_homographies`
 REGISTRATION_MODES: dict[str, dict] = {
     "local-correlation": {},
-    "stokes-subspace": {"stokes_subspace_std": 0.01},
+    "binomial-luminance": {"luminance": "binomial"},
     "ri-luminance": {"luminance": "ri-binomial"},
+    "stokes-subspace": {"stokes_subspace_std": 0.01, "luminance": "binomial"},
 }
 
 
@@ -180,7 +186,7 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
                              robust_passes: int = 2, presmooth_sigma: float = 0.0,
                              stokes_subspace_std: float = 0.0,
                              robust_window_radius: int | None = 1,
-                             luminance: str = "binomial") -> RegistrationResult:
+                             luminance: str = "auto") -> RegistrationResult:
     """Estimate the 16 HR reference -> sub-image homographies from the 16 Bayer sub-images.
 
     Parameters
@@ -219,8 +225,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
         colour edges worse (README 'Registration').
 
     luminance
-        the registration image of each aperture (:data:`LUMINANCE_METHODS`): ``binomial``
-        (default) or ``ri-binomial`` (module docstring, step 1; the ``ri-luminance`` mode).
+        the registration image of each aperture: ``auto`` (default), or one of
+        :data:`LUMINANCE_METHODS`, ``binomial`` or ``ri-binomial`` (module docstring, step 1).
 
     Returns
     -------
@@ -231,8 +237,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
     t_start = time.perf_counter()
     if model not in MOTION_MODELS:
         raise UnknownNameError("registration model", model, list(MOTION_MODELS))
-    if luminance not in LUMINANCE_METHODS:
-        raise UnknownNameError("luminance", luminance, list(LUMINANCE_METHODS))
+    if luminance not in LUMINANCE_METHODS and luminance != "auto":
+        raise UnknownNameError("luminance", luminance, [*LUMINANCE_METHODS, "auto"])
     dev = torch.device(device)
     x = _as_tensor(lr_images, "lr_images", dev)
     if x.ndim != 3 or x.shape[0] != N_LR_IMAGES:
@@ -272,7 +278,7 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
         diag["warnings"].append(msg)
 
     raw = mosaic_from_sub_images(x)
-    lum = LUMINANCE_METHODS[luminance](raw)
+    lum = LUMINANCE_METHODS["binomial" if luminance == "auto" else luminance](raw)
     if presmooth_sigma > 0:
         from reconstruct.registration_core import gaussian_blur
 
@@ -329,11 +335,24 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
             warn("registration: the Stokes-consistency term needs all four apertures; using local correlation only")
         if stokes_subspace_std > 0 and len(active) != 3:
             warn("registration: the Stokes-subspace refinement needs all four apertures; skipped")
-        reg = register_stack(lum[0], lum[active], ref_valid=valid[0], moving_valid=valid[active], model=used,
-                             window_radius=window_radius, stokes_weight=stokes, stokes_levels=stokes_levels,
-                             max_iterations=max_iterations, robust_power=robust_power,
-                             robust_levels=robust_levels, robust_passes=robust_passes,
-                             stokes_subspace_std=stokes_subspace_std, robust_window_radius=robust_window_radius)
+        def register(image):
+            return register_stack(image[0], image[active], ref_valid=valid[0], moving_valid=valid[active], model=used,
+                                  window_radius=window_radius, stokes_weight=stokes, stokes_levels=stokes_levels,
+                                  max_iterations=max_iterations, robust_power=robust_power,
+                                  robust_levels=robust_levels, robust_passes=robust_passes,
+                                  stokes_subspace_std=stokes_subspace_std, robust_window_radius=robust_window_radius)
+
+        reg = register(lum)
+        if luminance == "auto":
+            diag["luminance"] = "binomial"
+            if len(active) == 3:
+                # both registration images; keep the warps whose registered images obey I0 + I90 = I45 + I135 best
+                alt = register(ri_binomial_luminance(raw))
+                rms = {"binomial": reg.info.get("stokes_residual_rms"), "ri-binomial": alt.info.get("stokes_residual_rms")}
+                diag["luminance_stokes_residual_rms"] = rms
+                if all(v is not None and np.isfinite(v) for v in rms.values()) and rms["ri-binomial"] < rms["binomial"]:
+                    reg = alt
+                    diag["luminance"] = "ri-binomial"
         rmat = raw_matrix()
         rinv = np.linalg.inv(rmat)
         joint = reg.info.get("stokes_joint", {})
@@ -391,7 +410,7 @@ def content_lr_homographies(capture, alignment_matrices) -> np.ndarray:
 
 
 def bench(capture_paths, *, stokes_weight: float = 1.0, stokes_subspace_std: float = 0.0,
-          device="cpu", luminance: str = "binomial", content_alignment=None) -> list[dict]:
+          device="cpu", luminance: str = "auto", content_alignment=None) -> list[dict]:
     """Registration error (HR px, :func:`capssim.homography.registration_error_hr_px`) and time per capture.
 
     Returns one row per capture: median / max error over the 16 images, the mean error per
@@ -449,8 +468,8 @@ def _main(argv=None) -> int:
     ap.add_argument("--bench", nargs="+", metavar="CAPTURE", required=True, help="capture folders")
     ap.add_argument("--stokes-weight", type=float, default=1.0)
     ap.add_argument("--mode", default="local-correlation", choices=list(REGISTRATION_MODES),
-                    help="registration mode (stokes-subspace: Stokes-consistent data with polarization texture; "
-                         "ri-luminance: sharp colour edges)")
+                    help="registration mode (binomial-luminance / ri-luminance: one registration image, half the "
+                         "time; stokes-subspace: Stokes-consistent data with polarization texture)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--content-alignment", metavar="GT_CHECK_JSON",
                     help="capssim gt-check --json record of the ground truth the captures were simulated from: "

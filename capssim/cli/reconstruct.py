@@ -55,10 +55,11 @@ def reconstruct(
                                     help="Use the homographies stored in meta.json instead of estimating them."),
     registration: str = typer.Option("local-correlation", "--registration",
                                      help="Registration mode when warps are estimated: local-correlation "
-                                          "(default) | stokes-subspace (Stokes-consistent data whose polarization "
-                                          "texture biases the default; worse on sharp colour edges) | ri-luminance "
-                                          "(registers demosaicked luminance: scenes with sharp colour edges; worse "
-                                          "on aliased fine texture); see README 'Registration'."),
+                                          "(default; registers the binomial and the demosaicked luminance and keeps "
+                                          "the more Stokes-consistent) | binomial-luminance | ri-luminance (one of "
+                                          "the two only: half the time) | stokes-subspace (Stokes-consistent data "
+                                          "whose polarization texture biases the default); see README "
+                                          "'Registration'."),
     option: List[str] = typer.Option([], "--option", "-O", help="Method option KEY=VALUE (repeatable)."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
