@@ -270,8 +270,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
 
     diag: dict = {"method": f"{luminance} luminance; phase correlation + pyramid local correlation "
                             "+ Stokes consistency (cubic spline, L-BFGS)",
-                  "luminance": luminance, "model_requested": model, "window_radius": window_radius,
-                  "stokes_weight": stokes_weight, "device": str(dev), "warnings": []}
+                  "luminance": "binomial" if luminance == "auto" else luminance, "model_requested": model,
+                  "window_radius": window_radius, "stokes_weight": stokes_weight, "device": str(dev), "warnings": []}
 
     def warn(msg):
         log.warning(msg)
