@@ -140,6 +140,17 @@ def _as_kernel(kernel, like: torch.Tensor) -> torch.Tensor:
     return k
 
 
+def mirror_index(n: int, pad: int, device=None) -> torch.Tensor:
+    """Indices of a length-``n`` axis mirrored by ``pad`` on each side (``x[-k] = x[k]``, repeated as
+    often as needed, so any ``pad`` works on any ``n >= 1``; an even ``pad`` keeps a Bayer phase)."""
+    i = torch.arange(-pad, n + pad, device=device)
+    if n == 1:
+        return torch.zeros_like(i)
+    period = 2 * (n - 1)
+    i = i.remainder(period)
+    return torch.where(i >= n, period - i, i)
+
+
 def correlate(image: torch.Tensor, kernel, *, padding: str = "reflect") -> torch.Tensor:
     """2-D correlation of every ``(H, W)`` slice of ``image`` with ``kernel``.
 

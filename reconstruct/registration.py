@@ -108,35 +108,14 @@ def binomial_luminance(raw: torch.Tensor) -> torch.Tensor:
     return F.conv2d(x, k[None, None])[:, 0]
 
 
-def _mirror_index(n: int, pad: int, device) -> torch.Tensor:
-    """Indices of a length-``n`` axis mirrored by ``pad`` on each side (``x[-k] = x[k]``, repeated as needed)."""
-    i = torch.arange(-pad, n + pad, device=device)
-    if n == 1:
-        return torch.zeros_like(i)
-    period = 2 * (n - 1)
-    i = i.remainder(period)
-    return torch.where(i >= n, period - i, i)
-
-
-#: mirror padding (raw pixels, even: keeps the Bayer phase) around each frame before the RI demosaicking
-RI_PAD = 6
-
-
 def ri_binomial_luminance(raw: torch.Tensor) -> torch.Tensor:
     """``(B, H, W)`` RGGB mosaics -> ``(B, H, W)``: 3x3 binomial filter of the luminance ``(R + 2G + B) / 4``
-    of the residual-interpolation demosaicking (the settings of ``dofp-eari``'s colour stage).
-
-    Frames are mirror-padded by :data:`RI_PAD` pixels (Bayer phase kept; any size >= 2 works).
+    of the residual-interpolation demosaicking
+    (:func:`reconstruct.methods.dofp_eari.ri_bayer_demosaic_frames`: ``dofp-eari``'s colour stage, any size).
     """
-    from reconstruct.dofp_common import ri_bayer_demosaic
-    from reconstruct.methods.dofp_eari import DEFAULTS
+    from reconstruct.methods.dofp_eari import ri_bayer_demosaic_frames
 
-    _, hh, ww = raw.shape
-    iy, ix = _mirror_index(hh, RI_PAD, raw.device), _mirror_index(ww, RI_PAD, raw.device)
-    padded = raw[:, iy][:, :, ix]
-    rgb = ri_bayer_demosaic(padded, eps=DEFAULTS["eps"], weight_floor=DEFAULTS["weight_floor"],
-                            clip_max=max(1.0, float(raw.max())), sigma=DEFAULTS["bayer_sigma"])
-    rgb = rgb[..., RI_PAD:RI_PAD + hh, RI_PAD:RI_PAD + ww]
+    rgb = ri_bayer_demosaic_frames(raw)
     return binomial_luminance((rgb[:, 0] + 2 * rgb[:, 1] + rgb[:, 2]) / 4)
 
 
@@ -343,16 +322,14 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
                                   stokes_subspace_std=stokes_subspace_std, robust_window_radius=robust_window_radius)
 
         reg = register(lum)
-        if luminance == "auto":
-            diag["luminance"] = "binomial"
-            if len(active) == 3:
-                # both registration images; keep the warps whose registered images obey I0 + I90 = I45 + I135 best
-                alt = register(ri_binomial_luminance(raw))
-                rms = {"binomial": reg.info.get("stokes_residual_rms"), "ri-binomial": alt.info.get("stokes_residual_rms")}
-                diag["luminance_stokes_residual_rms"] = rms
-                if all(v is not None and np.isfinite(v) for v in rms.values()) and rms["ri-binomial"] < rms["binomial"]:
-                    reg = alt
-                    diag["luminance"] = "ri-binomial"
+        if luminance == "auto" and len(active) == 3:
+            # both registration images; keep the warps whose registered images obey I0 + I90 = I45 + I135 best
+            alt = register(ri_binomial_luminance(raw))
+            rms = {"binomial": reg.info.get("stokes_residual_rms"), "ri-binomial": alt.info.get("stokes_residual_rms")}
+            diag["luminance_stokes_residual_rms"] = rms
+            if all(v is not None and np.isfinite(v) for v in rms.values()) and rms["ri-binomial"] < rms["binomial"]:
+                reg = alt
+                diag["luminance"] = "ri-binomial"
         rmat = raw_matrix()
         rinv = np.linalg.inv(rmat)
         joint = reg.info.get("stokes_joint", {})
@@ -403,7 +380,7 @@ def content_lr_homographies(capture, alignment_matrices) -> np.ndarray:
     g = np.asarray(alignment_matrices, dtype=np.float64)
     if g.shape != (N_APERTURES - 1, 3, 3) or not np.all(np.isfinite(g)):
         raise InputError("alignment_matrices", f"shape {g.shape}", "three finite 3x3 matrices from gt-check --json")
-    aperture = np.array(capture.meta["aperture_homographies"], dtype=np.float64)
+    aperture = capture.aperture_homographies().copy()
     for n in range(1, N_APERTURES):
         aperture[n] = aperture[n] @ g[n - 1]
     return lr_of(aperture)
@@ -420,6 +397,7 @@ def bench(capture_paths, *, stokes_weight: float = 1.0, stokes_subspace_std: flo
     (:func:`content_lr_homographies`).
     """
     import json
+    from pathlib import Path
 
     from capssim.capture import read_capture
     from capssim.homography import registration_error_hr_px
@@ -429,7 +407,7 @@ def bench(capture_paths, *, stokes_weight: float = 1.0, stokes_subspace_std: flo
         record = content_alignment
         if not isinstance(record, dict):
             try:
-                record = json.loads(open(record).read())
+                record = json.loads(Path(record).read_text())
             except (OSError, ValueError) as exc:
                 raise InputError("content_alignment", str(content_alignment),
                                  "a readable JSON file written by capssim gt-check --json") from exc

@@ -59,18 +59,13 @@ BAYER_METHODS = ("ri", "menon2007", "malvar2004", "bilinear")
 
 
 def ri_demosaic_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
-    """``(H, W)`` RGGB frame -> ``(H, W, 3)`` RGB by residual interpolation (colour-demosaicing's signature).
-
-    The settings are those of ``dofp-eari``'s colour stage (:data:`reconstruct.methods.dofp_eari.DEFAULTS`).
-    """
-    from reconstruct.dofp_common import ri_bayer_demosaic
-    from reconstruct.methods.dofp_eari import DEFAULTS
+    """``(H, W)`` RGGB frame -> ``(H, W, 3)`` RGB by residual interpolation (colour-demosaicing's signature):
+    :func:`reconstruct.methods.dofp_eari.ri_bayer_demosaic_frames`, ``dofp-eari``'s colour stage."""
+    from reconstruct.methods.dofp_eari import ri_bayer_demosaic_frames
 
     if pattern != "RGGB":
         raise InputError("pattern", pattern, "'RGGB' (the CAPS sensors' Bayer layout)")
-    x = torch.from_numpy(np.ascontiguousarray(cfa, dtype=np.float64))
-    rgb = ri_bayer_demosaic(x, eps=DEFAULTS["eps"], weight_floor=DEFAULTS["weight_floor"],
-                            clip_max=max(1.0, float(x.max())), sigma=DEFAULTS["bayer_sigma"])
+    rgb = ri_bayer_demosaic_frames(torch.from_numpy(np.ascontiguousarray(cfa, dtype=np.float64)))
     return rgb.permute(1, 2, 0).numpy()
 
 
@@ -129,10 +124,8 @@ def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007") -> n
     raw = np.asarray(raw)
     if raw.ndim != 3 or raw.shape[1] < 2 or raw.shape[2] < 2:
         raise InputError("raw", f"shape {raw.shape}", "(N, H, W) RGGB frames with H, W >= 2")
-    if key == "ri":  # 11 x 11 MLRI windows need >= 12 px: numpy reflects repeatedly on small frames
-        pad = BAYER_PAD
-    else:
-        pad = min(BAYER_PAD, raw.shape[1] - 1, raw.shape[2] - 1) // 2 * 2  # even: keeps the RGGB phase
+    # even: keeps the RGGB phase; ``ri`` mirror-pads by itself (any frame size)
+    pad = 0 if key == "ri" else min(BAYER_PAD, raw.shape[1] - 1, raw.shape[2] - 1) // 2 * 2
     padded = np.pad(raw.astype(np.float64), ((0, 0), (pad, pad), (pad, pad)), mode="reflect")
     rgb = np.stack([np.moveaxis(np.asarray(fn(padded[n], "RGGB")), -1, 0) for n in range(raw.shape[0])])
     rgb = rgb[..., pad:pad + raw.shape[1], pad:pad + raw.shape[2]]

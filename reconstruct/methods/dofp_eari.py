@@ -56,8 +56,8 @@ import torch
 
 from capssim.capture import Capture
 from reconstruct.dofp_common import (as_output, check_mosaic, clip_ceiling, correlate, merge_submosaics,
-                                     polarization_residual_interpolation, ri_bayer_demosaic, run_dofp_method,
-                                     split_submosaics, stack_12)
+                                     mirror_index, polarization_residual_interpolation, ri_bayer_demosaic,
+                                     run_dofp_method, split_submosaics, stack_12)
 from reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "
@@ -65,6 +65,25 @@ REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarizat
              "interpolation for color image demosaicking', IEEE TIP 25(3) 2016")
 
 DEFAULTS = {"eps": 1e-10, "weight_floor": 0.01 / 255 ** 2, "edge_eps": 1e-32, "bayer_sigma": 1.0}
+
+#: mirror padding (pixels, even: keeps the Bayer phase) of :func:`ri_bayer_demosaic_frames`
+RI_FRAME_PAD = 6
+
+
+def ri_bayer_demosaic_frames(raw: torch.Tensor) -> torch.Tensor:
+    """RGGB frames ``(..., H, W)`` of any size >= 1 -> RGB ``(..., 3, H, W)``: the colour stage of EARI
+    (:func:`reconstruct.dofp_common.ri_bayer_demosaic` with :data:`DEFAULTS`), on frames mirror-padded by
+    :data:`RI_FRAME_PAD` pixels (the 11x11 MLRI windows need >= 12 px), clipped to ``[0, max(1, max(raw))]``.
+
+    Used by ``caps-iccp`` / ``caps-naive`` (``bayer_method=ri``) and the registration's ``ri-binomial`` image.
+    """
+    h, w = raw.shape[-2:]
+    iy, ix = mirror_index(h, RI_FRAME_PAD, raw.device), mirror_index(w, RI_FRAME_PAD, raw.device)
+    padded = raw[..., iy, :][..., ix]
+    rgb = ri_bayer_demosaic(padded, eps=DEFAULTS["eps"], weight_floor=DEFAULTS["weight_floor"],
+                            clip_max=max(1.0, float(raw.max())), sigma=DEFAULTS["bayer_sigma"])
+    return rgb[..., RI_FRAME_PAD:RI_FRAME_PAD + h, RI_FRAME_PAD:RI_FRAME_PAD + w]
+
 
 # 2x3 directional intensity kernel (mean of two 2x2 windows), north side; others by flip/transpose
 _INTENSITY_N = ((1 / 8, 1 / 4, 1 / 8), (1 / 8, 1 / 4, 1 / 8), (0.0, 0.0, 0.0))
