@@ -180,9 +180,12 @@ def test_check_fails_on_errors_missing_methods_and_empty_runs(tiny):
 
 
 def test_suites_and_helpers():
-    for name in ("quick", "paper", "full"):
+    for name in ("quick", "paper", "full", "ablation"):
         spec = load_suite(name)
         assert spec["methods"] and spec["scenes"]
+    ablation = load_suite("ablation")
+    assert {m["name"] for m in ablation["methods"]} == {"caps", "caps-iccp", "caps-no-cagf", "caps-no-nlstr", "caps-naive"}
+    assert not any(m.get("true_warps") for m in ablation["methods"])  # estimated warps, as the paper's study
     quick = load_suite("quick")
     assert {m["name"] for m in quick["methods"]} >= {"caps", "caps-naive", "dofp-bilinear", "dofp-eari"}
     assert any(s["source"] == "synthetic" and not s.get("fallback") for s in quick["scenes"])

@@ -235,7 +235,7 @@ def mtf(
 
 # -- bench ---------------------------------------------------------------------------------------
 def bench(
-    suite: str = typer.Option(..., "--suite", help="Suite name (eval/suites/NAME.yaml: quick, paper, full) or a YAML path."),
+    suite: str = typer.Option(..., "--suite", help="Suite name (eval/suites/NAME.yaml: quick, ablation, paper, full) or a YAML path."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
     check: Optional[Path] = typer.Option(None, "--check", help="Baseline JSON: exit 1 if a metric fell beyond tolerance."),
     update_baseline: Optional[Path] = typer.Option(None, "--update-baseline", help="Write this run's metrics as the baseline."),

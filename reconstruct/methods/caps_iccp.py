@@ -77,10 +77,10 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     from reconstruct.nlstr import NonlocalSparseTensor
     from reconstruct.rearrange import Observations
 
-    from reconstruct.methods.caps_naive import _bayer_function
+    from reconstruct.methods.caps_naive import bayer_demosaic_function
 
     options = dict(context.options)
-    bayer_method = _bayer_function(options.pop("bayer_method", options.pop("bayer-method", DEFAULT_BAYER_METHOD)))[0]
+    bayer_method = bayer_demosaic_function(options.pop("bayer_method", options.pop("bayer-method", DEFAULT_BAYER_METHOD)))[0]
     opts = CapsOptions.from_options(options, c1=0.001, c2=0.01)
     admm_params, nl_params = opts.validated_parameters()
     dev, timer = context.device, context.timer

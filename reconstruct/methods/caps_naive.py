@@ -69,7 +69,12 @@ def ri_demosaic_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
     return rgb.permute(1, 2, 0).numpy()
 
 
-def _bayer_function(name: str):
+def bayer_demosaic_function(name: str):
+    """``(canonical name, function)`` of the Bayer demosaicking ``name`` (one of ``BAYER_METHODS``).
+
+    The function takes an ``(H, W)`` RGGB mosaic and returns ``(H, W, 3)``; an unknown name
+    raises ``UnknownNameError`` listing the valid ones.
+    """
     import colour_demosaicing as cd
 
     key = str(name).strip().lower().replace("-", "").replace("_", "")
@@ -104,7 +109,7 @@ class NaiveOptions:
             else:
                 raise UnknownNameError("option", key, sorted(known | set(extra)))
         opts = cls(**values)
-        opts.bayer_method = _bayer_function(opts.bayer_method)[0]
+        opts.bayer_method = bayer_demosaic_function(opts.bayer_method)[0]
         return opts, rest
 
 
@@ -120,7 +125,7 @@ def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007") -> n
     colour-demosaicing's own ``scipy.ndimage`` border handling mixes colour planes at the
     image border (its bilinear method is off by up to 0.6 on a constant 0.5 there).
     """
-    key, fn = _bayer_function(bayer_method)
+    key, fn = bayer_demosaic_function(bayer_method)
     raw = np.asarray(raw)
     if raw.ndim != 3 or raw.shape[1] < 2 or raw.shape[2] < 2:
         raise InputError("raw", f"shape {raw.shape}", "(N, H, W) RGGB frames with H, W >= 2")
