@@ -150,6 +150,12 @@ REGISTRATION_MODES: dict[str, dict] = {
 #: warp the Stokes-consistency rescue set get their own warning instead)
 WEAK_CORRELATION = 0.6
 
+#: the largest aperture rotation (deg) and relative scale error a camera array plausibly has; the
+#: simulator draws at most 0.5 deg and 0.005. A larger estimate is a false match (e.g. a polarizing
+#: wheel, whose analyzer images are rotated copies of each other) and falls back to the identity.
+MAX_PLAUSIBLE_ROTATION_DEG = 5.0
+MAX_PLAUSIBLE_SCALE_ERROR = 0.05
+
 
 def registration_mode_arguments(name: str) -> dict:
     """Keyword arguments of :func:`estimate_lr_homographies` for a :data:`REGISTRATION_MODES` name."""
@@ -165,7 +171,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
                              robust_passes: int = 2, presmooth_sigma: float = 0.0,
                              stokes_subspace_std: float = 0.0,
                              robust_window_radius: int | None = 1,
-                             luminance: str = "auto") -> RegistrationResult:
+                             luminance: str = "auto", max_rotation_deg: float = MAX_PLAUSIBLE_ROTATION_DEG,
+                             max_scale_error: float = MAX_PLAUSIBLE_SCALE_ERROR) -> RegistrationResult:
     """Estimate the 16 HR reference -> sub-image homographies from the 16 Bayer sub-images.
 
     Parameters
@@ -206,6 +213,11 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
     luminance
         the registration image of each aperture: ``auto`` (default), or one of
         :data:`LUMINANCE_METHODS`, ``binomial`` or ``ri-binomial`` (module docstring, step 1).
+    max_rotation_deg, max_scale_error
+        an aperture warp rotated by more than this (degrees) or scaled by more than ``1 +-
+        max_scale_error`` is not a camera array's: it falls back to the identity with a warning
+        (``fallback`` ``identity: implausible warp``). Scenes whose analyzer images are rotated
+        copies of each other (``aop-wheel``) match that way.
 
     Returns
     -------
@@ -244,6 +256,10 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
         raise InputError("stokes_weight", stokes_weight, "a finite number >= 0")
     if not (stokes_subspace_std >= 0 and np.isfinite(stokes_subspace_std)):
         raise InputError("stokes_subspace_std", stokes_subspace_std, "a finite number >= 0 (0: off)")
+    if not (max_rotation_deg > 0 and np.isfinite(max_rotation_deg)):
+        raise InputError("max_rotation_deg", max_rotation_deg, "a finite angle > 0 in degrees")
+    if not (0 < max_scale_error < 1):
+        raise InputError("max_scale_error", max_scale_error, "a relative scale error in (0, 1)")
     dtype = torch.float64
     x = x.to(dtype)
 
@@ -341,7 +357,18 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
                 warn(f"registration: aperture {n} gave a degenerate warp; using the identity for it")
                 per_ap[n]["fallback"] = "identity: degenerate estimate"
                 continue
-            aperture[n] = hn / hn[2, 2]
+            hn = hn / hn[2, 2]
+            rotation_deg = float(np.degrees(np.arctan2(hn[1, 0] - hn[0, 1], hn[0, 0] + hn[1, 1])))
+            scale = float(np.sqrt(abs(np.linalg.det(hn[:2, :2]))))
+            if abs(rotation_deg) > max_rotation_deg or abs(scale - 1.0) > max_scale_error:
+                warn(f"registration: aperture {n} ({45 * n} deg) matched at a rotation of {rotation_deg:.1f} deg and "
+                     f"scale {scale:.3f}, implausible for a camera array (limits {max_rotation_deg} deg, "
+                     f"1 +- {max_scale_error}); using the identity for it. The analyzer images probably differ by "
+                     "design (polarization texture on flat intensity): use --true-warps or calibrated warps")
+                per_ap[n]["fallback"] = "identity: implausible warp"
+                per_ap[n]["rejected"] = {"rotation_deg": rotation_deg, "scale": scale}
+                continue
+            aperture[n] = hn
             per_ap[n]["correlation"] = float(reg.correlation[j])
             per_ap[n]["params_raw_px"] = [float(v) for v in reg.params[j]]
             if j in rescued:

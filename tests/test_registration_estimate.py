@@ -253,3 +253,46 @@ def test_stokes_rescue_is_not_tried_on_well_matched_apertures():
     res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
     joint = res.diagnostics["engine"]["stokes_joint"]
     assert joint["images"] == [] and "kept" not in joint
+
+
+def _polarizing_wheel(size):
+    """Flat S0 = 1, AoP = azimuth / 2, DoLP = 0.8: each analyzer image is the 0 deg one rotated by 2 theta."""
+    yy, xx = np.mgrid[0:size, 0:size] - (size - 1) / 2.0
+    azimuth = np.arctan2(yy, xx)
+    rings = 0.3 + 0.2 * (np.hypot(xx, yy) < 0.3 * size)  # some radial structure for the matcher
+    inten = [0.5 * (1 + 0.8 * np.cos(2 * np.radians(t) - azimuth)) * (1 - rings) + 0.5 * rings
+             for t in (0, 45, 90, 135)]
+    return np.repeat(np.stack(inten)[:, None], 3, 1).reshape(12, size, size).astype(np.float32)
+
+
+def test_implausible_rotation_falls_back_to_identity():
+    """A polarizing wheel's 45/135 deg images are 90 deg rotated copies of the 0 deg one: a camera
+    array cannot be rotated that much, so those apertures get the identity and a warning, not a
+    warp tens of pixels off."""
+    size = 128
+    h = np.stack([similarity(s) for s in SHIFTS])
+    cap = simulate_capture(_polarizing_wheel(size), Sensor("none"), aperture_homographies=h, psf={"type": "none"})
+    images, sat = cap.lr_images()
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat)
+    fallbacks = [a["fallback"] for a in res.diagnostics["apertures"]]
+    assert "identity: implausible warp" in fallbacks, (fallbacks, res.diagnostics["warnings"])
+    assert any("implausible for a camera array" in w for w in res.diagnostics["warnings"])
+    for n, fb in enumerate(fallbacks):
+        if fb == "identity: implausible warp":
+            np.testing.assert_allclose(res.aperture_homographies[n], np.eye(3))
+            assert abs(res.diagnostics["apertures"][n]["rejected"]["rotation_deg"]) > 5.0
+    err = registration_error_hr_px(res.lr_homographies, cap.true_lr_homographies(), (size, size))
+    assert np.max(err) < 3.0, err  # the identity is off by the true shifts only (<= 1.4 px)
+    # the same data with a looser limit keeps the false match
+    loose = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, max_rotation_deg=180.0,
+                                     luminance="binomial")
+    assert "identity: implausible warp" not in [a["fallback"] for a in loose.diagnostics["apertures"]]
+    assert np.max(registration_error_hr_px(loose.lr_homographies, cap.true_lr_homographies(), (size, size))) > 10
+
+
+def test_plausibility_limits_are_checked():
+    images = np.random.default_rng(0).random((16, 16, 16)).astype(np.float32)
+    with pytest.raises(InputError, match="max_rotation_deg"):
+        estimate_lr_homographies(images, hr_shape=(64, 64), max_rotation_deg=-1.0)
+    with pytest.raises(InputError, match="max_scale_error"):
+        estimate_lr_homographies(images, hr_shape=(64, 64), max_scale_error=1.5)

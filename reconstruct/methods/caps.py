@@ -175,7 +175,10 @@ def lr_homographies(capture, context: RunContext, *, images: np.ndarray, saturat
             raise CapssimError(f"registration returned invalid homographies (shape {est.shape}, "
                                f"finite: {bool(np.all(np.isfinite(est)))})")
         record = {"source": "estimated (reconstruct.registration)", "mode": context.registration,
-                  "luminance": result.diagnostics.get("luminance"), "time_s": result.diagnostics.get("time_s")}
+                  "luminance": result.diagnostics.get("luminance"), "time_s": result.diagnostics.get("time_s"),
+                  "warnings": list(result.diagnostics.get("warnings", [])),
+                  "fallbacks": {str(a["aperture"]): a["fallback"] for a in result.diagnostics.get("apertures", [])
+                                if a.get("fallback") not in ("none", "reference")}}
     if truth_known(capture):
         err = registration_error_hr_px(est, capture.true_lr_homographies(), hr_shape)
         record.update({"error_hr_px_median": float(np.median(err)), "error_hr_px_max": float(np.max(err)),
