@@ -64,6 +64,14 @@ def similarity(shift_xy=(0.0, 0.0), rotation_deg: float = 0.0, scale: float = 1.
     return back @ rot @ to_c
 
 
+def rotation_and_scale(h) -> tuple[float, float]:
+    """Rotation (deg, ``atan2(a10 - a01, a00 + a11)`` of the linear part ``a``: from +x towards +y,
+    i.e. clockwise on the display) and isotropic scale ``sqrt(|det a|)`` of a ``(3, 3)`` homography."""
+    a = np.asarray(h, dtype=np.float64)[:2, :2]
+    return (float(math.degrees(math.atan2(a[1, 0] - a[0, 1], a[0, 0] + a[1, 1]))),
+            float(math.sqrt(abs(np.linalg.det(a)))))
+
+
 def random_aperture_homographies(rng: np.random.Generator, hr_shape: tuple[int, int], *,
                                  shift_max_px: float = 2.0, rotation_max_deg: float = 0.5,
                                  scale_max: float = 0.005) -> tuple[np.ndarray, list[dict]]:

@@ -52,6 +52,7 @@ import torch.nn.functional as F
 
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
+from capssim.homography import rotation_and_scale
 
 log = logging.getLogger(__name__)
 
@@ -91,12 +92,11 @@ def _describe(matrices: np.ndarray, shape) -> list[dict]:
     rows = []
     for g in matrices:
         c = g @ centre
-        a = g[:2, :2]
+        rotation_deg, scale = rotation_and_scale(g)
         q = g @ pts
         disp = q[:2] / q[2:] - pts[:2]
         rows.append({"shift_x_px": float(c[0] / c[2] - centre[0]), "shift_y_px": float(c[1] / c[2] - centre[1]),
-                     "rotation_deg": float(math.degrees(math.atan2(a[1, 0] - a[0, 1], a[0, 0] + a[1, 1]))),
-                     "scale_ppm": float((math.sqrt(abs(np.linalg.det(a))) - 1.0) * 1e6),
+                     "rotation_deg": rotation_deg, "scale_ppm": (scale - 1.0) * 1e6,
                      "mean_displacement_px": float(np.hypot(disp[0], disp[1]).mean())})
     return rows
 

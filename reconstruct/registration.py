@@ -63,7 +63,7 @@ import torch.nn.functional as F
 from capssim.conventions import BAYER_OFFSETS, N_APERTURES, N_LR_IMAGES
 from capssim.errors import InputError, UnknownNameError
 from capssim.homography import lr_homographies as lr_from_aperture
-from capssim.homography import raw_matrix
+from capssim.homography import raw_matrix, rotation_and_scale
 from reconstruct.registration_core import MOTION_MODELS, noise_sigma, register_stack
 
 log = logging.getLogger(__name__)
@@ -358,8 +358,7 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
                 per_ap[n]["fallback"] = "identity: degenerate estimate"
                 continue
             hn = hn / hn[2, 2]
-            rotation_deg = float(np.degrees(np.arctan2(hn[1, 0] - hn[0, 1], hn[0, 0] + hn[1, 1])))
-            scale = float(np.sqrt(abs(np.linalg.det(hn[:2, :2]))))
+            rotation_deg, scale = rotation_and_scale(hn)
             if abs(rotation_deg) > max_rotation_deg or abs(scale - 1.0) > max_scale_error:
                 warn(f"registration: aperture {n} ({45 * n} deg) matched at a rotation of {rotation_deg:.1f} deg and "
                      f"scale {scale:.3f}, implausible for a camera array (limits {max_rotation_deg} deg, "

@@ -12,7 +12,8 @@ from capssim.conventions import (
 )
 from capssim.errors import InputError
 from capssim.homography import (
-    apply_homography, lr_homographies, raw_matrix, registration_error_hr_px, similarity, sub_image_matrix,
+    apply_homography, lr_homographies, raw_matrix, registration_error_hr_px, rotation_and_scale, similarity,
+    sub_image_matrix,
 )
 from capssim.operators import DoFPMosaic
 
@@ -70,3 +71,10 @@ def test_registration_error_in_hr_pixels():
     shifted = lr_homographies(np.stack([similarity((0.2, 0.0))] * 4))
     err = registration_error_hr_px(shifted, true, (64, 64))
     np.testing.assert_allclose(err, 0.2, atol=1e-12)
+
+
+def test_rotation_and_scale_of_a_similarity():
+    """Display-CCW ``similarity`` rotations come out negative (measured from +x towards +y, row down)."""
+    rot, scale = rotation_and_scale(similarity((1.5, -2.0), rotation_deg=3.0, scale=1.01, center_xy=(40.0, 30.0)))
+    assert rot == pytest.approx(-3.0) and scale == pytest.approx(1.01)
+    assert rotation_and_scale(np.eye(3)) == (0.0, 1.0)
