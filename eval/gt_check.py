@@ -190,7 +190,7 @@ def check_ground_truth(gt, *, dolp_max: float = 0.1, bit_depth: int = 0, device=
     result["alignment_check"] = _alignment_check(lum, valid, reg.matrices)
     if float(weak.mean()) >= MIN_WEAKLY_POLARIZED_SHARE:
         reg_weak = register_stack(lum[0], lum[1:], ref_valid=weak, moving_valid=valid.expand(3, -1, -1),
-                                  model="similarity", stokes_weight=0.0, robust_power=4.0, initial=torch.as_tensor(
+                                  model="similarity", stokes_weight=0.0, robust_power=4.0, rescue_below=0.0, initial=torch.as_tensor(
                                       reg.params, dtype=torch.float64, device=dev))
         result["alignment_weakly_polarized"] = _describe(reg_weak.matrices, arr.shape[1:])
     else:

@@ -52,6 +52,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError, UnknownNameError
+from reconstruct.dofp_common import box_sum as dofp_box_sum
 
 log = logging.getLogger(__name__)
 
@@ -157,11 +158,12 @@ def spline_sample(coeffs: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
 
 # -- small image helpers ----------------------------------------------------------------------------
 def box_sum(x: torch.Tensor, radius: int) -> torch.Tensor:
-    """``(B, C, H, W)`` sums over ``(2r+1)^2`` windows, zero padded."""
+    """``(..., H, W)`` sums over ``(2r+1)^2`` windows, zero padded (exact pairwise sums,
+    :func:`reconstruct.dofp_common.box_sum`: about 2 log2(2r+1) additions per pixel, and so
+    1.3-4x faster than ``avg_pool2d`` forward and backward at r = 3)."""
     if radius <= 0:
         return x
-    k = 2 * radius + 1
-    return F.avg_pool2d(x, k, stride=1, padding=radius, count_include_pad=True) * (k * k)
+    return dofp_box_sum(x, radius, radius)
 
 
 def noise_sigma(img: torch.Tensor) -> torch.Tensor:
@@ -291,7 +293,12 @@ class LevelCriterion:
             self.weights = w
             warped = spline_sample(self.coef, c)
             # windows whose centre is valid and at least half filled
-            n = box_sum(w[:, None], self.r)[:, 0]
+            # window sums that do not depend on the motion: pixel count, reference mean and variance
+            r = self.ref[None].expand_as(w)
+            n, sum_r, sum_rr = box_sum(torch.stack([w, w * r, w * r * r], 1), self.r).unbind(1)
+            self._count = n.clamp_min(1e-9)
+            self._ref_mean = sum_r / self._count
+            self._ref_variance = (sum_rr / self._count - self._ref_mean ** 2).clamp_min(0)
             self.window = w * (n > 0.5 * (2 * self.r + 1) ** 2).to(w.dtype)
             if self.robust_power > 0:
                 self.window = self.window * self.window_r2(warped).clamp(0, 1) ** self.robust_power
@@ -304,14 +311,12 @@ class LevelCriterion:
 
     def local_moments(self, warped: torch.Tensor):
         """Per-window variances of the reference and the warped images and their covariance, ``(B, H, W)`` each."""
-        w = self.weights
-        r = self.ref[None].expand_as(warped)
-        s = box_sum(torch.stack([w, w * r, w * warped, w * r * r, w * warped * warped, w * r * warped], 1), self.r)
-        n = s[:, 0].clamp_min(1e-9)
-        mr, mm = s[:, 1] / n, s[:, 2] / n
-        vr = (s[:, 3] / n - mr * mr).clamp_min(0)
-        vm = (s[:, 4] / n - mm * mm).clamp_min(0)
-        return vr, vm, s[:, 5] / n - mr * mm
+        wm = self.weights * warped
+        sum_m, sum_mm, sum_rm = box_sum(torch.stack([wm, wm * warped, wm * self.ref], 1), self.r).unbind(1)
+        n, mr = self._count, self._ref_mean
+        mm = sum_m / n
+        vm = (sum_mm / n - mm * mm).clamp_min(0)
+        return self._ref_variance, vm, sum_rm / n - mr * mm
 
     def window_r2(self, warped: torch.Tensor) -> torch.Tensor:
         """``(B, H, W)`` R^2 of the local affine fit ``a * reference + b`` of each window."""
@@ -390,6 +395,26 @@ def _final_fit(criterion, p: torch.Tensor, *, stokes: bool = False) -> tuple[tor
     with torch.no_grad():
         warped = spline_sample(crit.coef, crit.coords(p))
         return crit.local_r2(warped), (float(crit.stokes_residual(warped).sqrt()) if stokes else None)
+
+
+def stokes_residual_rms(ref: torch.Tensor, moving: torch.Tensor, params, *, ref_valid: torch.Tensor | None = None,
+                        moving_valid: torch.Tensor | None = None, model: str = "similarity", border: int = 3) -> float:
+    """rms of ``I0 + I90 - I45 - I135`` (image units) with ``moving`` ``(3, H, W)`` (45, 90, 135 deg)
+    warped onto ``ref`` ``(H, W)`` (0 deg) by ``params`` ``(3, P)`` (as :func:`register_stack`
+    returns them), over the pixels valid in all four images and ``border`` px from the edge: the
+    figure ``register_stack`` reports as ``info["stokes_residual_rms"]``, for any images and warps."""
+    if moving.shape[0] != 3:
+        raise InputError("moving", tuple(moving.shape), "three images (45, 90, 135 deg) of the reference's shape")
+    hh, ww = ref.shape
+    rv = torch.ones_like(ref) if ref_valid is None else ref_valid.to(ref.dtype).clone()
+    rv[:border], rv[hh - border:], rv[:, :border], rv[:, ww - border:] = 0, 0, 0, 0
+    mv = torch.ones_like(moving) if moving_valid is None else moving_valid.to(moving.dtype)
+    crit = LevelCriterion(ref, moving, rv, mv, scale=1, window_radius=1, model=model,
+                          centre=((ww - 1) / 2.0, (hh - 1) / 2.0), radius=max(hh, ww) / 2.0, eps=1e-12)
+    p = torch.as_tensor(np.asarray(params), dtype=ref.dtype, device=ref.device)
+    crit.fix_weights(p)
+    with torch.no_grad():
+        return float(crit.stokes_residual(spline_sample(crit.coef, crit.coords(p))).sqrt())
 
 
 def _rescue(p, ref, moving, criterion, *, model, threshold, peaks, max_iterations, info,
@@ -513,14 +538,18 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
                    border: int = 3, initial: torch.Tensor | None = None, robust_power: float = 0.0,
                    robust_levels: int = 2, robust_passes: int = 2, full_model_levels: int = 2,
                    rescue_below: float = 0.7, rescue_peaks: int = 8, stokes_subspace_std: float = 0.0,
-                   stokes_subspace_iterations: int = 4, robust_window_radius: int | None = None) -> StackRegistration:
+                   stokes_subspace_iterations: int = 4, robust_window_radius: int | None = None,
+                   start_level: int | None = None) -> StackRegistration:
     """Register ``moving`` ``(B, H, W)`` to ``ref`` ``(H, W)`` (float64 tensors on one device).
 
     ``ref_valid``/``moving_valid`` (1 = usable pixel) mask saturated or otherwise bad pixels.
     ``stokes_weight > 0`` adds the Stokes-consistency term on the finest ``stokes_levels``
     levels; it needs ``B == 3`` moving images at 45, 90, 135 deg and a 0 deg reference.
     ``border``: reference pixels this close to the edge are ignored (full-resolution pixels).
-    ``initial``: ``(B, P)`` starting parameters (skips the coarse stage).
+    ``initial``: ``(B, P)`` starting parameters (skips the coarse stage and the phase-correlation
+    rescue; the Stokes-consistency rescue still runs unless ``rescue_below = 0``);
+    ``start_level`` (only with ``initial``): the pyramid level the refinement starts on, 0 = finest
+    (default: the coarsest).
     ``stokes_subspace_std > 0`` (needs ``B == 3``) ends with :func:`_stokes_subspace_refine`.
     """
     t0 = time.perf_counter()
@@ -539,6 +568,8 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     levels = 1
     while min(hh, ww) // (2 ** levels) >= min_level_size and levels < max_levels:
         levels += 1
+    if start_level is not None and (initial is None or not 0 <= start_level):
+        raise InputError("start_level", start_level, "an integer >= 0, and only together with initial parameters")
     pyr_ref, pyr_ref_valid = _pyramid(ref[None], ref_valid[None], levels)
     pyr_mov, pyr_mov_valid = _pyramid(moving, moving_valid, levels)
     sigma = noise_sigma(torch.cat([ref[None], moving]))
@@ -591,7 +622,8 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
         p = initial.to(dev, dtype).clone()
     info["time_coarse_s"] = time.perf_counter() - t_coarse
 
-    for level in range(levels - 1, -1, -1):
+    first = levels - 1 if start_level is None else min(start_level, levels - 1)
+    for level in range(first, -1, -1):
         stokes = stokes_weight if level < stokes_levels else 0.0
         t1 = time.perf_counter()
         if level >= full_model_levels and model != "translation":
@@ -621,7 +653,7 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     if rescue_below > 0 and initial is None:
         p = _rescue(p, ref, moving, criterion, model=model, threshold=rescue_below, peaks=rescue_peaks,
                     max_iterations=max_iterations, info=info)
-    if rescue_below > 0 and initial is None and b == 3:
+    if rescue_below > 0 and b == 3:
         def refine(q, weight):
             return register_stack(ref, moving, ref_valid=ref_valid, moving_valid=moving_valid, model=model,
                                   window_radius=window_radius, stokes_weight=weight, stokes_levels=levels,

@@ -296,3 +296,38 @@ def test_plausibility_limits_are_checked():
         estimate_lr_homographies(images, hr_shape=(64, 64), max_rotation_deg=-1.0)
     with pytest.raises(InputError, match="max_scale_error"):
         estimate_lr_homographies(images, hr_shape=(64, 64), max_scale_error=1.5)
+
+
+def test_auto_refines_the_demosaicked_image_from_the_binomial_warps():
+    """``auto`` judges the demosaicked image at the binomial warps and, when it is more Stokes-consistent
+    there, refines it from them on the finest level: the same warps as registering it from scratch."""
+    scene = smooth_random_scene(128, seed=0, dolp_max=0.6)
+    h = np.stack([similarity(s) for s in SHIFTS])
+    images, sat = _capture(scene, h)
+    auto = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation")
+    full = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation",
+                                    luminance="ri-binomial")
+    rms = auto.diagnostics["luminance_stokes_residual_rms"]
+    assert rms["ri-binomial at the binomial warps"] < rms["binomial"]
+    assert auto.diagnostics["luminance"] == "ri-binomial"
+    np.testing.assert_allclose(auto.aperture_homographies, full.aperture_homographies, atol=2e-3)
+
+
+def test_auto_keeps_the_binomial_warps_without_a_second_registration(monkeypatch):
+    """When the demosaicked image is less Stokes-consistent at the binomial warps, it is not registered."""
+    import reconstruct.registration as registration
+
+    scene = smooth_random_scene(128, seed=0, dolp_max=0.6)
+    h = np.stack([similarity(s) for s in SHIFTS])
+    images, sat = _capture(scene, h)
+    calls = []
+    real = registration.register_stack
+    monkeypatch.setattr(registration, "register_stack", lambda *a, **k: calls.append(k) or real(*a, **k))
+    monkeypatch.setattr(registration, "stokes_residual_rms", lambda *a, **k: float("inf"))
+    auto = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation")
+    binomial = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation",
+                                        luminance="binomial")
+    assert len(calls) == 2 and "initial" not in calls[0]  # one registration each
+    assert auto.diagnostics["luminance"] == "binomial"
+    assert "ri-binomial" not in auto.diagnostics["luminance_stokes_residual_rms"]
+    np.testing.assert_array_equal(auto.aperture_homographies, binomial.aperture_homographies)

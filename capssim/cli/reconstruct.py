@@ -55,9 +55,9 @@ def reconstruct(
                                     help="Use the homographies stored in meta.json instead of estimating them."),
     registration: str = typer.Option("local-correlation", "--registration",
                                      help="Registration mode when warps are estimated: local-correlation "
-                                          "(default; registers the binomial and the demosaicked luminance and keeps "
-                                          "the more Stokes-consistent) | binomial-luminance | ri-luminance (one of "
-                                          "the two only: half the time) | stokes-subspace (Stokes-consistent data "
+                                          "(default; of the binomial and the demosaicked luminance, keeps the one whose "
+                                          "registered images are more Stokes-consistent) | binomial-luminance | "
+                                          "ri-luminance (one of the two only: faster) | stokes-subspace (Stokes-consistent data "
                                           "whose polarization texture biases the default); see README "
                                           "'Registration'."),
     option: List[str] = typer.Option([], "--option", "-O", help="Method option KEY=VALUE (repeatable)."),
