@@ -499,8 +499,8 @@ def _main(argv=None) -> int:
     ap.add_argument("--bench", nargs="+", metavar="CAPTURE", required=True, help="capture folders")
     ap.add_argument("--stokes-weight", type=float, default=1.0)
     ap.add_argument("--mode", default="local-correlation", choices=list(REGISTRATION_MODES),
-                    help="registration mode (binomial-luminance / ri-luminance: one registration image, half the "
-                         "time; stokes-subspace: Stokes-consistent data with polarization texture)")
+                    help="registration mode (binomial-luminance / ri-luminance: one registration image, "
+                         "faster; stokes-subspace: Stokes-consistent data with polarization texture)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--content-alignment", metavar="GT_CHECK_JSON",
                     help="capssim gt-check --json record of the ground truth the captures were simulated from: "

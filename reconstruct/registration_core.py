@@ -292,19 +292,18 @@ class LevelCriterion:
             w = inside.to(self.ref.dtype) * (mv > 0.999).to(self.ref.dtype) * self.ref_valid[None]
             self.weights = w
             warped = spline_sample(self.coef, c)
-            # windows whose centre is valid and at least half filled
             # window sums that do not depend on the motion: pixel count, reference mean and variance
             r = self.ref[None].expand_as(w)
             n, sum_r, sum_rr = box_sum(torch.stack([w, w * r, w * r * r], 1), self.r).unbind(1)
             self._count = n.clamp_min(1e-9)
             self._ref_mean = sum_r / self._count
             self._ref_variance = (sum_rr / self._count - self._ref_mean ** 2).clamp_min(0)
+            # windows whose centre is valid and at least half filled
             self.window = w * (n > 0.5 * (2 * self.r + 1) ** 2).to(w.dtype)
             if self.robust_power > 0:
                 self.window = self.window * self.window_r2(warped).clamp(0, 1) ** self.robust_power
-            mean = box_sum((w * warped)[:, None], self.r)[:, 0] / n.clamp_min(1e-9)
-            var = box_sum((w * warped * warped)[:, None], self.r)[:, 0] / n.clamp_min(1e-9) - mean * mean
-            self.moving_variance = ((self.window * var.clamp_min(0)).sum(dim=(1, 2))
+            _, moving_variance, _ = self.local_moments(warped)
+            self.moving_variance = ((self.window * moving_variance).sum(dim=(1, 2))
                                     / self.window.sum(dim=(1, 2)).clamp_min(1.0))
             self.norm = float(self.ref[self.ref_valid > 0].var()) if bool((self.ref_valid > 0).sum() > 1) else 1.0
             self.norm = max(self.norm, 1e-12)
@@ -411,7 +410,7 @@ def stokes_residual_rms(ref: torch.Tensor, moving: torch.Tensor, params, *, ref_
     mv = torch.ones_like(moving) if moving_valid is None else moving_valid.to(moving.dtype)
     crit = LevelCriterion(ref, moving, rv, mv, scale=1, window_radius=1, model=model,
                           centre=((ww - 1) / 2.0, (hh - 1) / 2.0), radius=max(hh, ww) / 2.0, eps=1e-12)
-    p = torch.as_tensor(np.asarray(params), dtype=ref.dtype, device=ref.device)
+    p = torch.as_tensor(params, dtype=ref.dtype, device=ref.device)
     crit.fix_weights(p)
     with torch.no_grad():
         return float(crit.stokes_residual(spline_sample(crit.coef, crit.coords(p))).sqrt())
