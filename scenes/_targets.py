@@ -6,7 +6,8 @@ import math
 
 import numpy as np
 
-from capssim.render.scene_base import CameraPose
+from capssim.errors import InputError
+from capssim.render.scene_base import CameraPose, Scene
 
 #: half-width of the card relative to the half-width of the reference view at depth Z (covers
 #: the other apertures' views, their tilts and the render margins)
@@ -42,3 +43,26 @@ def metres_to_pixels(camera, xy_m: np.ndarray) -> np.ndarray:
     xy_m = np.asarray(xy_m, dtype=np.float64)
     pts = np.concatenate([xy_m, np.zeros((*xy_m.shape[:-1], 1))], axis=-1)
     return camera.project(pts)
+
+
+class FacingCardScene(Scene):
+    """A flat target card facing the array at ``params["depth_m"]``, viewed with ``params["fov_deg"]``."""
+
+    def camera_pose(self, p):
+        return target_pose(p["depth_m"], p["fov_deg"])
+
+
+class DiscCardScene(FacingCardScene):
+    """A facing card with a centred disc pattern whose radius is ``params["radius_fraction"]`` of the view width."""
+
+    def check_params(self, p):
+        if not 0.05 <= p["radius_fraction"] <= 0.5:
+            raise InputError("scene_params.radius_fraction", p["radius_fraction"], "a value in [0.05, 0.5]")
+
+    def disc_radius_m(self, p) -> float:
+        """Disc radius on the card (m)."""
+        return 2.0 * p["radius_fraction"] * view_half_width(p["depth_m"], p["fov_deg"])
+
+    def disc_radius_px(self, p, camera) -> float:
+        """Disc radius in reference HR pixels."""
+        return float(self.disc_radius_m(p) * camera.focal_px / p["depth_m"])

@@ -15,13 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.render.scene_base import Scene, SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
+from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
 from scenes import register
-from scenes._targets import card_half_size, rectangle, target_pose, view_half_width
+from scenes._targets import DiscCardScene, card_half_size, rectangle
 
 
 @register
-class AopWheel(Scene):
+class AopWheel(DiscCardScene):
     info = SceneInfo(
         name="aop-wheel",
         description="backlit polarizing wheel: AoP = azimuth/2, DoLP = radius (analytic)",
@@ -36,18 +36,11 @@ class AopWheel(Scene):
     def check_params(self, p):
         if not 0 < p["level"] <= 1:
             raise InputError("scene_params.level", p["level"], "a value in (0, 1]")
-        if not 0.05 <= p["radius_fraction"] <= 0.5:
-            raise InputError("scene_params.radius_fraction", p["radius_fraction"], "a value in [0.05, 0.5]")
-
-    def camera_pose(self, p):
-        return target_pose(p["depth_m"], p["fov_deg"])
-
-    def _radius_m(self, p):
-        return 2.0 * p["radius_fraction"] * view_half_width(p["depth_m"], p["fov_deg"])
+        super().check_params(p)
 
     def mitsuba_dict(self, p):
         a = card_half_size(p["depth_m"], p["fov_deg"])
-        r = self._radius_m(p)
+        r = self.disc_radius_m(p)
         sheet = {"type": "capssim_polarizer", "theta": pattern("wheel_aop", half_size=a, radius=r),
                  "dolp": pattern("wheel_dolp", half_size=a, radius=r)}
         return {"type": "scene", "integrator": {"type": "path", "max_depth": 3},
@@ -57,13 +50,13 @@ class AopWheel(Scene):
     def truth(self, p, camera):
         centre = camera.project(np.zeros((1, 3)))[0]
         return {"wheel": {"center_rowcol": [float(centre[1]), float(centre[0])],
-                          "radius_px": float(self._radius_m(p) * camera.focal_px / p["depth_m"]),
+                          "radius_px": self.disc_radius_px(p, camera),
                           "s0": p["level"], "aop_deg": "phi/2 (mod 180) inside, phi from +col towards -row",
                           "dolp": "r / radius_px inside, 0 outside"}}
 
     def analytic_stokes(self, p, camera, xy):
         loc = plate_coordinates(camera, xy)
-        r = self._radius_m(p)
+        r = self.disc_radius_m(p)
         aop = np.deg2rad(evaluate_pattern("wheel_aop", loc[:, 0], loc[:, 1], radius=r))
         d = evaluate_pattern("wheel_dolp", loc[:, 0], loc[:, 1], radius=r)
         s0 = np.full(len(xy), p["level"])

@@ -18,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.render.scene_base import Scene, SceneInfo, d65
+from capssim.render.scene_base import SceneInfo, d65
 from scenes import register
-from scenes._targets import card_half_size, rectangle, target_pose, view_half_width
+from scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
 CHART = "ColorChecker N Ohta"
 COLUMNS, ROWS = 6, 4
@@ -46,7 +46,7 @@ def colorchecker_spectra() -> tuple[list[str], np.ndarray, np.ndarray]:
 
 
 @register
-class ColorChecker(Scene):
+class ColorChecker(FacingCardScene):
     info = SceneInfo(
         name="colorchecker",
         description="ColorChecker with 24 measured reflectance spectra under a uniform D65 sky",
@@ -61,9 +61,6 @@ class ColorChecker(Scene):
     def check_params(self, p):
         if not 0 < p["illuminance"] <= 2.2:
             raise InputError("scene_params.illuminance", p["illuminance"], "a value in (0, 2.2] (white patch < 1)")
-
-    def camera_pose(self, p):
-        return target_pose(p["depth_m"], p["fov_deg"])
 
     def _patches(self, p):
         hw = view_half_width(p["depth_m"], p["fov_deg"])

@@ -15,15 +15,15 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.render.scene_base import Scene, SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
+from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
 from scenes import register
-from scenes._targets import card_half_size, rectangle, target_pose, view_half_width
+from scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
 RAMP_SPAN = 0.8  # fraction of the view width over which DoLP goes from 0 to 1
 
 
 @register
-class DolpRamp(Scene):
+class DolpRamp(FacingCardScene):
     info = SceneInfo(
         name="dolp-ramp",
         description="backlit polarizing sheet: DoLP ramps 0 -> 1 left to right, AoP 0/45/90/135 in four bands",
@@ -38,9 +38,6 @@ class DolpRamp(Scene):
     def check_params(self, p):
         if not 0 < p["level"] <= 1:
             raise InputError("scene_params.level", p["level"], "a value in (0, 1]")
-
-    def camera_pose(self, p):
-        return target_pose(p["depth_m"], p["fov_deg"])
 
     def _layout(self, p):
         hw = view_half_width(p["depth_m"], p["fov_deg"])

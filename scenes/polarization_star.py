@@ -18,13 +18,13 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.render.scene_base import Scene, SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
+from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
 from scenes import register
-from scenes._targets import card_half_size, rectangle, target_pose, view_half_width
+from scenes._targets import DiscCardScene, card_half_size, rectangle
 
 
 @register
-class PolarizationStar(Scene):
+class PolarizationStar(DiscCardScene):
     info = SceneInfo(
         name="polarization-star",
         description="backlit polarizer whose axis follows a Siemens star: flat S0, a sine star in every analyzer",
@@ -41,19 +41,12 @@ class PolarizationStar(Scene):
             raise InputError("scene_params.cycles", p["cycles"], "an integer in [4, 1000]")
         if not (0 < p["level"] <= 1 and 0 <= p["dolp"] <= 1):
             raise InputError("scene_params.level/dolp", (p["level"], p["dolp"]), "0 < level <= 1, 0 <= dolp <= 1")
-        if not 0.05 <= p["radius_fraction"] <= 0.5:
-            raise InputError("scene_params.radius_fraction", p["radius_fraction"], "a value in [0.05, 0.5]")
-
-    def camera_pose(self, p):
-        return target_pose(p["depth_m"], p["fov_deg"])
-
-    def _radius_m(self, p):
-        return 2.0 * p["radius_fraction"] * view_half_width(p["depth_m"], p["fov_deg"])
+        super().check_params(p)
 
     def mitsuba_dict(self, p):
         a = card_half_size(p["depth_m"], p["fov_deg"])
         sheet = {"type": "capssim_polarizer", "dolp": float(p["dolp"]),
-                 "theta": pattern("star_aop", half_size=a, cycles=p["cycles"], radius=self._radius_m(p))}
+                 "theta": pattern("star_aop", half_size=a, cycles=p["cycles"], radius=self.disc_radius_m(p))}
         return {"type": "scene", "integrator": {"type": "path", "max_depth": 3},
                 "sheet": rectangle(a, bsdf=sheet),
                 "light_box": rectangle(1.2 * a, z=-0.05, emitter={"type": "area", "radiance": d65(2.0 * p["level"])})}
@@ -61,7 +54,7 @@ class PolarizationStar(Scene):
     def truth(self, p, camera):
         centre = camera.project(np.zeros((1, 3)))[0]
         return {"star": {"center_rowcol": [float(centre[1]), float(centre[0])], "cycles": int(p["cycles"]),
-                         "radius_px": float(self._radius_m(p) * camera.focal_px / p["depth_m"]),
+                         "radius_px": self.disc_radius_px(p, camera),
                          "mean": p["level"] / 2, "contrast": p["dolp"],
                          "formula": "I(a) = level/2 * (1 + dolp * cos(cycles * phi - 2 a)), "
                                     "phi from +col towards -row",
@@ -72,6 +65,6 @@ class PolarizationStar(Scene):
     def analytic_stokes(self, p, camera, xy):
         loc = plate_coordinates(camera, xy)
         aop = np.deg2rad(evaluate_pattern("star_aop", loc[:, 0], loc[:, 1], cycles=p["cycles"],
-                                          radius=self._radius_m(p)))
+                                          radius=self.disc_radius_m(p)))
         s0 = np.full(len(xy), p["level"])
         return np.stack([s0, s0 * p["dolp"] * np.cos(2 * aop), s0 * p["dolp"] * np.sin(2 * aop)])

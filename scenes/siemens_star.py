@@ -18,13 +18,13 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.render.scene_base import Scene, SceneInfo, d65, pattern
+from capssim.render.scene_base import SceneInfo, d65, pattern
 from scenes import register
-from scenes._targets import card_half_size, rectangle, target_pose, view_half_width
+from scenes._targets import DiscCardScene, card_half_size, rectangle
 
 
 @register
-class SiemensStar(Scene):
+class SiemensStar(DiscCardScene):
     info = SceneInfo(
         name="siemens-star",
         description="sinusoidal Siemens star (analytic, no texel blur) on a D65 light box",
@@ -43,25 +43,18 @@ class SiemensStar(Scene):
         if not (0 <= p["contrast"] <= 1 and 0 < p["mean"] and p["mean"] * (1 + p["contrast"]) <= 1.0):
             raise InputError("scene_params.contrast/mean", (p["contrast"], p["mean"]),
                              "0 <= contrast <= 1, mean > 0 and mean * (1 + contrast) <= 1 (full scale)")
-        if not 0.05 <= p["radius_fraction"] <= 0.5:
-            raise InputError("scene_params.radius_fraction", p["radius_fraction"], "a value in [0.05, 0.5]")
-
-    def camera_pose(self, p):
-        return target_pose(p["depth_m"], p["fov_deg"])
-
-    def _radius_m(self, p):
-        return 2.0 * p["radius_fraction"] * view_half_width(p["depth_m"], p["fov_deg"])
+        super().check_params(p)
 
     def mitsuba_dict(self, p):
         a = card_half_size(p["depth_m"], p["fov_deg"])
         radiance = pattern("siemens", base=d65(2.0), half_size=a, cycles=p["cycles"], contrast=p["contrast"],
-                           mean=p["mean"], radius=self._radius_m(p))
+                           mean=p["mean"], radius=self.disc_radius_m(p))
         return {"type": "scene", "integrator": {"type": "path", "max_depth": 1},
                 "chart": rectangle(a, emitter={"type": "area", "radiance": radiance})}
 
     def truth(self, p, camera):
         centre = camera.project(np.zeros((1, 3)))[0]
-        radius_px = self._radius_m(p) * camera.focal_px / p["depth_m"]
+        radius_px = self.disc_radius_px(p, camera)
         return {"star": {"center_rowcol": [float(centre[1]), float(centre[0])], "cycles": int(p["cycles"]),
                          "radius_px": float(radius_px), "mean": p["mean"], "contrast": p["contrast"],
                          "formula": "I = mean * (1 + contrast * cos(cycles * phi)), phi from +col towards -row",
@@ -72,5 +65,5 @@ class SiemensStar(Scene):
 
         loc = plate_coordinates(camera, xy)
         s0 = evaluate_pattern("siemens", loc[:, 0], loc[:, 1], cycles=p["cycles"], contrast=p["contrast"],
-                              mean=p["mean"], radius=self._radius_m(p))
+                              mean=p["mean"], radius=self.disc_radius_m(p))
         return np.stack([s0, np.zeros_like(s0), np.zeros_like(s0)])

@@ -20,9 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.render.scene_base import Scene, SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
+from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
 from scenes import register
-from scenes._targets import rectangle, target_pose, view_half_width
+from scenes._targets import FacingCardScene, rectangle, view_half_width
 
 IMAGES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field")
 CARD = 1.15  # card half-size / view half-width
@@ -42,7 +42,7 @@ def load_image(name: str) -> np.ndarray:
 
 
 @register
-class Textured(Scene):
+class Textured(FacingCardScene):
     info = SceneInfo(
         name="textured",
         description="natural-image colour slide (skimage.data) with a polarizing film of smooth AoP/DoLP fields",
@@ -60,9 +60,6 @@ class Textured(Scene):
             raise InputError("scene_params.image", p["image"], f"one of {', '.join(IMAGES)}")
         if not (0 < p["level"] <= 1 and 0 <= p["dolp_min"] <= p["dolp_max"] <= 1 and 0 < p["field_cycles"] <= 20):
             raise InputError("scene_params", p, "0 < level <= 1, 0 <= dolp_min <= dolp_max <= 1, 0 < field_cycles <= 20")
-
-    def camera_pose(self, p):
-        return target_pose(p["depth_m"], p["fov_deg"])
 
     def _field_params(self, p):
         hw = view_half_width(p["depth_m"], p["fov_deg"])
