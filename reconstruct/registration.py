@@ -60,6 +60,7 @@ matrix ``G_n``.
 from __future__ import annotations
 
 import logging
+import sys
 import time
 from dataclasses import dataclass, field
 
@@ -467,11 +468,35 @@ def bench(capture_paths, *, stokes_weight: float = 1.0, stokes_subspace_std: flo
                              "the JSON of capssim gt-check --json")
         matrices = record["alignment_matrices"]
 
+    def check_record_matches(cap, path) -> None:
+        """The gt-check record must describe this capture's ground truth: same size, same source."""
+        shape = record.get("shape")
+        if shape is not None and tuple(shape) != tuple(cap.hr_shape):
+            raise InputError("content_alignment", f"a gt-check record of a {shape[0]}x{shape[1]} ground truth",
+                             f"one of the {cap.hr_shape[0]}x{cap.hr_shape[1]} ground truth capture {path} was "
+                             "simulated from", "Run capssim gt-check with the capture's --crop.")
+        source = cap.meta.get("source") or {}
+        if source.get("renderer"):
+            raise InputError("content_alignment", f"a gt-check record for the rendered capture {path}",
+                             "captures simulated by capssim simulate --gt from a real ground truth",
+                             "Leave it out: a rendered capture's stored warps are its content warps.")
+        gt, crop = record.get("gt"), record.get("crop")
+        if gt is not None and source.get("path") and Path(gt).name != Path(source["path"]).name:
+            raise InputError("content_alignment", f"a gt-check record of {gt}",
+                             f"one of {source['path']}, the ground truth of {path}",
+                             "Run capssim gt-check on the capture's ground truth.")
+        if gt is not None and source.get("path") and crop != source.get("crop"):
+            raise InputError("content_alignment", f"a gt-check record with --crop {crop}",
+                             f"--crop {source.get('crop')}, the crop capture {path} was simulated with")
+
     # torch.optim imports torch._dynamo on first use (about 2 s, once per process): not the first row's cost
     torch.optim.LBFGS([torch.zeros(1, requires_grad=True)])
+    captures = [read_capture(path, load_gt=False) for path in capture_paths]
+    if matrices is not None:
+        for path, cap in zip(capture_paths, captures):
+            check_record_matches(cap, path)
     rows = []
-    for path in capture_paths:
-        cap = read_capture(path, load_gt=False)
+    for path, cap in zip(capture_paths, captures):
         images, saturated = cap.lr_images()
         t0 = time.perf_counter()
         res = estimate_lr_homographies(images.astype(np.float32), hr_shape=cap.hr_shape, saturated=saturated,
@@ -506,8 +531,14 @@ def _main(argv=None) -> int:
                     help="capssim gt-check --json record of the ground truth the captures were simulated from: "
                          "also report the error against the content warps")
     args = ap.parse_args(argv)
-    rows = bench(args.bench, stokes_weight=args.stokes_weight, device=args.device,
-                 content_alignment=args.content_alignment, **registration_mode_arguments(args.mode))
+    from capssim.errors import CapssimError
+
+    try:
+        rows = bench(args.bench, stokes_weight=args.stokes_weight, device=args.device,
+                     content_alignment=args.content_alignment, **registration_mode_arguments(args.mode))
+    except CapssimError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(f"{'capture':<40} {'median':>8} {'max':>8} {'ap0':>7} {'ap1':>7} {'ap2':>7} {'ap3':>7} {'time s':>7}")
     for r in rows:
         a = r["per_aperture_hr_px"]

@@ -1,5 +1,7 @@
 """Registration of the four apertures (reconstruct.registration): accuracy and hard cases."""
 
+import json
+
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
@@ -138,6 +140,24 @@ def test_bench_reports_the_error_against_content_warps(tmp_path):
     np.testing.assert_allclose(gap[:4], 0.0, atol=1e-9)
     with pytest.raises(InputError, match="content_alignment"):
         bench([tmp_path / "cap"], content_alignment={"verdict": "ok"})
+    # a record of another ground truth (size, source or crop) is refused before any registration runs
+    with pytest.raises(InputError, match="128x128 ground truth.*--crop"):
+        bench([tmp_path / "cap"], content_alignment={"alignment_matrices": [eye] * 3, "shape": [128, 128]})
+    meta_path = tmp_path / "cap" / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    meta["source"] = {"type": "polarizer-images", "path": "/data/gt/qiu-kettle", "crop": 64}
+    meta_path.write_text(json.dumps(meta))
+    record = {"alignment_matrices": [eye] * 3, "shape": [64, 64], "gt": "../gt/qiu-cellphonecases", "crop": 64}
+    with pytest.raises(InputError, match="qiu-cellphonecases.*qiu-kettle"):
+        bench([tmp_path / "cap"], content_alignment=record)
+    with pytest.raises(InputError, match="--crop 32"):
+        bench([tmp_path / "cap"], content_alignment={**record, "gt": "../gt/qiu-kettle", "crop": 32})
+    (row,) = bench([tmp_path / "cap"], content_alignment={**record, "gt": "../gt/qiu-kettle"})
+    assert row["content_median_hr_px"] == pytest.approx(row["median_hr_px"])
+    meta["source"] = {"scene": "textured", "renderer": "mitsuba"}
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(InputError, match="rendered capture"):
+        bench([tmp_path / "cap"], content_alignment={"alignment_matrices": [eye] * 3})
 
 
 def test_engine_stokes_residual_and_warm_start():
