@@ -126,12 +126,7 @@ class Convolve(LinearOperator):
         h, w = self.input_shape[-2:]
         n = y.numel() // (h * w)
         ph, pw = self.pad
-        flat = y.reshape(-1, 1, h, w)
         # conv_transpose2d(y, k) written as a full correlation with the flipped kernel
         full = F.pad(y.reshape(1, n, h, w), (2 * pw, 2 * pw, 2 * ph, 2 * ph))
         padded = F.conv2d(full, self._grouped_kernel(y, n, flipped=True), groups=n).reshape(n, 1, h + 2 * ph, w + 2 * pw)
-        cols = flat.new_zeros(padded.shape[0], 1, padded.shape[2], w)
-        cols.index_add_(3, self._const("c", self.col_index, y), padded)
-        out = flat.new_zeros(padded.shape[0], 1, h, w)
-        out.index_add_(2, self._const("r", self.row_index, y), cols)
-        return out.reshape(self.input_shape)
+        return self._fold_padding(padded, y)

@@ -49,13 +49,8 @@ class PixelIntegration(LinearOperator):
 
     def _adjoint(self, y):
         h, w = self.input_shape[-2:]
-        flat = y.reshape(-1, 1, h, w)
-        padded = F.conv_transpose2d(flat, self._const("k", self.kernel, y))
-        cols = flat.new_zeros(padded.shape[0], 1, padded.shape[2], w)
-        cols.index_add_(3, self._const("c", self.col_index, y), padded)
-        out = flat.new_zeros(padded.shape[0], 1, h, w)
-        out.index_add_(2, self._const("r", self.row_index, y), cols)
-        return out.reshape(self.input_shape)
+        padded = F.conv_transpose2d(y.reshape(-1, 1, h, w), self._const("k", self.kernel, y))
+        return self._fold_padding(padded, y)
 
 
 class Decimation(LinearOperator):
