@@ -183,24 +183,36 @@ def correlate(image: torch.Tensor, kernel, *, padding: str = "reflect") -> torch
     return out.reshape(*lead, h, w)
 
 
+def sliding_window_sum(x: torch.Tensor, size: int, *, dim: int) -> torch.Tensor:
+    """Sums of ``size`` consecutive entries along ``dim`` ("valid": length ``n - size + 1``).
+
+    Exact pairwise doubling (window sums of length 1, 2, 4, ... combined by the binary
+    digits of ``size``): about log2(size) full-array additions, no long running sums.
+    Always a new tensor.
+    """
+    out_len = x.shape[dim] - size + 1
+    if size < 1 or out_len < 1:
+        raise InputError("size", size, f"an integer in [1, {x.shape[dim]}] (the length along dim {dim})")
+    if size == 1:
+        return x.clone()
+    cur, length, pos, remaining, result = x, 1, 0, int(size), None
+    while remaining:
+        if remaining & 1:
+            part = cur.narrow(dim, pos, out_len)
+            result = part if result is None else result + part
+            pos += length
+        remaining >>= 1
+        if remaining:
+            m = cur.shape[dim] - length
+            cur = cur.narrow(dim, 0, m) + cur.narrow(dim, length, m)
+            length *= 2
+    return result
+
+
 def _window_sum(x: torch.Tensor, radius: int, dim: int) -> torch.Tensor:
     """Sum over ``2 radius + 1`` consecutive samples along ``dim`` (-1 or -2), zero outside."""
-    n = x.shape[dim]
-    width = 2 * radius + 1
     part = F.pad(x, (radius, radius) if dim == -1 else (0, 0, radius, radius))
-    # binary decomposition of the window into partial sums of widths 1, 2, 4, ...
-    out, offset, part_width = None, 0, 1
-    while width:
-        if width & 1:
-            view = part.narrow(dim, offset, n)
-            out = view.clone() if out is None else out.add_(view)
-            offset += part_width
-        width >>= 1
-        if width:
-            m = part.shape[dim] - part_width
-            part = part.narrow(dim, 0, m) + part.narrow(dim, part_width, m)
-            part_width *= 2
-    return out
+    return sliding_window_sum(part, 2 * radius + 1, dim=dim)
 
 
 def box_sum(image: torch.Tensor, radius_y: int, radius_x: int) -> torch.Tensor:

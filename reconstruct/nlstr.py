@@ -44,6 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
+from reconstruct.dofp_common import sliding_window_sum
 
 log = logging.getLogger(__name__)
 
@@ -209,8 +210,8 @@ class NonlocalSparseTensor:
                 dy, dx = divmod(t, 2 * r + 1)
                 diff = a - zpad[:, ya + dy:ya + dy + rows, dx:dx + w]
                 sq[:, t] = diff.square_().sum(0)
-            box = _box_sum(sq, b, dim=2).index_select(2, self.ref_x)                  # (rows, n_off, nx)
-            box = _box_sum(box, b, dim=0).index_select(0, ref_rows_rel)               # (nrows, n_off, nx)
+            box = sliding_window_sum(sq, b, dim=2).index_select(2, self.ref_x)  # (rows, n_off, nx)
+            box = sliding_window_sum(box, b, dim=0).index_select(0, ref_rows_rel)  # (nrows, n_off, nx)
             dist = box.permute(0, 2, 1)                                                # (nrows, nx, n_off)
             dist = dist.reshape(-1, n_off) / float(b * b * c)
             cy = ry[:, None] + dys[None, :]
@@ -243,7 +244,7 @@ class NonlocalSparseTensor:
 
         Planes: height mode ``(i, i+d)`` for ``i + d < b`` (b(b+1)/2), width mode
         likewise, channel mode ``(c, c')`` for ``c <= c'``. Box sums use
-        (exact pairwise sums, see :func:`_box_sum`).
+        (exact pairwise sums, see :func:`reconstruct.dofp_common.sliding_window_sum`).
         """
         c, hr, w = zr.shape
         b = self.params.block
@@ -253,20 +254,20 @@ class NonlocalSparseTensor:
         # height mode: G_h[i, i+d] = sum_{j<b, c} z[c, y+i, x+j] z[c, y+i+d, x+j]
         for d in range(b):
             prod = (zr[:, :hr - d, :] * zr[:, d:, :]).sum(0)                      # (hr-d, W)
-            rowbox = _box_sum(prod, b, dim=1)                                      # (hr-d, nx)
+            rowbox = sliding_window_sum(prod, b, dim=1)  # (hr-d, nx)
             for i in range(b - d):
                 planes.append(rowbox[i:i + ny])
         # width mode: G_w[j, j+d] = sum_{i<b, c} z[c, y+i, x+j] z[c, y+i, x+j+d]
         for d in range(b):
             prod = (zr[:, :, :w - d] * zr[:, :, d:]).sum(0)                       # (hr, W-d)
-            colbox = _box_sum(prod, b, dim=0)                                      # (ny, W-d)
+            colbox = sliding_window_sum(prod, b, dim=0)  # (ny, W-d)
             for j in range(b - d):
                 planes.append(colbox[:, j:j + nx])
         maps_hw = torch.stack(planes, dim=-1)                                      # (ny, nx, b(b+1))
         # channel mode: 2-D box of every channel product c <= c'
         iu, ju = self._tri_c
         prods = zh.index_select(2, iu) * zh.index_select(2, ju)                    # (hr, W, T)
-        box = _box_sum(_box_sum(prods, b, dim=0), b, dim=1)                        # (ny, nx, T)
+        box = sliding_window_sum(sliding_window_sum(prods, b, dim=0), b, dim=1)  # (ny, nx, T)
         return torch.cat([maps_hw, box], dim=-1).reshape(ny * nx, -1)
 
     def _unpack(self, sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -373,28 +374,6 @@ class NonlocalSparseTensor:
         stats = {key: float(v) for key, v in acc.items()}
         stats["zero_fraction"] = stats.pop("zeros") / max(n_coef, 1)
         return x.contiguous(), stats
-
-
-def _box_sum(x: torch.Tensor, size: int, *, dim: int) -> torch.Tensor:
-    """Sums of ``size`` consecutive entries along ``dim`` (length ``n - size + 1``).
-
-    Exact pairwise doubling (window sums of length 1, 2, 4, ... combined by the binary
-    digits of ``size``): about log2(size) full-array additions, no long running sums.
-    """
-    n = x.shape[dim]
-    out_len = n - size + 1
-    cur, length, pos, remaining, result = x, 1, 0, int(size), None
-    while remaining:
-        if remaining & 1:
-            part = cur.narrow(dim, pos, out_len)
-            result = part if result is None else result + part
-            pos += length
-        remaining >>= 1
-        if remaining:
-            m = cur.shape[dim] - length
-            cur = cur.narrow(dim, 0, m) + cur.narrow(dim, length, m)
-            length *= 2
-    return result if result is not x else x.clone()
 
 
 def shrink_core(alpha: torch.Tensor, beta: torch.Tensor, c1: float, c2: float, *, adaptive: str = "element",

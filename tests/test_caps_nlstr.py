@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, _box_sum, reference_positions, shrink_core
+from reconstruct.dofp_common import sliding_window_sum
+from reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, reference_positions, shrink_core
 
 
 def piecewise_scene(c=12, h=48, w=56, seed=0):
@@ -31,7 +32,7 @@ def test_box_sum_exact(size):
     x = torch.rand(7, 19, dtype=torch.float64)
     for dim in (0, 1):
         if x.shape[dim] >= size:
-            assert torch.allclose(_box_sum(x, size, dim=dim), x.unfold(dim, size, 1).sum(-1))
+            assert torch.allclose(sliding_window_sum(x, size, dim=dim), x.unfold(dim, size, 1).sum(-1))
 
 
 def test_block_matching_equals_brute_force():
@@ -159,3 +160,15 @@ def test_parameter_validation():
         NonlocalSparseTensor((12, 6, 16), NLSTRParameters())
     with pytest.raises(InputError):
         NonlocalSparseTensor((12, 16, 16), NLSTRParameters(adaptive="bogus"))
+
+
+
+def test_sliding_window_sum_never_aliases_and_checks_size():
+    """A window of 1 returns a copy (callers may write into it); a window longer than the axis is a
+    clear error."""
+    x = torch.rand(5, 11, 7, dtype=torch.float64)
+    out = sliding_window_sum(x, 1, dim=1)
+    out.zero_()
+    assert x.abs().sum() > 0
+    with pytest.raises(InputError, match="size"):
+        sliding_window_sum(x, 8, dim=-1)
