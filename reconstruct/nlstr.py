@@ -210,8 +210,8 @@ class NonlocalSparseTensor:
                 dy, dx = divmod(t, 2 * r + 1)
                 diff = a - zpad[:, ya + dy:ya + dy + rows, dx:dx + w]
                 sq[:, t] = diff.square_().sum(0)
-            box = sliding_window_sum(sq, b, dim=2).index_select(2, self.ref_x)  # (rows, n_off, nx)
-            box = sliding_window_sum(box, b, dim=0).index_select(0, ref_rows_rel)  # (nrows, n_off, nx)
+            box = sliding_window_sum(sq, b, dim=2).index_select(2, self.ref_x)         # (rows, n_off, nx)
+            box = sliding_window_sum(box, b, dim=0).index_select(0, ref_rows_rel)      # (nrows, n_off, nx)
             dist = box.permute(0, 2, 1)                                                # (nrows, nx, n_off)
             dist = dist.reshape(-1, n_off) / float(b * b * c)
             cy = ry[:, None] + dys[None, :]
@@ -254,20 +254,20 @@ class NonlocalSparseTensor:
         # height mode: G_h[i, i+d] = sum_{j<b, c} z[c, y+i, x+j] z[c, y+i+d, x+j]
         for d in range(b):
             prod = (zr[:, :hr - d, :] * zr[:, d:, :]).sum(0)                      # (hr-d, W)
-            rowbox = sliding_window_sum(prod, b, dim=1)  # (hr-d, nx)
+            rowbox = sliding_window_sum(prod, b, dim=1)                           # (hr-d, nx)
             for i in range(b - d):
                 planes.append(rowbox[i:i + ny])
         # width mode: G_w[j, j+d] = sum_{i<b, c} z[c, y+i, x+j] z[c, y+i, x+j+d]
         for d in range(b):
             prod = (zr[:, :, :w - d] * zr[:, :, d:]).sum(0)                       # (hr, W-d)
-            colbox = sliding_window_sum(prod, b, dim=0)  # (ny, W-d)
+            colbox = sliding_window_sum(prod, b, dim=0)                           # (ny, W-d)
             for j in range(b - d):
                 planes.append(colbox[:, j:j + nx])
         maps_hw = torch.stack(planes, dim=-1)                                      # (ny, nx, b(b+1))
         # channel mode: 2-D box of every channel product c <= c'
         iu, ju = self._tri_c
         prods = zh.index_select(2, iu) * zh.index_select(2, ju)                    # (hr, W, T)
-        box = sliding_window_sum(sliding_window_sum(prods, b, dim=0), b, dim=1)  # (ny, nx, T)
+        box = sliding_window_sum(sliding_window_sum(prods, b, dim=0), b, dim=1)    # (ny, nx, T)
         return torch.cat([maps_hw, box], dim=-1).reshape(ny * nx, -1)
 
     def _unpack(self, sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

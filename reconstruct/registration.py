@@ -69,7 +69,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.conventions import BAYER_OFFSETS, N_APERTURES, N_LR_IMAGES
-from capssim.errors import InputError, UnknownNameError
+from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.homography import lr_homographies as lr_from_aperture
 from capssim.homography import raw_matrix, rotation_and_scale
 from reconstruct.registration_core import MOTION_MODELS, noise_sigma, register_stack, stokes_residual_rms
@@ -531,8 +531,6 @@ def _main(argv=None) -> int:
                     help="capssim gt-check --json record of the ground truth the captures were simulated from: "
                          "also report the error against the content warps")
     args = ap.parse_args(argv)
-    from capssim.errors import CapssimError
-
     try:
         rows = bench(args.bench, stokes_weight=args.stokes_weight, device=args.device,
                      content_alignment=args.content_alignment, **registration_mode_arguments(args.mode))
