@@ -41,6 +41,7 @@ from capssim.conventions import (
 from capssim.errors import CaptureFormatError, InputError
 from capssim.homography import lr_homographies
 from capssim.imageio import atomic_directory, atomic_write_json, read_tiff, write_tiff
+from capssim.psf import PSF
 from capssim.sensor import Sensor, sensor_from_meta
 
 log = logging.getLogger(__name__)
@@ -198,10 +199,14 @@ class Capture:
         """``(16, 3, 3)`` stored HR reference -> sub-image homographies."""
         return np.asarray([e["homography"] for e in self.meta["lr_images"]], dtype=np.float64)
 
-    def psf_kernel(self) -> np.ndarray:
-        from capssim.operators.blur import psf_kernel_from_spec
+    @property
+    def psf(self) -> PSF:
+        """The optical PSF stored in ``meta.json["psf"]``."""
+        return PSF.from_spec(self.meta.get("psf"))
 
-        return psf_kernel_from_spec(self.meta.get("psf"))
+    def psf_kernel(self) -> np.ndarray:
+        """``(k, k)`` PSF kernel on the HR grid."""
+        return self.psf.kernel()
 
     # data ------------------------------------------------------------------------------
     def caps_float(self) -> np.ndarray:

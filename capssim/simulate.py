@@ -25,13 +25,12 @@ from capssim.capture import Capture, build_meta
 from capssim.errors import InputError
 from capssim.homography import random_aperture_homographies
 from capssim.imageio import centre_crop
-from capssim.operators.blur import psf_kernel_from_spec
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
+from capssim.psf import as_psf
 from capssim.sensor import Sensor
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PSF = {"type": "gaussian", "sigma_hr_px": 0.5}
 MIN_HR_SIZE = 16
 
 
@@ -93,8 +92,8 @@ def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: dict
     t0 = time.perf_counter()
     gt, _ = prepare_ground_truth(gt)
     hr_shape = gt.shape[1:]
-    psf = dict(psf or DEFAULT_PSF)
-    kernel = psf_kernel_from_spec(psf)
+    psf_value = as_psf(psf)
+    kernel, psf = psf_value.kernel(), psf_value.to_spec()
     pose_rng, caps_rng, dofp_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
     if aperture_homographies is None:
         aperture_homographies, pose_params = random_aperture_homographies(

@@ -133,7 +133,7 @@ def load_suite(name_or_path: str | Path) -> dict:
         entry.setdefault("options", {})
         entry.setdefault("true_warps", False)
         entry.setdefault("registration", "local-correlation")
-        from reconstruct.registration import registration_mode_arguments
+        from capssim.reconstruct.registration import registration_mode_arguments
 
         registration_mode_arguments(entry["registration"])  # UnknownNameError lists the modes
         methods.append(entry)
@@ -305,7 +305,7 @@ def apply_sensor(clean, sensor, seed: int):
     meta = copy.deepcopy(clean.meta)
     meta["sensor"] = sensor.to_meta()
     meta["seed"] = seed
-    meta.setdefault("bench", {})["noise_applied_by"] = "eval.bench.apply_sensor (after a noise-free render)"
+    meta.setdefault("bench", {})["noise_applied_by"] = "capssim.eval.bench.apply_sensor (after a noise-free render)"
     caps = sensor.capture(np.asarray(clean.caps_raw, dtype=np.float64), caps_rng)
     dofp = sensor.capture(np.asarray(clean.dofp_raw, dtype=np.float64), dofp_rng) if clean.dofp_raw is not None else None
     return Capture(meta=meta, caps_raw=caps, dofp_raw=dofp, gt=clean.gt)
@@ -377,7 +377,7 @@ class CaptureFactory:
             info.update(render_info)
             return apply_sensor(clean, sensor, seed), info
         if src == "synthetic":
-            from eval.synthetic import synthetic_scene
+            from capssim.eval.synthetic import synthetic_scene
 
             gt, scene_meta = synthetic_scene(scene.get("generator", "texture"), size=int(scene.get("size", 128)),
                                              seed=int(scene.get("scene_seed", seed)), cycles=int(scene.get("cycles", 36)))
@@ -524,10 +524,10 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
               events: Callable[..., None] | None = None) -> BenchRun:
     """Run (or resume) a suite into ``output``; see the module docstring."""
     from capssim.capture import read_capture, write_reconstruction
-    from eval import metrics as M
-    from eval.evaluate import flat_mtf, mtf_summary, star_geometry, SUB_IMAGE_PITCH_HR
-    from eval.mtf import measure_star
-    from reconstruct.registry import available_methods, reconstruct, resolve_device
+    from capssim.eval import metrics as M
+    from capssim.eval.evaluate import flat_mtf, mtf_summary, star_geometry, SUB_IMAGE_PITCH_HR
+    from capssim.eval.mtf import measure_star
+    from capssim.reconstruct.registry import available_methods, reconstruct, resolve_device
 
     emit = events or (lambda kind, **info: None)
     t_start = time.perf_counter()
@@ -703,7 +703,7 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
 # -- baselines -----------------------------------------------------------------------------------
 def tolerance_for(metric: str, tolerances: dict[str, float]) -> float | None:
     """Tolerance of a metric, or None when it is not a checked quality metric."""
-    from eval.metrics import metric_direction
+    from capssim.eval.metrics import metric_direction
 
     head = metric.split(".", 1)[0]
     if head.startswith("mtf_magnification"):
@@ -769,7 +769,7 @@ class Verdict:
 
 def check_against_baseline(run: BenchRun, baseline_path: str | Path) -> Verdict:
     """Compare a run with a stored baseline (module docstring for the rules)."""
-    from eval.metrics import metric_direction
+    from capssim.eval.metrics import metric_direction
 
     path = Path(baseline_path)
     if not path.is_file():

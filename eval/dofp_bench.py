@@ -104,7 +104,7 @@ def make_capture(gt_dir: Path, *, layout: str = "sony", psf_sigma: float = 0.0):
 
 def run_one(capture, method: str, *, device: str, repeats: int, options: dict | None = None):
     """Reconstruct ``repeats`` times; return the last output and the minimum wall time (s)."""
-    from reconstruct.registry import reconstruct
+    from capssim.reconstruct.registry import reconstruct
 
     best, out, record = float("inf"), None, None
     for _ in range(max(1, repeats)):

@@ -117,7 +117,7 @@ def _alignment_check(lum: torch.Tensor, valid: torch.Tensor, matrices: np.ndarra
     residual at edges, so aligning correctly lowers it; an estimate misled by polarization
     texture raises it (``reliable`` False beyond 5 % + 0.01 % of S0: resampling alone changes it
     slightly)."""
-    from reconstruct.registration_core import spline_coefficients, spline_sample
+    from capssim.reconstruct.registration_core import spline_coefficients, spline_sample
 
     h, w = lum.shape[1:]
     xy = _moving_coords(matrices, (h, w), lum.device)
@@ -160,7 +160,7 @@ def check_ground_truth(gt, *, dolp_max: float = 0.1, bit_depth: int = 0, device=
         image, ``consistent`` (bool),
         ``verdict`` (one line), ``time_s``.
     """
-    from reconstruct.registration_core import register_stack
+    from capssim.reconstruct.registration_core import register_stack
 
     if not (0 < dolp_max <= 1):
         raise InputError("dolp_max", dolp_max, "a number in (0, 1]")
@@ -250,7 +250,7 @@ def aligned_ground_truth(gt, matrices, *, device="cpu") -> np.ndarray:
     :func:`check_ground_truth`). Interpolating cubic B-spline; pixels mapped from outside the
     image take the nearest edge value. Returns ``(12, H, W)`` float32 clipped to [0, 1].
     """
-    from reconstruct.registration_core import spline_coefficients, spline_sample
+    from capssim.reconstruct.registration_core import spline_coefficients, spline_sample
 
     arr = _check_gt(gt)
     g = np.asarray(matrices, dtype=np.float64)

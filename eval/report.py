@@ -117,7 +117,7 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
               "cycles per Bayer sub-image pixel / 0.5). Time = the method's wall time.", ""]
     plot_paths: dict[str, list[tuple[str, Path]]] = defaultdict(list)
     if plots and ok:
-        from eval import plots as P
+        from capssim.eval import plots as P
 
         for metric, label, hib, name in (("psnr_mean", "PSNR (dB, 12-ch mean)", True, "speed_vs_psnr.png"),
                                          ("dolp_psnr", "DoLP PSNR (dB)", True, "speed_vs_dolp.png"),
@@ -141,7 +141,7 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
         try:
             from capssim.capture import read_capture
             from capssim.imageio import read_tiff
-            from eval import plots as P
+            from capssim.eval import plots as P
 
             capture = read_capture(rs0[0]["capture"], require_gt=True)
             estimates = {}

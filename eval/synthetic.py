@@ -22,7 +22,7 @@ import numpy as np
 
 from capssim.errors import UnknownNameError
 from capssim.polarization import twelve_from_stokes
-from eval.mtf import sinusoidal_star
+from capssim.eval.mtf import sinusoidal_star
 
 GENERATORS = ("texture", "star", "polarization-star")
 

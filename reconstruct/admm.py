@@ -38,8 +38,8 @@ from typing import Callable
 import torch
 
 from capssim.errors import InputError
-from reconstruct.data_term import ConfidenceDataTerm
-from reconstruct.nlstr import NonlocalSparseTensor
+from capssim.reconstruct.data_term import ConfidenceDataTerm
+from capssim.reconstruct.nlstr import NonlocalSparseTensor
 
 log = logging.getLogger(__name__)
 

@@ -27,7 +27,7 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 
-from reconstruct.registry import StageTimer
+from capssim.reconstruct.registry import StageTimer
 
 STAGE_ORDER = ("rearrange", "registration", "operator", "cagf", "init", "nlstr_setup", "nlstr_block_matching",
                "nlstr_dictionaries_cores", "data_term", "admm_update")
@@ -133,7 +133,7 @@ def _synthetic_scene(size: int, seed: int) -> np.ndarray:
 def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, method: str = "caps") -> dict:
     """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`)."""
     from capssim.capture import read_capture
-    from reconstruct.registry import RunContext, get_method, resolve_device
+    from capssim.reconstruct.registry import RunContext, get_method, resolve_device
 
     dev = resolve_device(device)
     capture = read_capture(capture_path, load_gt=False)
@@ -171,7 +171,7 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
                 runs = []
                 for r in range(repeats):
                     log(f"caps {size}x{size} on {dev}, run {r + 1}/{repeats} ...")
-                    cmd = [sys.executable, "-m", "reconstruct.benchmark", "--worker", str(path), "--device", dev,
+                    cmd = [sys.executable, "-m", "capssim.reconstruct.benchmark", "--worker", str(path), "--device", dev,
                            "--iterations", str(iterations)] + ([] if true_warps else ["--estimated-warps"])
                     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
                     if proc.returncode != 0:

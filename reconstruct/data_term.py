@@ -26,7 +26,7 @@ import torch
 
 from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
-from reconstruct.rearrange import Observations
+from capssim.reconstruct.rearrange import Observations
 
 
 def field_of_view_mask(homographies, obs_shape: tuple[int, int], hr_shape: tuple[int, int], *,

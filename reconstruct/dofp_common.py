@@ -441,7 +441,7 @@ def run_dofp_method(capture, context, demosaic, defaults: dict):
     ``demosaic(mosaic, *, layout, dtype, timer, **params)`` on ``context.device`` and returns
     the :class:`~reconstruct.registry.MethodOutput` with the parameters used.
     """
-    from reconstruct.registry import MethodOutput
+    from capssim.reconstruct.registry import MethodOutput
 
     opts = dict(context.options)
     precision = opts.pop("precision", "float32")
@@ -486,15 +486,15 @@ def dofp_array_function(method: str):
     from capssim.errors import UnknownNameError
 
     if method == "dofp-bilinear":
-        from reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
+        from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
 
         return demosaic_dofp_bilinear
     if method == "dofp-eari":
-        from reconstruct.methods.dofp_eari import demosaic_dofp_eari
+        from capssim.reconstruct.methods.dofp_eari import demosaic_dofp_eari
 
         return demosaic_dofp_eari
     if method == "dofp-igri2":
-        from reconstruct.methods.dofp_igri2 import demosaic_dofp_igri2
+        from capssim.reconstruct.methods.dofp_igri2 import demosaic_dofp_igri2
 
         return demosaic_dofp_igri2
     raise UnknownNameError("DoFP method", method, ["dofp-bilinear", "dofp-eari", "dofp-igri2"])

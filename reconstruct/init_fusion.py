@@ -38,8 +38,8 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from reconstruct.cagf import box_mean
-from reconstruct.rearrange import Observations
+from capssim.reconstruct.cagf import box_mean
+from capssim.reconstruct.rearrange import Observations
 
 
 def sample_positions(homographies, lr_shape: tuple[int, int]) -> np.ndarray:

@@ -44,7 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from reconstruct.dofp_common import sliding_window_sum
+from capssim.reconstruct.dofp_common import sliding_window_sum
 
 log = logging.getLogger(__name__)
 

@@ -72,7 +72,7 @@ from capssim.conventions import BAYER_OFFSETS, N_APERTURES, N_LR_IMAGES
 from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.homography import lr_homographies as lr_from_aperture
 from capssim.homography import raw_matrix, rotation_and_scale
-from reconstruct.registration_core import MOTION_MODELS, noise_sigma, register_stack, stokes_residual_rms
+from capssim.reconstruct.registration_core import MOTION_MODELS, noise_sigma, register_stack, stokes_residual_rms
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +121,7 @@ def ri_binomial_luminance(raw: torch.Tensor) -> torch.Tensor:
     of the residual-interpolation demosaicking
     (:func:`reconstruct.methods.dofp_eari.ri_bayer_demosaic_frames`: ``dofp-eari``'s colour stage, any size).
     """
-    from reconstruct.methods.dofp_eari import ri_bayer_demosaic_frames
+    from capssim.reconstruct.methods.dofp_eari import ri_bayer_demosaic_frames
 
     rgb = ri_bayer_demosaic_frames(raw)
     return binomial_luminance((rgb[:, 0] + 2 * rgb[:, 1] + rgb[:, 2]) / 4)
@@ -286,7 +286,7 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, model: str 
     raw = mosaic_from_sub_images(x)
     lum = LUMINANCE_METHODS["binomial" if luminance == "auto" else luminance](raw)
     if presmooth_sigma > 0:
-        from reconstruct.registration_core import gaussian_blur
+        from capssim.reconstruct.registration_core import gaussian_blur
 
         lum = gaussian_blur(lum, presmooth_sigma)
     raw_sat = mosaic_from_sub_images(sat.to(dtype))

@@ -52,7 +52,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError, UnknownNameError
-from reconstruct.dofp_common import box_sum as dofp_box_sum
+from capssim.reconstruct.dofp_common import box_sum as dofp_box_sum
 
 log = logging.getLogger(__name__)
 

@@ -109,7 +109,7 @@ def _load_methods() -> None:
     global _LOADED
     if _LOADED:
         return
-    import reconstruct.methods as pkg
+    import capssim.reconstruct.methods as pkg
 
     for mod in pkgutil.iter_modules(pkg.__path__):
         if not mod.name.startswith("_"):
@@ -149,7 +149,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     spec = get_method(method)
     dev = resolve_device(device)
     if spec.input_kind == "caps" and not true_warps:
-        from reconstruct.registration import registration_mode_arguments
+        from capssim.reconstruct.registration import registration_mode_arguments
 
         registration_mode_arguments(registration)  # UnknownNameError lists the modes
     if spec.input_kind == "dofp" and capture.dofp_raw is None:

@@ -6,13 +6,17 @@ it with :func:`register`. ``capssim scenes`` lists them; ``capssim render NAME``
 
 from __future__ import annotations
 
+if __name__ != "capssim.scenes":
+    # The folder scenes/ is installed as capssim.scenes; a bare `import scenes` would shadow other packages.
+    raise ImportError(f"{__name__!r} is not an import name of capssim: the folder scenes/ is the package "
+                      "capssim.scenes; write `import capssim.scenes` (after `pip install -e .`)")
+
 import importlib
 import pkgutil
 
 from capssim.errors import UnknownNameError
 
 SCENES: dict = {}
-
 
 def register(cls):
     """Class decorator: add a scene (instance of ``cls``) to the library under ``cls.info.name``."""
@@ -23,11 +27,9 @@ def register(cls):
     SCENES[name] = instance
     return cls
 
-
 def _load_all() -> None:
     for module in sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")):
         importlib.import_module(f"{__name__}.{module}")
-
 
 def get_scene(name: str):
     """The registered scene called ``name`` (raises :class:`UnknownNameError`)."""
@@ -36,7 +38,6 @@ def get_scene(name: str):
     if key not in SCENES:
         raise UnknownNameError("scene", name, list(SCENES))
     return SCENES[key]
-
 
 def all_scenes() -> dict:
     _load_all()

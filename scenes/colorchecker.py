@@ -19,8 +19,8 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65
-from scenes import register
-from scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
+from capssim.scenes import register
+from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
 CHART = "ColorChecker N Ohta"
 COLUMNS, ROWS = 6, 4

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo, d65, scale_pose, scale_scene
-from scenes import register
+from capssim.scenes import register
 
 RADIUS = 0.08
 XS = (-0.425, -0.255, -0.085, 0.085, 0.255, 0.425)

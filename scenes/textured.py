@@ -21,8 +21,8 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
-from scenes import register
-from scenes._targets import FacingCardScene, rectangle, view_half_width
+from capssim.scenes import register
+from capssim.scenes._targets import FacingCardScene, rectangle, view_half_width
 
 IMAGES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field")
 CARD = 1.15  # card half-size / view half-width

@@ -23,8 +23,8 @@ import math
 import numpy as np
 
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo, d65, scale_pose, scale_scene
-from scenes import register
-from scenes.materials import checker
+from capssim.scenes import register
+from capssim.scenes.materials import checker
 
 PANE_ANGLE_DEG = 40.0
 N_GLASS = 1.5
@@ -65,7 +65,7 @@ class WindowReflection(Scene):
     def mitsuba_dict(self, p):
         import mitsuba as mi
 
-        from scenes._procedural import poster_texture
+        from capssim.scenes._procedural import poster_texture
 
         T = mi.ScalarTransform4f
         a = math.radians(PANE_ANGLE_DEG)

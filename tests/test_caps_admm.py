@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from reconstruct.admm import ADMMParameters, admm, mu_schedule
+from capssim.reconstruct.admm import ADMMParameters, admm, mu_schedule
 
 
 def tiny_capture(size=48, sigma=0.01, seed=0):
@@ -45,7 +45,7 @@ def _changed(history, i):
 
 @pytest.mark.parametrize("method", ["caps", "caps-no-cagf"])
 def test_objective_decreases(method):
-    from reconstruct.registry import reconstruct
+    from capssim.reconstruct.registry import reconstruct
 
     cap = tiny_capture()
     _, record = reconstruct(cap, method, true_warps=True)
@@ -68,7 +68,7 @@ def test_objective_decreases(method):
 
 
 def test_data_only_descent_decreases_every_iteration():
-    from reconstruct.registry import reconstruct
+    from capssim.reconstruct.registry import reconstruct
 
     _, record = reconstruct(tiny_capture(), "caps-no-nlstr", true_warps=True)
     data = [h["data"] for h in record["history"]]
@@ -77,7 +77,7 @@ def test_data_only_descent_decreases_every_iteration():
 
 
 def test_admm_rejects_bad_init():
-    from reconstruct.data_term import ConfidenceDataTerm
+    from capssim.reconstruct.data_term import ConfidenceDataTerm
 
     class Dummy:
         image_shape = (12, 8, 8)

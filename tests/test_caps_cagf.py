@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from reconstruct.cagf import (align_to_reference, box_mean, cagf_confidence, guided_filter_residual,
+from capssim.reconstruct.cagf import (align_to_reference, box_mean, cagf_confidence, guided_filter_residual,
                               pairwise_confidence, resize_to_hr, window_count)
 
 

@@ -9,8 +9,8 @@ from capssim.errors import InputError
 from capssim.homography import lr_homographies, similarity
 from capssim.operators.blur import gaussian_psf_kernel
 from capssim.operators.camera import lr_sampling_operator
-from reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
-from reconstruct.rearrange import Observations
+from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
+from capssim.reconstruct.rearrange import Observations
 
 HR = (24, 32)
 

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from capssim.homography import raw_matrix
-from reconstruct.init_fusion import fuse_initial_estimate, normalized_convolution, sample_positions, splat
-from reconstruct.rearrange import observations_from_capture
+from capssim.reconstruct.init_fusion import fuse_initial_estimate, normalized_convolution, sample_positions, splat
+from capssim.reconstruct.rearrange import observations_from_capture
 
 
 def scene(size=64, seed=0):

@@ -9,7 +9,7 @@ import torch
 from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
-from reconstruct.registry import reconstruct
+from capssim.reconstruct.registry import reconstruct
 
 METHODS = ["caps", "caps-no-cagf", "caps-no-nlstr", "caps-iccp"]
 
@@ -93,7 +93,7 @@ def test_options_are_checked():
 
 def test_estimated_warps_need_registration():
     cap = capture(scene(), sigma=0.0)
-    if importlib.util.find_spec("reconstruct.registration") is None:
+    if importlib.util.find_spec("capssim.reconstruct.registration") is None:
         with pytest.raises(CapssimError, match="--true-warps"):
             reconstruct(cap, "caps", iterations=1)
     else:

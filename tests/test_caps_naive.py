@@ -14,7 +14,7 @@ from capssim.capture import write_capture
 from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
-from reconstruct.registry import reconstruct
+from capssim.reconstruct.registry import reconstruct
 from tests.conftest import smooth_random_scene
 
 
@@ -46,7 +46,7 @@ def test_constant_image_is_exact(bayer):
 def test_ri_demosaicking_is_accurate_on_tiny_and_smooth_frames():
     """Residual interpolation (caps-iccp's default) through the shared padding: frames down to 2x2 keep their
     shape and a constant colour; on a smooth correlated scene it is as good as Menon 2007 (within 1 dB)."""
-    from reconstruct.methods.caps_naive import demosaic_apertures
+    from capssim.reconstruct.methods.caps_naive import demosaic_apertures
 
     for side in (2, 4, 10):
         raw = np.tile(np.array([[0.2, 0.5], [0.5, 0.8]], np.float32), (4, side // 2, side // 2))
@@ -84,7 +84,7 @@ def test_smooth_scene_with_true_warps_is_accurate():
 
 
 def test_reference_aperture_equals_bicubic_upsampling_of_demosaicked_frame():
-    from reconstruct.methods.caps_naive import demosaic_apertures
+    from capssim.reconstruct.methods.caps_naive import demosaic_apertures
 
     gt = smooth_random_scene(64, seed=1)
     capture = _capture(gt)

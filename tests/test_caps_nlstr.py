@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from reconstruct.dofp_common import sliding_window_sum
-from reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, reference_positions, shrink_core
+from capssim.reconstruct.dofp_common import sliding_window_sum
+from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, reference_positions, shrink_core
 
 
 def piecewise_scene(c=12, h=48, w=56, seed=0):

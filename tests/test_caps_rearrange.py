@@ -6,7 +6,7 @@ import torch
 
 from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
-from reconstruct.rearrange import rearrange_raw, split_bayer
+from capssim.reconstruct.rearrange import rearrange_raw, split_bayer
 
 
 def test_split_bayer_sites_and_order():

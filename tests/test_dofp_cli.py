@@ -141,7 +141,7 @@ def test_real_raw_mosaics(shared_data, tmp_path):
 
 # -- metric definitions of the benchmark ---------------------------------------------------------------
 def test_tokyotech_scores_definitions(scene64):
-    from eval.dofp_bench import tokyotech_scores
+    from capssim.eval.dofp_bench import tokyotech_scores
 
     perfect = tokyotech_scores(scene64, scene64, border=15)
     scene64 = scene64.astype(np.float64)

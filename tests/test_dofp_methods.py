@@ -9,11 +9,11 @@ from scipy.ndimage import correlate as nd_correlate
 
 from capssim.conventions import POLARIZER_ANGLES_DEG, dofp_channel_map
 from capssim.errors import InputError
-from reconstruct.dofp_common import (angle_offsets, box_sum, check_mosaic, correlate, merge_submosaics,
+from capssim.reconstruct.dofp_common import (angle_offsets, box_sum, check_mosaic, correlate, merge_submosaics,
                                      polarization_masks, split_submosaics)
-from reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
-from reconstruct.methods.dofp_eari import demosaic_dofp_eari
-from reconstruct.methods.dofp_igri2 import QuincunxRotation, demosaic_dofp_igri2
+from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
+from capssim.reconstruct.methods.dofp_eari import demosaic_dofp_eari
+from capssim.reconstruct.methods.dofp_igri2 import QuincunxRotation, demosaic_dofp_igri2
 
 LAYOUTS = ("sony", "0-45-135-90")
 METHODS = {"dofp-bilinear": demosaic_dofp_bilinear, "dofp-eari": demosaic_dofp_eari,
@@ -263,7 +263,7 @@ def test_methods_run_through_the_registry(tmp_path, scene64, layout):
     from capssim.capture import list_reconstructions, write_capture
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
-    from reconstruct.registry import available_methods, run_method
+    from capssim.reconstruct.registry import available_methods, run_method
 
     capture = simulate_capture(scene64, make_sensor("none"), seed=0, psf={"type": "none"}, dofp_layout=layout)
     path = write_capture(tmp_path / "cap", capture)
@@ -284,7 +284,7 @@ def test_methods_run_through_the_registry(tmp_path, scene64, layout):
 def test_eari_options_through_the_registry(scene64):
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
-    from reconstruct.registry import reconstruct
+    from capssim.reconstruct.registry import reconstruct
 
     capture = simulate_capture(scene64, make_sensor("gaussian", sigma=0.02), seed=1, psf={"type": "none"})
     out, record = reconstruct(capture, "dofp-eari", precision="float64", eps=1e-12)
@@ -305,7 +305,7 @@ def test_dofp_methods_reject_unknown_or_bad_options(scene64, method, options, ma
     from capssim.errors import UnknownNameError
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
-    from reconstruct.registry import reconstruct
+    from capssim.reconstruct.registry import reconstruct
 
     capture = simulate_capture(scene64, make_sensor("none"), seed=1, psf={"type": "none"})
     with pytest.raises((UnknownNameError, InputError), match=match):

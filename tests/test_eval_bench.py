@@ -10,9 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from capssim.cli import app
-from eval.bench import check_against_baseline, load_suite, tolerance_for, DEFAULT_TOLERANCES
-from eval.plots import pareto_front
-from reconstruct.registry import MethodOutput, available_methods, register_method
+from capssim.eval.bench import check_against_baseline, load_suite, tolerance_for, DEFAULT_TOLERANCES
+from capssim.eval.plots import pareto_front
+from capssim.reconstruct.registry import MethodOutput, available_methods, register_method
 
 CALLS = {"test-upsample": 0}
 
@@ -55,7 +55,7 @@ if "test-upsample" not in available_methods():
 def _write_gt_folder(path: Path, size: int = 48) -> Path:
     import cv2
 
-    from eval.synthetic import texture_scene
+    from capssim.eval.synthetic import texture_scene
 
     gt, _ = texture_scene(size, seed=5)
     path.mkdir(parents=True)
@@ -211,7 +211,7 @@ def test_bad_suite_and_baseline(tmp_path):
         load_suite(bad)
     r = CliRunner().invoke(app, ["bench", "--suite", str(bad), "-o", str(tmp_path / "o")])
     assert r.exit_code != 0
-    from eval.bench import BenchRun
+    from capssim.eval.bench import BenchRun
 
     run = BenchRun(spec={"name": "x"}, output=tmp_path, results_path=tmp_path / "r", records=[], environment={})
     with pytest.raises(InputError, match="update-baseline"):

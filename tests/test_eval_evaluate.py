@@ -15,9 +15,9 @@ from capssim.errors import CaptureFormatError, InputError
 from capssim.imageio import write_tiff
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
-from eval.evaluate import evaluate_capture
-from eval.mtf import sinusoidal_star
-from eval.synthetic import synthetic_scene
+from capssim.eval.evaluate import evaluate_capture
+from capssim.eval.mtf import sinusoidal_star
+from capssim.eval.synthetic import synthetic_scene
 
 runner = CliRunner()
 

@@ -9,7 +9,7 @@ import pytest
 from scipy.ndimage import fourier_shift
 
 from capssim.errors import InputError
-from eval.gt_check import aligned_ground_truth, check_ground_truth
+from capssim.eval.gt_check import aligned_ground_truth, check_ground_truth
 from tests.conftest import smooth_random_scene
 
 
@@ -57,7 +57,7 @@ def test_a_moved_analyzer_image_is_measured():
 def test_a_wrong_alignment_is_flagged_unreliable():
     import torch
 
-    from eval.gt_check import _alignment_check
+    from capssim.eval.gt_check import _alignment_check
 
     scene = torch.as_tensor(shifted_scene(0.0, 0.0, dolp_max=0.6), dtype=torch.float64).reshape(4, 3, 96, 96)
     lum = scene.mean(dim=1)
@@ -144,7 +144,7 @@ def test_cli_reports_and_writes_an_aligned_tiff(tmp_path):
 
 
 def test_weak_polarization_cross_check_needs_enough_weakly_polarized_pixels():
-    from eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE
+    from capssim.eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE
 
     few = check_ground_truth(shifted_scene(0.0, 0.0), dolp_max=0.005)     # almost nothing that weak
     assert few["weakly_polarized_share"] < MIN_WEAKLY_POLARIZED_SHARE

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from eval.lpips import LPIPS, _CONVS
-from eval.metrics import score
+from capssim.eval.lpips import LPIPS, _CONVS
+from capssim.eval.metrics import score
 from conftest import smooth_random_scene
 
 

@@ -10,7 +10,7 @@ import torch
 
 from capssim.errors import InputError, UnknownNameError
 from capssim.polarization import twelve_from_stokes
-from eval.metrics import PSNR_CAP_DB, crop_border, flatten, metric_direction, score
+from capssim.eval.metrics import PSNR_CAP_DB, crop_border, flatten, metric_direction, score
 from conftest import smooth_random_scene
 
 

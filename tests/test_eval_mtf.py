@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from capssim.errors import InputError
-from eval.mtf import find_star_center, measure_mtf, measure_star, sinusoidal_star
+from capssim.eval.mtf import find_star_center, measure_mtf, measure_star, sinusoidal_star
 
 CYCLES = 36
 

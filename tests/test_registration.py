@@ -11,7 +11,7 @@ from capssim.homography import registration_error_hr_px
 from capssim.polarization import twelve_from_stokes
 from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
-from reconstruct.registration import estimate_lr_homographies
+from capssim.reconstruct.registration import estimate_lr_homographies
 
 
 def textured_scene(size=128, *, seed=0, dolp=0.0, sigma=1.5):
@@ -107,7 +107,7 @@ def test_siemens_star_is_registered_despite_its_self_similarity():
     # a sinusoidal star is (nearly) invariant to scale and rotation about its centre: without the
     # translation-first pyramid and the restart from more phase-correlation peaks this case landed
     # 1.85 HR px off (median; 2-7 px on a rendered 256 px star)
-    from eval.synthetic import star_scene
+    from capssim.eval.synthetic import star_scene
 
     gt, _ = star_scene(192, cycles=72)
     cap = simulate_capture(gt.astype(np.float32), make_sensor("gaussian", sigma=0.01), seed=0)
@@ -124,7 +124,7 @@ def test_bench_reports_the_error_against_content_warps(tmp_path):
     ground truth moves them by the shift; a record without matrices is a clear error."""
     from capssim.capture import write_capture
     from capssim.homography import registration_error_hr_px
-    from reconstruct.registration import bench, content_lr_homographies
+    from capssim.reconstruct.registration import bench, content_lr_homographies
 
     cap = simulate_capture(textured_scene(64, seed=4), make_sensor("gaussian", sigma=0.0), seed=1)
     write_capture(tmp_path / "cap", cap)
@@ -165,7 +165,7 @@ def test_engine_stokes_residual_and_warm_start():
     the estimate stays there; ``start_level`` needs initial parameters; the box sums are exact."""
     import torch
 
-    from reconstruct.registration_core import box_sum, register_stack, stokes_residual_rms
+    from capssim.reconstruct.registration_core import box_sum, register_stack, stokes_residual_rms
 
     rng = np.random.default_rng(0)
     base = gaussian_filter(rng.random((96, 96)), 2.0)

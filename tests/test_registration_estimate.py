@@ -9,7 +9,7 @@ from capssim.errors import InputError
 from capssim.homography import registration_error_hr_px, similarity
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
-from reconstruct.registration import estimate_lr_homographies
+from capssim.reconstruct.registration import estimate_lr_homographies
 from tests.conftest import smooth_random_scene
 
 SHIFTS = [(0.0, 0.0), (0.3, -0.7), (1.25, 0.5), (-0.6, 1.1)]
@@ -144,7 +144,7 @@ def test_ri_binomial_luminance_constant_colour_and_tiny_frames():
     """A constant colour gives (R + 2G + B) / 4 everywhere, border included; frames down to 2x2 work."""
     import torch
 
-    from reconstruct.registration import mosaic_from_sub_images, ri_binomial_luminance
+    from capssim.reconstruct.registration import mosaic_from_sub_images, ri_binomial_luminance
 
     for side in (2, 6, 16):
         sub = torch.tensor([0.2, 0.5, 0.5, 0.8], dtype=torch.float64).repeat(4)[:, None, None]
@@ -171,7 +171,7 @@ def _grey_polarized(size, seed):
 def test_stokes_subspace_mode_removes_polarization_texture_bias(seed):
     """The local-correlation estimate is biased by polarization texture (0.1-0.27 px here); the
     stokes-subspace mode fixes the directions the Stokes residual determines (< 0.05 px)."""
-    from reconstruct.registration import registration_mode_arguments
+    from capssim.reconstruct.registration import registration_mode_arguments
 
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
@@ -196,7 +196,7 @@ def test_stokes_subspace_mode_keeps_unpolarized_estimate():
 
 def test_registration_mode_names_and_bad_values():
     from capssim.errors import UnknownNameError
-    from reconstruct.registration import registration_mode_arguments
+    from capssim.reconstruct.registration import registration_mode_arguments
 
     with pytest.raises(UnknownNameError, match="local-correlation"):
         registration_mode_arguments("stokes")
@@ -227,7 +227,7 @@ def _photoelastic(size, seed):
 def test_photoelastic_texture_is_registered_by_the_stokes_rescue(seed, monkeypatch):
     """Two or three analyzer images match the 0 deg image poorly; the local correlation alone
     lands pixels off, the Stokes-consistency rescue brings them back (README 'Registration')."""
-    import reconstruct.registration_core as core
+    import capssim.reconstruct.registration_core as core
 
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
@@ -315,7 +315,7 @@ def test_auto_refines_the_demosaicked_image_from_the_binomial_warps():
 
 def test_auto_keeps_the_binomial_warps_without_a_second_registration(monkeypatch):
     """When the demosaicked image is less Stokes-consistent at the binomial warps, it is not registered."""
-    import reconstruct.registration as registration
+    import capssim.reconstruct.registration as registration
 
     scene = smooth_random_scene(128, seed=0, dolp_max=0.6)
     h = np.stack([similarity(s) for s in SHIFTS])

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from capssim.errors import InputError
-from capssim.render.geometry import (ArrayGeometry, PinholeCamera, axis_rotation, build_array, look_at_rotation,
+from capssim.render.geometry import (RigTolerances, PinholeCamera, axis_rotation, build_array, look_at_rotation,
                                      parallax_residual, plane_homography)
 
 
@@ -72,7 +72,7 @@ def test_supersampled_and_expanded_keep_the_pixel_grid():
 
 
 def test_array_reference_is_identity_and_errors_stay_in_range():
-    geo = ArrayGeometry(baseline_m=0.04, tilt_max_deg=0.2, roll_max_deg=0.5, focal_scale_max=0.005)
+    geo = RigTolerances(baseline_m=0.04, tilt_max_deg=0.2, roll_max_deg=0.5, focal_scale_max=0.005)
     arr = build_array(origin=(0, 0, 2.0), target=(0, 0, 0), up=(0, 1, 0), fov_deg=20.0, size=64, geometry=geo,
                       rng=np.random.default_rng(0))
     assert np.array_equal(arr.homographies[0], np.eye(3))
@@ -93,7 +93,7 @@ def test_array_reference_is_identity_and_errors_stay_in_range():
 
 
 def test_parallax_residual_sees_depth_off_the_plane():
-    geo = ArrayGeometry(tilt_max_deg=0.0, roll_max_deg=0.0, focal_scale_max=0.0)
+    geo = RigTolerances(tilt_max_deg=0.0, roll_max_deg=0.0, focal_scale_max=0.0)
     arr = build_array(origin=(0, 0, 2.0), target=(0, 0, 0), up=(0, 1, 0), fov_deg=20.0, size=32, geometry=geo,
                       rng=np.random.default_rng(0))
     ref = arr.cameras[0]
@@ -114,4 +114,4 @@ def test_parallax_residual_sees_depth_off_the_plane():
                                  {"wobble": 1}])
 def test_geometry_parameters_are_checked(bad):
     with pytest.raises(InputError):
-        ArrayGeometry.from_params(bad)
+        RigTolerances.from_params(bad)

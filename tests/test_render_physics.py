@@ -147,7 +147,7 @@ def test_smooth_dielectric_dolp_follows_fresnel_over_incidence():
 def test_aop_wheel_ground_truth_equals_analytic():
     from capssim.polarization import stokes_from_12
     from capssim.render import render_capture
-    from scenes import get_scene
+    from capssim.scenes import get_scene
 
     size = 32
     cap = render_capture("aop-wheel", size=size, spp=16, psf={"type": "none"})
@@ -181,7 +181,7 @@ def test_box_rendered_raw_equals_box_downsampled_ground_truth():
     the 2x2 box average of the HR render, within Monte-Carlo noise."""
     from capssim.operators import IntegrateDecimate
     from capssim.render.integrator import stokes_to_twelve
-    from scenes import get_scene
+    from capssim.scenes import get_scene
 
     _variant(False, polarized=False)
     import mitsuba as mi

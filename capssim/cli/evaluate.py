@@ -49,11 +49,11 @@ def evaluate(
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON instead of tables."),
 ) -> None:
     """Score every reconstruction of a capture against its ground truth; write CAPTURE/metrics.json."""
-    from eval.evaluate import evaluate_capture
+    from capssim.eval.evaluate import evaluate_capture
 
     lpips = None
     if lpips_weights is not None:
-        from eval.lpips import LPIPS
+        from capssim.eval.lpips import LPIPS
 
         lpips = LPIPS.from_path(lpips_weights)
     wanted = [m.strip() for m in methods.split(",") if m.strip()] if methods else None
@@ -173,7 +173,7 @@ def mtf(
 ) -> None:
     """MTF of a sinusoidal Siemens star per segment direction, limit resolution and SR magnification."""
     from capssim.errors import InputError
-    from eval.mtf import measure_star
+    from capssim.eval.mtf import measure_star
 
     imgs, names = _read_star_image(image)
     is_twelve = len(names) == 12
@@ -250,8 +250,8 @@ def bench(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from eval.bench import check_against_baseline, load_suite, run_suite, write_baseline
-    from eval.report import write_report
+    from capssim.eval.bench import check_against_baseline, load_suite, run_suite, write_baseline
+    from capssim.eval.report import write_report
 
     spec = load_suite(suite)
     pick = lambda s: [t.strip() for t in s.split(",") if t.strip()] if s else None  # noqa: E731
@@ -295,7 +295,7 @@ def bench(
 
 def render_bench_summary(run) -> str:
     """One compact table per scene / noise level (the full tables are in report.md)."""
-    from eval.report import group_records
+    from capssim.eval.report import group_records
 
     lines = []
     methods = [m["label"] for m in run.spec["methods"]]

@@ -23,8 +23,8 @@ def gt_check(
     from capssim.errors import InputError
     from capssim.imageio import atomic_write_json, read_gt_scene, write_tiff
     from capssim.simulate import prepare_ground_truth
-    from eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE, aligned_ground_truth, check_ground_truth
-    from reconstruct.registry import resolve_device
+    from capssim.eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE, aligned_ground_truth, check_ground_truth
+    from capssim.reconstruct.registry import resolve_device
 
     for name, path in (("--json", as_json), ("--write-aligned", write_aligned)):
         if path is not None and path.exists() and not overwrite:

@@ -28,7 +28,7 @@ def parse_options(pairs: List[str]) -> dict:
 def expand_methods(names: List[str], capture_path: Path) -> list[str]:
     """Resolve ``all`` (every method the capture has input for) and check each name."""
     from capssim.capture import read_meta
-    from reconstruct.registry import available_methods, get_method
+    from capssim.reconstruct.registry import available_methods, get_method
 
     meta = read_meta(capture_path)
     has_dofp = "dofp_raw" in meta.get("files", {})
@@ -68,7 +68,7 @@ def reconstruct(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from reconstruct.registry import available_methods, get_method, run_method
+    from capssim.reconstruct.registry import available_methods, get_method, run_method
 
     console = Console(stderr=True)
     if list_methods:
@@ -125,7 +125,7 @@ def reconstruct_benchmark(
     as_json: Optional[Path] = typer.Option(None, "--json", help="Also write all measurements to this file."),
 ) -> None:
     """Wall time and peak memory per stage of 'caps' at the paper's defaults (prints tables)."""
-    from reconstruct.benchmark import format_tables, run_benchmark
+    from capssim.reconstruct.benchmark import format_tables, run_benchmark
 
     results = run_benchmark(sizes=sizes, devices=devices, iterations=iterations, repeats=repeats, gt=gt,
                             true_warps=not estimated_warps, log=lambda msg: typer.echo(msg, err=True))

@@ -144,7 +144,7 @@ def scenes(
 
     infos = list_scenes()
     if name is not None:
-        from scenes import get_scene
+        from capssim.scenes import get_scene
 
         info = get_scene(name).info
         if as_json:

@@ -10,7 +10,7 @@ from capssim.operators.base import (
     adjointness_error,
     operator_norm_estimate,
 )
-from capssim.operators.blur import Convolve, airy_psf_kernel, gaussian_psf_kernel, psf_kernel_from_spec
+from capssim.operators.blur import Convolve, airy_psf_kernel, gaussian_psf_kernel
 from capssim.operators.camera import (
     caps_raw_operator,
     dofp_raw_operator,
@@ -27,6 +27,6 @@ __all__ = [
     "Composition", "Convolve", "Decimation", "DoFPMosaic", "IntegrateDecimate", "LinearOperator",
     "PixelIntegration", "Reshape", "Stack", "Warp", "adjointness_error", "airy_psf_kernel", "analyzer_matrix",
     "caps_raw_operator", "dofp_raw_operator", "gaussian_psf_kernel", "lr_channel_matrix",
-    "lr_observation_operator", "lr_sampling_operator", "operator_norm_estimate", "psf_kernel_from_spec",
+    "lr_observation_operator", "lr_sampling_operator", "operator_norm_estimate",
     "warp_image",
 ]

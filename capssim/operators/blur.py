@@ -56,31 +56,6 @@ def airy_psf_kernel(f_number: float, wavelength_nm: float, pixel_um: float, *,
     return psf / psf.sum()
 
 
-def psf_kernel_from_spec(spec: dict | None, *, hr_pixel_um: float | None = None) -> np.ndarray:
-    """Kernel on the HR grid from a PSF description as stored in ``meta.json``.
-
-    ``{"type": "none"}``, ``{"type": "gaussian", "sigma_hr_px": s}``, or
-    ``{"type": "airy", "f_number": N, "wavelength_nm": l, "hr_pixel_um": p}``.
-    """
-    spec = spec or {"type": "none"}
-    kind = str(spec.get("type", "none")).lower()
-    if kind == "none":
-        return np.ones((1, 1))
-    if kind == "gaussian":
-        return gaussian_psf_kernel(float(spec["sigma_hr_px"]))
-    if kind == "airy":
-        pitch = spec.get("hr_pixel_um", hr_pixel_um)
-        if pitch is None:
-            raise InputError("psf.hr_pixel_um", None, "the HR pixel pitch in micrometres for an Airy PSF")
-        return airy_psf_kernel(float(spec["f_number"]), float(spec["wavelength_nm"]), float(pitch))
-    if kind == "kernel":
-        k = np.asarray(spec["kernel"], dtype=np.float64)
-        if k.ndim != 2 or k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
-            raise InputError("psf.kernel", f"shape {k.shape}", "an odd-sized 2-D kernel")
-        return k
-    raise InputError("psf.type", kind, "one of none, gaussian, airy, kernel")
-
-
 def _replicate_index(n: int, before: int, after: int) -> torch.Tensor:
     return torch.clamp(torch.arange(-before, n + after), 0, n - 1)
 

@@ -17,7 +17,7 @@ from capssim.render.scene_base import CameraPose, Scene, SceneInfo  # noqa: E402
 
 def list_scenes() -> dict[str, SceneInfo]:
     """``name -> SceneInfo`` for every scene in the library, sorted by name."""
-    from scenes import all_scenes
+    from capssim.scenes import all_scenes
 
     return {name: scene.info for name, scene in all_scenes().items()}
 

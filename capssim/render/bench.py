@@ -69,11 +69,11 @@ def sampler_gain(scene: str, *, size: int, spp_values=(16, 64), reference_spp: i
     import numpy as np
 
     import capssim.render.integrator as integrator
-    from capssim.render.geometry import ArrayGeometry, build_array
+    from capssim.render.geometry import RigTolerances, build_array
     from capssim.render.scene_base import register_plugins
     from capssim.render.spectral import CameraResponse
     from capssim.render.variants import select_variant
-    from scenes import get_scene
+    from capssim.scenes import get_scene
 
     sc = get_scene(scene)
     params = sc.params(None)
@@ -83,7 +83,7 @@ def sampler_gain(scene: str, *, size: int, spp_values=(16, 64), reference_spp: i
 
     pose = sc.camera_pose(params)
     cam = build_array(origin=pose.origin, target=pose.target, up=pose.up, fov_deg=pose.fov_deg, size=size,
-                      geometry=ArrayGeometry(), rng=np.random.default_rng(0)).cameras[0]
+                      geometry=RigTolerances(), rng=np.random.default_rng(0)).cameras[0]
     mscene = mi.load_dict(sc.mitsuba_dict(params))
     response = CameraResponse().calibrate()
     saved = integrator.SAMPLER_TYPE

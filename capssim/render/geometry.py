@@ -11,7 +11,7 @@ Frames and units
   ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]`` map camera coordinates to pixels. Mitsuba's
   film coordinates are ours + 0.5; a test pins our rays against Mitsuba's ``perspective``.
 
-The array (defaults in :class:`ArrayGeometry`)
+The array (defaults in :class:`RigTolerances`)
 ----------------------------------------------
 Aperture ``n`` (polarizer at ``45 n`` deg) sits at the scene's camera origin plus
 ``B * (n % 2)`` along ``right`` and ``B * (n // 2)`` along ``down``: a 2x2 grid of
@@ -152,7 +152,7 @@ def shift_matrix(dx: float, dy: float) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class ArrayGeometry:
+class RigTolerances:
     """Parameters of the 2x2 array (metres, degrees, relative scale); see the module docstring."""
 
     baseline_m: float = 0.04
@@ -170,7 +170,7 @@ class ArrayGeometry:
             raise InputError("geometry", asdict(self), "small errors (focal scale < 0.5, tilt <= 10, roll <= 45 deg)")
 
     @classmethod
-    def from_params(cls, params: dict | None) -> "ArrayGeometry":
+    def from_params(cls, params: dict | None) -> "RigTolerances":
         params = dict(params or {})
         known = {f for f in cls.__dataclass_fields__}
         unknown = sorted(set(params) - known)
@@ -185,7 +185,7 @@ class ArrayCameras:
 
     cameras: list[PinholeCamera]
     errors: list[dict]
-    geometry: ArrayGeometry
+    geometry: RigTolerances
     reference_depth_m: float
     plane_point: np.ndarray
     plane_normal: np.ndarray
@@ -211,7 +211,7 @@ def plane_homography(ref: PinholeCamera, cam: PinholeCamera, plane_point, plane_
     return h / h[2, 2]
 
 
-def build_array(*, origin, target, up, fov_deg: float, size: int, geometry: ArrayGeometry,
+def build_array(*, origin, target, up, fov_deg: float, size: int, geometry: RigTolerances,
                 rng: np.random.Generator, plane_point=None, plane_normal=None) -> ArrayCameras:
     """The four apertures at HR resolution ``size x size`` for a scene camera pose.
 

@@ -46,16 +46,15 @@ from capssim.capture import Capture, build_meta
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
 from capssim.operators import Analyzer, BayerMosaic, Convolve, IntegrateDecimate, Warp, dofp_raw_operator
-from capssim.operators.blur import psf_kernel_from_spec
-from capssim.render.geometry import ArrayGeometry, build_array, parallax_residual, scale_matrix, shift_matrix
+from capssim.render.geometry import RigTolerances, build_array, parallax_residual, scale_matrix, shift_matrix
 from capssim.render.integrator import ViewRender, combine_weighted, derive_seed, render_view, stokes_to_twelve
 from capssim.render.spectral import DEFAULT_CAMERA, CameraResponse
 from capssim.render.variants import select_variant, variant_name
+from capssim.psf import as_psf
 from capssim.sensor import NoNoiseSensor, Sensor, noise_sigma_estimate
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PSF = {"type": "gaussian", "sigma_hr_px": 0.5}
 MIN_SIZE = 16
 PLANAR_PARALLAX_TOL_PX = 0.01
 #: default Monte-Carlo target (RMS std of the 12-channel ground truth, full scale) without sensor noise
@@ -115,8 +114,8 @@ def _check_size(size) -> int:
 
 
 def _psf(psf: dict | None) -> tuple[dict, np.ndarray]:
-    spec = dict(DEFAULT_PSF if psf is None else psf)
-    kernel = psf_kernel_from_spec(spec)
+    value = as_psf(psf)
+    spec, kernel = value.to_spec(), value.kernel()
     return spec, kernel
 
 
@@ -211,7 +210,7 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
 
     Returns a :class:`~capssim.capture.Capture` of kind ``rendered`` (not yet written).
     """
-    from scenes import get_scene
+    from capssim.scenes import get_scene
 
     t_start = time.perf_counter()
     timer = _Timer()
@@ -222,7 +221,7 @@ def render_capture(scene: str, *, size: int = 256, spp: int | None = None, seed:
     sensor = sensor if sensor is not None else NoNoiseSensor()
     if not isinstance(sensor, Sensor):
         raise InputError("sensor", type(sensor).__name__, "a capssim.sensor.Sensor or None")
-    geometry = ArrayGeometry.from_params(geometry_params)
+    geometry = RigTolerances.from_params(geometry_params)
     psf_spec, kernel = _psf(psf)
     psf_radius = kernel.shape[0] // 2
     if planar not in ("auto", "on", "off"):

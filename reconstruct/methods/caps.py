@@ -35,9 +35,9 @@ import numpy as np
 import torch
 
 from capssim.errors import CapssimError, InputError, UnknownNameError
-from reconstruct.admm import ADMMParameters
-from reconstruct.nlstr import NLSTRParameters
-from reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.admm import ADMMParameters
+from capssim.reconstruct.nlstr import NLSTRParameters
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 log = logging.getLogger(__name__)
 
@@ -161,7 +161,7 @@ def lr_homographies(capture, context: RunContext, *, images: np.ndarray, saturat
         record = {"source": "true (meta.json)"}
     else:
         try:
-            from reconstruct.registration import estimate_lr_homographies, registration_mode_arguments
+            from capssim.reconstruct.registration import estimate_lr_homographies, registration_mode_arguments
         except ImportError as exc:
             raise CapssimError(
                 "estimated warps need reconstruct.registration, which is not available in this build "
@@ -210,12 +210,12 @@ def mean_psnr(capture, image: torch.Tensor) -> float | None:
 def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: bool = True) -> MethodOutput:
     """The joint CAPS reconstruction (and its no-CAGF / no-NLSTR ablations)."""
     from capssim.operators.camera import lr_sampling_operator
-    from reconstruct.admm import admm
-    from reconstruct.cagf import cagf_confidence
-    from reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
-    from reconstruct.init_fusion import fuse_initial_estimate
-    from reconstruct.nlstr import NonlocalSparseTensor
-    from reconstruct.rearrange import observations_from_capture
+    from capssim.reconstruct.admm import admm
+    from capssim.reconstruct.cagf import cagf_confidence
+    from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
+    from capssim.reconstruct.init_fusion import fuse_initial_estimate
+    from capssim.reconstruct.nlstr import NonlocalSparseTensor
+    from capssim.reconstruct.rearrange import observations_from_capture
 
     opts = CapsOptions.from_options(context.options)
     admm_params, nl_params = opts.validated_parameters()

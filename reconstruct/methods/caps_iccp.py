@@ -27,8 +27,8 @@ import numpy as np
 import torch
 
 from capssim.conventions import N_APERTURES
-from reconstruct.methods.caps import REFERENCE, CapsOptions, lr_homographies, mean_psnr, psf_kernel
-from reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, lr_homographies, mean_psnr, psf_kernel
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 
 #: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
@@ -40,7 +40,7 @@ def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *,
     """``(4, H, W)`` RGGB frames -> ``(4, 3, H, W)`` RGB and ``(4, H, W)`` data weights."""
     from scipy.ndimage import maximum_filter
 
-    from reconstruct.methods.caps_naive import demosaic_apertures as demosaic
+    from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
 
     rgb = demosaic(raw, bayer_method=bayer_method)
     near_saturated = np.stack([maximum_filter(saturated[n].astype(np.uint8), size=3) > 0 for n in range(raw.shape[0])])
@@ -70,14 +70,14 @@ def aperture_sampling_operator(hr_shape, aperture_homographies, kernel):
                              "RGB channel on its 4 polarization images (c1=0.001, c2=0.01)")
 def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     from capssim.homography import aperture_from_lr, raw_matrix
-    from reconstruct.admm import admm
-    from reconstruct.cagf import cagf_confidence
-    from reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
-    from reconstruct.init_fusion import fuse_initial_estimate
-    from reconstruct.nlstr import NonlocalSparseTensor
-    from reconstruct.rearrange import Observations
+    from capssim.reconstruct.admm import admm
+    from capssim.reconstruct.cagf import cagf_confidence
+    from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
+    from capssim.reconstruct.init_fusion import fuse_initial_estimate
+    from capssim.reconstruct.nlstr import NonlocalSparseTensor
+    from capssim.reconstruct.rearrange import Observations
 
-    from reconstruct.methods.caps_naive import bayer_demosaic_function
+    from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function
 
     options = dict(context.options)
     bayer_method = bayer_demosaic_function(options.pop("bayer_method", options.pop("bayer-method", DEFAULT_BAYER_METHOD)))[0]

@@ -44,9 +44,9 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError, UnknownNameError
-from reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
-from reconstruct.methods.caps import CapsOptions, _coerce, lr_homographies, mean_psnr
-from reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
+from capssim.reconstruct.methods.caps import CapsOptions, _coerce, lr_homographies, mean_psnr
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 log = logging.getLogger(__name__)
 
@@ -61,7 +61,7 @@ BAYER_METHODS = ("ri", "menon2007", "malvar2004", "bilinear")
 def ri_demosaic_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
     """``(H, W)`` RGGB frame -> ``(H, W, 3)`` RGB by residual interpolation (colour-demosaicing's signature):
     :func:`reconstruct.methods.dofp_eari.ri_bayer_demosaic_frames`, ``dofp-eari``'s colour stage."""
-    from reconstruct.methods.dofp_eari import ri_bayer_demosaic_frames
+    from capssim.reconstruct.methods.dofp_eari import ri_bayer_demosaic_frames
 
     if pattern != "RGGB":
         raise InputError("pattern", pattern, "'RGGB' (the CAPS sensors' Bayer layout)")

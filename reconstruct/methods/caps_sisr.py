@@ -36,9 +36,9 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import CapssimError, InputError
-from reconstruct.methods.caps import _coerce
-from reconstruct.methods.caps_naive import NaiveOptions, bicubic_warp, demosaic_and_register, finish
-from reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.methods.caps import _coerce
+from capssim.reconstruct.methods.caps_naive import NaiveOptions, bicubic_warp, demosaic_and_register, finish
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Optics Express 32(2) 2364 (2024), section 5.2: single-image SR (EDSR/SwinIR/HAT) after "
              "demosaicking; user-supplied TorchScript or ONNX x2 model, bicubic without one")

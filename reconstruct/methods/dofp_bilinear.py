@@ -25,9 +25,9 @@ from __future__ import annotations
 import torch
 
 from capssim.capture import Capture
-from reconstruct.dofp_common import (KERNEL_BILINEAR_QUINCUNX, KERNEL_BILINEAR_RECT, angle_offsets, as_output,
+from capssim.reconstruct.dofp_common import (KERNEL_BILINEAR_QUINCUNX, KERNEL_BILINEAR_RECT, angle_offsets, as_output,
                                      bayer_masks, check_mosaic, normalized_interpolation, split_submosaics, stack_12)
-from reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Two-step bilinear colour-polarization demosaicking: bilinear Bayer demosaicking of each polarizer "
              "sub-mosaic, then bilinear interpolation of each polarizer lattice (polanalyser COLOR_PolarRGB; "
@@ -83,7 +83,7 @@ def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device 
                  reference=REFERENCE)
 def dofp_bilinear(capture: Capture, *, context: RunContext) -> MethodOutput:
     """Demosaick ``capture.dofp_float()`` with :func:`demosaic_dofp_bilinear`; layout from meta.json (no options)."""
-    from reconstruct.dofp_common import reject_unknown_options
+    from capssim.reconstruct.dofp_common import reject_unknown_options
 
     reject_unknown_options(context.options, [])
     with context.timer.stage("load"):

@@ -55,10 +55,10 @@ from contextlib import nullcontext
 import torch
 
 from capssim.capture import Capture
-from reconstruct.dofp_common import (as_output, check_mosaic, clip_ceiling, correlate, merge_submosaics,
+from capssim.reconstruct.dofp_common import (as_output, check_mosaic, clip_ceiling, correlate, merge_submosaics,
                                      mirror_index, polarization_residual_interpolation, ri_bayer_demosaic,
                                      run_dofp_method, split_submosaics, stack_12)
-from reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "
              "residual interpolation', IEEE ICIP 2020; colour stage: Kiku et al., 'Beyond color difference: residual "

@@ -40,11 +40,11 @@ import torch
 from capssim.capture import Capture
 from capssim.conventions import dofp_layout
 from capssim.errors import InputError
-from reconstruct.dofp_common import (angle_offsets, as_output, check_mosaic, clip_ceiling, merge_submosaics,
+from capssim.reconstruct.dofp_common import (angle_offsets, as_output, check_mosaic, clip_ceiling, merge_submosaics,
                                      polarization_residual_interpolation, ri_bayer_demosaic, ri_green,
                                      run_dofp_method, split_submosaics, stack_12)
-from reconstruct.methods.dofp_eari import DEFAULTS
-from reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.methods.dofp_eari import DEFAULTS
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking based on "
              "intensity-guided residual interpolation', IEEE Sensors Journal 21(23) 2021 (IGRI2); colour stage: "

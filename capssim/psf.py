@@ -1,0 +1,123 @@
+"""The optical point-spread function (PSF) of the array's lenses, on the HR grid: one value, one default.
+
+A :class:`PSF` is what ``meta.json["psf"]`` stores (:meth:`PSF.to_spec` / :meth:`PSF.from_spec`)
+and what the observation model convolves with (:meth:`PSF.kernel`, the ``Blur_psf`` of the
+paper's eq. 9). The paper's synthetic protocol (section 5.2) blurs with an isotropic Gaussian;
+capssim's default is :data:`DEFAULT_PSF`, a Gaussian of std :data:`DEFAULT_SIGMA_HR_PX` HR pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from capssim.errors import InputError
+from capssim.operators.blur import airy_psf_kernel, gaussian_psf_kernel
+
+#: default Gaussian PSF std, in HR pixels (half a raw pixel)
+DEFAULT_SIGMA_HR_PX = 0.5
+
+PSF_TYPES = ("none", "gaussian", "airy", "kernel")
+
+
+@dataclass(frozen=True)
+class PSF:
+    """An optical PSF on the HR grid.
+
+    ``type``: ``none`` (identity), ``gaussian`` (``sigma_hr_px``, HR pixels), ``airy``
+    (``f_number``, ``wavelength_nm``, ``hr_pixel_um`` micrometres) or ``kernel`` (explicit odd
+    2-D taps). Build one with :meth:`gaussian`, :meth:`airy`, :meth:`none` or :meth:`from_spec`.
+    """
+
+    type: str = "gaussian"
+    sigma_hr_px: float | None = DEFAULT_SIGMA_HR_PX
+    f_number: float | None = None
+    wavelength_nm: float | None = None
+    hr_pixel_um: float | None = None
+    taps: tuple | None = None
+
+    # constructors ----------------------------------------------------------------------
+    @classmethod
+    def none(cls) -> "PSF":
+        return cls(type="none", sigma_hr_px=None)
+
+    @classmethod
+    def gaussian(cls, sigma_hr_px: float = DEFAULT_SIGMA_HR_PX) -> "PSF":
+        """Gaussian of std ``sigma_hr_px`` HR pixels; ``0`` gives :meth:`none`."""
+        sigma = float(sigma_hr_px)
+        if not (sigma >= 0 and math.isfinite(sigma)):
+            raise InputError("psf sigma_hr_px", sigma_hr_px, "a finite number >= 0 (HR pixels; 0 = no blur)")
+        return cls.none() if sigma == 0 else cls(type="gaussian", sigma_hr_px=sigma)
+
+    @classmethod
+    def airy(cls, f_number: float, wavelength_nm: float, hr_pixel_um: float) -> "PSF":
+        """Diffraction-limited Airy PSF of an f-number at one wavelength, on HR pixels of ``hr_pixel_um``."""
+        return cls(type="airy", sigma_hr_px=None, f_number=float(f_number), wavelength_nm=float(wavelength_nm),
+                   hr_pixel_um=float(hr_pixel_um))
+
+    @classmethod
+    def from_spec(cls, spec: dict | None) -> "PSF":
+        """The PSF a ``meta.json["psf"]`` mapping describes (``None``: no blur); extra keys are ignored."""
+        spec = dict(spec or {"type": "none"})
+        kind = str(spec.get("type", "none")).lower()
+        try:
+            if kind == "none":
+                return cls.none()
+            if kind == "gaussian":
+                return cls.gaussian(float(spec["sigma_hr_px"]))
+            if kind == "airy":
+                pitch = spec.get("hr_pixel_um")
+                return cls(type="airy", sigma_hr_px=None, f_number=float(spec["f_number"]),
+                           wavelength_nm=float(spec["wavelength_nm"]),
+                           hr_pixel_um=None if pitch is None else float(pitch))
+            if kind == "kernel":
+                taps = np.asarray(spec["kernel"], dtype=np.float64)
+                if taps.ndim != 2 or taps.shape[0] % 2 == 0 or taps.shape[1] % 2 == 0:
+                    raise InputError("psf.kernel", f"shape {taps.shape}", "an odd-sized 2-D kernel")
+                return cls(type="kernel", sigma_hr_px=None, taps=tuple(map(tuple, taps.tolist())))
+        except KeyError as exc:
+            raise InputError(f"psf.{exc.args[0]}", None, f"a value for a PSF of type {kind!r}") from None
+        raise InputError("psf.type", kind, f"one of {', '.join(PSF_TYPES)}")
+
+    # views -----------------------------------------------------------------------------
+    def to_spec(self) -> dict:
+        """The ``meta.json["psf"]`` mapping of this PSF."""
+        if self.type == "none":
+            return {"type": "none"}
+        if self.type == "gaussian":
+            return {"type": "gaussian", "sigma_hr_px": self.sigma_hr_px}
+        if self.type == "airy":
+            spec = {"type": "airy", "f_number": self.f_number, "wavelength_nm": self.wavelength_nm}
+            if self.hr_pixel_um is not None:
+                spec["hr_pixel_um"] = self.hr_pixel_um
+            return spec
+        return {"type": "kernel", "kernel": [list(row) for row in self.taps]}
+
+    def kernel(self, *, hr_pixel_um: float | None = None) -> np.ndarray:
+        """Pixel-integrated kernel on the HR grid, ``(k, k)`` float64, odd ``k``, sums to 1.
+
+        ``hr_pixel_um`` is needed for an Airy PSF stored without its own pitch.
+        """
+        if self.type == "none":
+            return np.ones((1, 1))
+        if self.type == "gaussian":
+            return gaussian_psf_kernel(self.sigma_hr_px)
+        if self.type == "airy":
+            pitch = self.hr_pixel_um if self.hr_pixel_um is not None else hr_pixel_um
+            if pitch is None:
+                raise InputError("psf.hr_pixel_um", None, "the HR pixel pitch in micrometres for an Airy PSF")
+            return airy_psf_kernel(self.f_number, self.wavelength_nm, float(pitch))
+        return np.asarray(self.taps, dtype=np.float64)
+
+
+#: the PSF of a capture whose caller names none: Gaussian, :data:`DEFAULT_SIGMA_HR_PX` HR pixels
+DEFAULT_PSF = PSF.gaussian(DEFAULT_SIGMA_HR_PX)
+
+
+def as_psf(psf: "PSF | dict | None") -> PSF:
+    """``psf`` as a :class:`PSF`: a PSF, a ``meta.json`` mapping, or ``None`` for :data:`DEFAULT_PSF`."""
+    if psf is None:
+        return DEFAULT_PSF
+    return psf if isinstance(psf, PSF) else PSF.from_spec(psf)
