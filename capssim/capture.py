@@ -26,6 +26,7 @@ import numpy as np
 from capssim import __version__
 from capssim.conventions import (
     BAYER_OFFSETS,
+    BAYER_SITE_COLOUR,
     BAYER_SITES,
     COLOURS,
     LR_IMAGE_CHANNELS,
@@ -34,7 +35,6 @@ from capssim.conventions import (
     N_LR_IMAGES,
     POLARIZER_ANGLES_DEG,
     SR_FACTOR,
-    BAYER_SITE_COLOUR,
     dofp_layout,
     dofp_layout_name,
 )
@@ -219,7 +219,8 @@ class Capture:
     def lr_images(self) -> tuple[np.ndarray, np.ndarray]:
         """The 16 Bayer sub-images ``(16, H/2, W/2)`` float32 and their saturation masks (paper 3.1)."""
         h, w = self.raw_shape
-        split = lambda a: a.reshape(N_APERTURES, h // 2, 2, w // 2, 2).transpose(0, 2, 4, 1, 3).reshape(N_LR_IMAGES, h // 2, w // 2)
+        def split(a):
+            return a.reshape(N_APERTURES, h // 2, 2, w // 2, 2).transpose(0, 2, 4, 1, 3).reshape(N_LR_IMAGES, h // 2, w // 2)
         return np.ascontiguousarray(split(self.caps_float())), np.ascontiguousarray(split(self.caps_saturated()))
 
     def dofp_float(self) -> np.ndarray:

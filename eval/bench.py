@@ -525,7 +525,7 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
     """Run (or resume) a suite into ``output``; see the module docstring."""
     from capssim.capture import read_capture, write_reconstruction
     from capssim.eval import metrics as M
-    from capssim.eval.evaluate import flat_mtf, mtf_summary, star_geometry, SUB_IMAGE_PITCH_HR
+    from capssim.eval.evaluate import SUB_IMAGE_PITCH_HR, flat_mtf, mtf_summary, star_geometry
     from capssim.eval.mtf import measure_star
     from capssim.reconstruct.registry import available_methods, reconstruct, resolve_device
 

@@ -20,7 +20,6 @@ the wall time of each method (minimum over ``--repeats``).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import time
 from pathlib import Path
@@ -121,7 +120,8 @@ def _format_table(rows: list[dict]) -> str:
     head = ["scene", "method", "0", "45", "90", "135", "S0", "S1", "S2", "DoLP", "AoP RMSE", "time s"]
     cells = [[fmt.format(r[k]) for k, fmt in cols] for r in rows]
     widths = [max(len(h), *(len(c[i]) for c in cells)) for i, h in enumerate(head)]
-    line = lambda vals: "  ".join(v.rjust(w) if i > 1 else v.ljust(w) for i, (v, w) in enumerate(zip(vals, widths)))
+    def line(vals):
+        return "  ".join(v.rjust(w) if i > 1 else v.ljust(w) for i, (v, w) in enumerate(zip(vals, widths)))
     return "\n".join([line(head), line(["-" * w for w in widths])] + [line(c) for c in cells])
 
 

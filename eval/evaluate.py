@@ -26,9 +26,9 @@ import numpy as np
 from capssim.capture import list_reconstructions, read_capture
 from capssim.conventions import CHANNEL_NAMES, N_CHANNELS
 from capssim.errors import CapssimError, CaptureFormatError, InputError
-from capssim.imageio import atomic_write_json, read_tiff
 from capssim.eval import metrics as M
 from capssim.eval.mtf import StarMTF, measure_star
+from capssim.imageio import atomic_write_json, read_tiff
 
 log = logging.getLogger(__name__)
 

@@ -21,9 +21,9 @@ def _plt():
 
 
 def _save(fig, path: Path) -> Path:
-    from capssim.imageio import atomic_write_bytes
-
     import io
+
+    from capssim.imageio import atomic_write_bytes
 
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")

@@ -140,8 +140,8 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
         rs0 = [r for r in rs if r["seed"] == first_seed]
         try:
             from capssim.capture import read_capture
-            from capssim.imageio import read_tiff
             from capssim.eval import plots as P
+            from capssim.imageio import read_tiff
 
             capture = read_capture(rs0[0]["capture"], require_gt=True)
             estimates = {}

@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import UnknownNameError
-from capssim.polarization import twelve_from_stokes
 from capssim.eval.mtf import sinusoidal_star
+from capssim.polarization import twelve_from_stokes
 
 GENERATORS = ("texture", "star", "polarization-star")
 

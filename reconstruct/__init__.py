@@ -9,8 +9,16 @@ if __name__ != "capssim.reconstruct":
     raise ImportError(f"{__name__!r} is not an import name of capssim: the folder reconstruct/ is the package "
                       "capssim.reconstruct; write `import capssim.reconstruct` (after `pip install -e .`)")
 
-from capssim.reconstruct.registry import (MethodOutput, RunContext, available_methods, get_method, reconstruct,
-                                  register_method, resolve_device, run_method)
+from capssim.reconstruct.registry import (
+    MethodOutput,
+    RunContext,
+    available_methods,
+    get_method,
+    reconstruct,
+    register_method,
+    resolve_device,
+    run_method,
+)
 
 __all__ = ["MethodOutput", "RunContext", "available_methods", "get_method", "reconstruct", "register_method",
            "resolve_device", "run_method"]

@@ -273,7 +273,8 @@ def mlri_tentative(guide: torch.Tensor, samples: torch.Tensor, mask: torch.Tenso
     s = samples * mask
     lap_g = correlate(g * mask, laplacian)
     lap_s = correlate(s, laplacian)
-    box = lambda x: box_sum(x, radius_y, radius_x)
+    def box(x):
+        return box_sum(x, radius_y, radius_x)
     count = box(mask).clamp_min(1.0)
     if count.shape != g.shape:
         count = count.expand_as(g)

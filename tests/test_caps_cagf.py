@@ -4,8 +4,15 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.reconstruct.cagf import (align_to_reference, box_mean, cagf_confidence, guided_filter_residual,
-                              pairwise_confidence, resize_to_hr, window_count)
+from capssim.reconstruct.cagf import (
+    align_to_reference,
+    box_mean,
+    cagf_confidence,
+    guided_filter_residual,
+    pairwise_confidence,
+    resize_to_hr,
+    window_count,
+)
 
 
 def _brute_residual(a, g, k, radius, eps):

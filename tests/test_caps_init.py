@@ -1,7 +1,6 @@
 """Initialization fusing all 16 observations on the HR grid (the SCSR step)."""
 
 import numpy as np
-import pytest
 import torch
 
 from capssim.homography import raw_matrix

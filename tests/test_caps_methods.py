@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from capssim.errors import CapssimError, InputError, UnknownNameError
+from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
-from capssim.reconstruct.registry import reconstruct
 
 METHODS = ["caps", "caps-no-cagf", "caps-no-nlstr", "caps-iccp"]
 

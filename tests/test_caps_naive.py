@@ -12,9 +12,9 @@ import torch.nn.functional as F
 
 from capssim.capture import write_capture
 from capssim.errors import CapssimError, InputError, UnknownNameError
+from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
-from capssim.reconstruct.registry import reconstruct
 from tests.conftest import smooth_random_scene
 
 

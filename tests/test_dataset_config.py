@@ -11,13 +11,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import smooth_random_scene
 
 from capssim.dataset import ConfigError, load_config, parse_config
 from capssim.dataset.augment import rotate_flip_twelve
 from capssim.dataset.distributions import key_rng
-from capssim.polarization import aop_deg, angle_difference_deg, dolp, stokes_from_12
-
-from conftest import smooth_random_scene
+from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]

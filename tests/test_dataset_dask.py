@@ -8,13 +8,12 @@ import time
 from pathlib import Path
 
 import pytest
+from test_dataset_generate import make_config, records_by_index, tree_bytes
 
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
 from capssim.dataset.sample import generate_sample
 from capssim.dataset.verify import verify_dataset
-
-from test_dataset_generate import make_config, records_by_index, tree_bytes
 
 CRASH_INDEX = 3
 

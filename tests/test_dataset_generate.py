@@ -13,17 +13,15 @@ import time
 import types
 from pathlib import Path
 
-import numpy as np
 import pytest
+from test_dataset_config import write_gt_folder
 
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
 from capssim.dataset.manifest import DatasetLock, read_manifest
-from capssim.dataset.sample import checksum_folder, generate_sample
+from capssim.dataset.sample import generate_sample
 from capssim.dataset.verify import verify_dataset
 from capssim.errors import InputError
-
-from test_dataset_config import write_gt_folder
 
 REPO = Path(__file__).resolve().parents[1]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
@@ -200,10 +198,11 @@ def test_failing_sample_is_recorded_and_bad_input_stops(tmp_path):
 def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     """With a stand-in capssim.render (simulate underneath), scene samples get the drawn
     parameters, record_timing=False, and byte-identical regeneration."""
+    from conftest import smooth_random_scene
+
     import capssim
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
-    from conftest import smooth_random_scene
 
     calls = []
 
@@ -219,7 +218,8 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
 
     fake = types.ModuleType("capssim.render")
     fake.render_capture = render_capture
-    info = lambda **defaults: types.SimpleNamespace(defaults=defaults)
+    def info(**defaults):
+        return types.SimpleNamespace(defaults=defaults)
     fake.list_scenes = lambda: {"materials": info(material="gold", rotation_deg=0.0), "siemens-star": info(cycles=72)}
     monkeypatch.setitem(sys.modules, "capssim.render", fake)
     monkeypatch.setattr(capssim, "render", fake, raising=False)

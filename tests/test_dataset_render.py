@@ -9,13 +9,12 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from test_dataset_generate import tree_bytes
 
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
 from capssim.dataset.sample import generate_sample
 from capssim.dataset.verify import verify_dataset
-
-from test_dataset_generate import tree_bytes
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "examples" / "dataset-small.yaml"

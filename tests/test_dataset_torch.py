@@ -7,6 +7,7 @@ import textwrap
 import numpy as np
 import pytest
 import torch
+from test_dataset_config import write_gt_folder
 from torch.utils.data import DataLoader
 
 from capssim.dataset import load_config
@@ -16,8 +17,6 @@ from capssim.errors import CaptureFormatError, InputError
 from capssim.homography import lr_homographies
 from capssim.operators.blur import gaussian_psf_kernel
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
-
-from test_dataset_config import write_gt_folder
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +78,8 @@ def test_dataloader_batches(dataset_dir):
     values = {float(ds[i]["extinction_ratio"]) for i in range(5)}
     assert values <= {float("inf"), 100.0}
     # the same generator seed gives the same crops; centred crops are fixed
-    offsets = lambda d: [tuple(d[i]["crop_offset_hr"].tolist()) for i in range(len(d))]
+    def offsets(d):
+        return [tuple(d[i]["crop_offset_hr"].tolist()) for i in range(len(d))]
     a = CaptureDataset(dataset_dir / "noisy", crop=16, generator=torch.Generator().manual_seed(7))
     c = CaptureDataset(dataset_dir / "noisy", crop=16, generator=torch.Generator().manual_seed(7))
     assert offsets(a) == offsets(c)

@@ -9,8 +9,15 @@ from scipy.ndimage import correlate as nd_correlate
 
 from capssim.conventions import POLARIZER_ANGLES_DEG, dofp_channel_map
 from capssim.errors import InputError
-from capssim.reconstruct.dofp_common import (angle_offsets, box_sum, check_mosaic, correlate, merge_submosaics,
-                                     polarization_masks, split_submosaics)
+from capssim.reconstruct.dofp_common import (
+    angle_offsets,
+    box_sum,
+    check_mosaic,
+    correlate,
+    merge_submosaics,
+    polarization_masks,
+    split_submosaics,
+)
 from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
 from capssim.reconstruct.methods.dofp_eari import demosaic_dofp_eari
 from capssim.reconstruct.methods.dofp_igri2 import QuincunxRotation, demosaic_dofp_igri2
@@ -200,7 +207,8 @@ def test_dark_scene_is_as_accurate_as_a_bright_one(method, scale, scene64):
     relative error must still not degrade by more than 10 %.
     """
     mosaic = mosaic_of(scene64, "sony").astype(np.float64)
-    rmse = lambda out, s: float(np.sqrt(np.mean((out / s - scene64)[:, 8:-8, 8:-8] ** 2)))
+    def rmse(out, s):
+        return float(np.sqrt(np.mean((out / s - scene64)[:, 8:-8, 8:-8] ** 2)))
     bright = METHODS[method](mosaic, layout="sony")
     dark = METHODS[method](mosaic * scale, layout="sony")
     assert rmse(dark, scale) <= 1.1 * rmse(bright, 1.0)
@@ -261,9 +269,9 @@ def test_tensor_in_tensor_out_and_float64(scene64):
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_methods_run_through_the_registry(tmp_path, scene64, layout):
     from capssim.capture import list_reconstructions, write_capture
+    from capssim.reconstruct.registry import available_methods, run_method
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
-    from capssim.reconstruct.registry import available_methods, run_method
 
     capture = simulate_capture(scene64, make_sensor("none"), seed=0, psf={"type": "none"}, dofp_layout=layout)
     path = write_capture(tmp_path / "cap", capture)
@@ -282,9 +290,9 @@ def test_methods_run_through_the_registry(tmp_path, scene64, layout):
 
 
 def test_eari_options_through_the_registry(scene64):
+    from capssim.reconstruct.registry import reconstruct
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
-    from capssim.reconstruct.registry import reconstruct
 
     capture = simulate_capture(scene64, make_sensor("gaussian", sigma=0.02), seed=1, psf={"type": "none"})
     out, record = reconstruct(capture, "dofp-eari", precision="float64", eps=1e-12)
@@ -303,9 +311,9 @@ def test_eari_options_through_the_registry(scene64):
 ])
 def test_dofp_methods_reject_unknown_or_bad_options(scene64, method, options, match):
     from capssim.errors import UnknownNameError
+    from capssim.reconstruct.registry import reconstruct
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
-    from capssim.reconstruct.registry import reconstruct
 
     capture = simulate_capture(scene64, make_sensor("none"), seed=1, psf={"type": "none"})
     with pytest.raises((UnknownNameError, InputError), match=match):

@@ -10,7 +10,7 @@ import pytest
 from typer.testing import CliRunner
 
 from capssim.cli import app
-from capssim.eval.bench import check_against_baseline, load_suite, tolerance_for, DEFAULT_TOLERANCES
+from capssim.eval.bench import DEFAULT_TOLERANCES, check_against_baseline, load_suite, tolerance_for
 from capssim.eval.plots import pareto_front
 from capssim.reconstruct.registry import MethodOutput, available_methods, register_method
 
@@ -128,7 +128,7 @@ def test_bench_runs_resumes_and_checks(tiny, monkeypatch):
     assert _bench("--suite", suite, "-o", out, "--no-plots").exit_code == 0
     assert CALLS["test-upsample"] == calls
     lines = (out / "results.jsonl").read_text().splitlines()
-    dropped = next(i for i, l in enumerate(lines) if '"test-upsample"' in l and '"status": "ok"' in l)
+    dropped = next(i for i, line in enumerate(lines) if '"test-upsample"' in line and '"status": "ok"' in line)
     (out / "results.jsonl").write_text("\n".join(lines[:dropped] + lines[dropped + 1:]) + "\n{corrupt")
     assert _bench("--suite", suite, "-o", out, "--no-plots").exit_code == 0
     assert CALLS["test-upsample"] == calls + 1

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from conftest import smooth_random_scene
 
 from capssim.errors import InputError
-from capssim.eval.lpips import LPIPS, _CONVS
+from capssim.eval.lpips import _CONVS, LPIPS
 from capssim.eval.metrics import score
-from conftest import smooth_random_scene
 
 
 def _fake_weights(path, *, drop=None):

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 import torch
+from conftest import smooth_random_scene
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.polarization import twelve_from_stokes
 from capssim.eval.metrics import PSNR_CAP_DB, crop_border, flatten, metric_direction, score
-from conftest import smooth_random_scene
+from capssim.polarization import twelve_from_stokes
 
 
 def _stokes_scene(s0, dolp, aop_deg, size=32):

@@ -7,12 +7,23 @@ import pytest
 import torch
 
 from capssim.conventions import (
-    CHANNEL_NAMES, LR_IMAGE_CHANNELS, bayer_channel_map, channel_index, dofp_channel_map, dofp_layout,
-    dofp_layout_name, lr_image_name,
+    CHANNEL_NAMES,
+    LR_IMAGE_CHANNELS,
+    bayer_channel_map,
+    channel_index,
+    dofp_channel_map,
+    dofp_layout,
+    dofp_layout_name,
+    lr_image_name,
 )
 from capssim.errors import InputError
 from capssim.homography import (
-    apply_homography, lr_homographies, raw_matrix, registration_error_hr_px, rotation_and_scale, similarity,
+    apply_homography,
+    lr_homographies,
+    raw_matrix,
+    registration_error_hr_px,
+    rotation_and_scale,
+    similarity,
     sub_image_matrix,
 )
 from capssim.operators import DoFPMosaic

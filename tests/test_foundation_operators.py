@@ -10,9 +10,27 @@ from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
 from capssim.homography import lr_homographies, random_aperture_homographies, similarity
 from capssim.operators import (
-    Analyzer, BayerMosaic, BayerSplit, ChannelMix, ChannelSelect, Composition, Convolve, Decimation, DoFPMosaic,
-    IntegrateDecimate, PixelIntegration, Reshape, Stack, Warp, adjointness_error, airy_psf_kernel,
-    caps_raw_operator, dofp_raw_operator, gaussian_psf_kernel, lr_observation_operator, lr_sampling_operator,
+    Analyzer,
+    BayerMosaic,
+    BayerSplit,
+    ChannelMix,
+    ChannelSelect,
+    Composition,
+    Convolve,
+    Decimation,
+    DoFPMosaic,
+    IntegrateDecimate,
+    PixelIntegration,
+    Reshape,
+    Stack,
+    Warp,
+    adjointness_error,
+    airy_psf_kernel,
+    caps_raw_operator,
+    dofp_raw_operator,
+    gaussian_psf_kernel,
+    lr_observation_operator,
+    lr_sampling_operator,
     operator_norm_estimate,
 )
 

@@ -8,8 +8,15 @@ import torch
 
 from capssim.errors import InputError
 from capssim.polarization import (
-    angle_difference_deg, aop_deg, dark_mask, dolp, intensities_from_stokes, split_12, stokes_from_12,
-    stokes_from_intensities, twelve_from_stokes,
+    angle_difference_deg,
+    aop_deg,
+    dark_mask,
+    dolp,
+    intensities_from_stokes,
+    split_12,
+    stokes_from_12,
+    stokes_from_intensities,
+    twelve_from_stokes,
 )
 
 

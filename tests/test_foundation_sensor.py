@@ -7,7 +7,12 @@ import pytest
 
 from capssim.errors import InputError, UnknownNameError
 from capssim.sensor import (
-    SENSOR_PRESETS, GaussianSensor, NoNoiseSensor, PoissonGaussianSensor, make_sensor, noise_sigma_estimate,
+    SENSOR_PRESETS,
+    GaussianSensor,
+    NoNoiseSensor,
+    PoissonGaussianSensor,
+    make_sensor,
+    noise_sigma_estimate,
     sensor_from_meta,
 )
 

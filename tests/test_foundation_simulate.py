@@ -12,16 +12,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import smooth_random_scene
 from scipy import ndimage
 
-from capssim.capture import read_capture, write_capture, write_reconstruction, list_reconstructions
+from capssim.capture import list_reconstructions, read_capture, write_capture, write_reconstruction
 from capssim.conventions import bayer_channel_map, dofp_channel_map
 from capssim.errors import CaptureFormatError, InputError
 from capssim.imageio import read_gt_scene
 from capssim.sensor import GaussianSensor, NoNoiseSensor, make_sensor
 from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
-
-from conftest import smooth_random_scene
 
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
 
@@ -84,7 +83,8 @@ def test_seeded_simulation_is_byte_reproducible(tmp_path):
     for name, seed in (("a", 3), ("b", 3), ("c", 4)):
         write_capture(tmp_path / name, simulate_capture(gt, sensor, seed=seed))
         paths.append(tmp_path / name)
-    digest = lambda p: {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted(p.iterdir())}
+    def digest(p):
+        return {f.name: hashlib.sha256(f.read_bytes()).hexdigest() for f in sorted(p.iterdir())}
     assert digest(paths[0]) == digest(paths[1])
     assert digest(paths[0])["caps_raw.tiff"] != digest(paths[2])["caps_raw.tiff"]
 
@@ -207,7 +207,8 @@ def test_failed_write_leaves_nothing_behind(tmp_path, monkeypatch):
 def test_cli_simulate_and_design(tmp_path):
     scene = _write_png_scene(tmp_path / "scene", smooth_random_scene(40, seed=3))
     out = tmp_path / "cap"
-    run = lambda *args: subprocess.run(CLI + list(args), capture_output=True, text=True)
+    def run(*args):
+        return subprocess.run(CLI + list(args), capture_output=True, text=True)
     r = run("simulate", "--gt", str(scene), "-o", str(out), "--crop", "32", "--noise", "gaussian", "--sigma", "0.02")
     assert r.returncode == 0, r.stderr
     assert read_capture(out).meta["source"]["crop"] == 32

@@ -9,9 +9,9 @@ from scipy.ndimage import gaussian_filter
 from capssim.errors import InputError, UnknownNameError
 from capssim.homography import registration_error_hr_px
 from capssim.polarization import twelve_from_stokes
+from capssim.reconstruct.registration import estimate_lr_homographies
 from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
-from capssim.reconstruct.registration import estimate_lr_homographies
 
 
 def textured_scene(size=128, *, seed=0, dolp=0.0, sigma=1.5):

@@ -7,9 +7,9 @@ import pytest
 
 from capssim.errors import InputError
 from capssim.homography import registration_error_hr_px, similarity
+from capssim.reconstruct.registration import estimate_lr_homographies
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
-from capssim.reconstruct.registration import estimate_lr_homographies
 from tests.conftest import smooth_random_scene
 
 SHIFTS = [(0.0, 0.0), (0.3, -0.7), (1.25, 0.5), (-0.6, 1.1)]

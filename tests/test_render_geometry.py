@@ -8,8 +8,15 @@ import numpy as np
 import pytest
 
 from capssim.errors import InputError
-from capssim.render.geometry import (RigTolerances, PinholeCamera, axis_rotation, build_array, look_at_rotation,
-                                     parallax_residual, plane_homography)
+from capssim.render.geometry import (
+    PinholeCamera,
+    RigTolerances,
+    axis_rotation,
+    build_array,
+    look_at_rotation,
+    parallax_residual,
+    plane_homography,
+)
 
 
 def _camera(rng, size=24):
@@ -19,9 +26,9 @@ def _camera(rng, size=24):
 
 
 def test_rays_match_mitsuba_perspective_sensor():
-    import capssim.render  # noqa: F401  (sets DRJIT_LIBLLVM_PATH)
     import mitsuba as mi
 
+    import capssim.render  # noqa: F401  (sets DRJIT_LIBLLVM_PATH)
     from capssim.render.variants import select_variant
 
     select_variant("auto", spectral=False, polarized=False)

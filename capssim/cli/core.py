@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Optional
 
 import typer
 
-from capssim.cli._options import (DofpLayoutOption, NoiseOption, OverwriteOption, SeedOption, SensorOption,
-                                  SigmaOption, sensor_from_options)
+from capssim.cli._options import (
+    DofpLayoutOption,
+    NoiseOption,
+    OverwriteOption,
+    SeedOption,
+    SensorOption,
+    SigmaOption,
+    sensor_from_options,
+)
 
 
 def simulate(

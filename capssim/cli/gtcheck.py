@@ -21,10 +21,10 @@ def gt_check(
 ) -> None:
     """Measure the inter-image offsets, Stokes residual and clipping of a ground truth (eval.gt_check)."""
     from capssim.errors import InputError
-    from capssim.imageio import atomic_write_json, read_gt_scene, write_tiff
-    from capssim.simulate import prepare_ground_truth
     from capssim.eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE, aligned_ground_truth, check_ground_truth
+    from capssim.imageio import atomic_write_json, read_gt_scene, write_tiff
     from capssim.reconstruct.registry import resolve_device
+    from capssim.simulate import prepare_ground_truth
 
     for name, path in (("--json", as_json), ("--write-aligned", write_aligned)):
         if path is not None and path.exists() and not overwrite:

@@ -9,8 +9,15 @@ from typing import List, Optional
 
 import typer
 
-from capssim.cli._options import (DofpLayoutOption, NoiseOption, OverwriteOption, SeedOption, SensorOption,
-                                  SigmaOption, sensor_from_options)
+from capssim.cli._options import (
+    DofpLayoutOption,
+    NoiseOption,
+    OverwriteOption,
+    SeedOption,
+    SensorOption,
+    SigmaOption,
+    sensor_from_options,
+)
 
 
 def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:

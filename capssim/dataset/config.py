@@ -42,8 +42,22 @@ import numpy as np
 
 from capssim.conventions import POLARIZER_ANGLES_DEG, dofp_layout, dofp_layout_name
 from capssim.dataset.distributions import Choice, Const, Dist, draw_tree, key_rng
-from capssim.dataset.schema import (Anything, AnyMapping, Boolean, ConfigError, Custom, Distribution, Integer, Mapping,
-                                    Nullable, Number, Sequence, String, join, show)
+from capssim.dataset.schema import (
+    AnyMapping,
+    Anything,
+    Boolean,
+    ConfigError,
+    Custom,
+    Distribution,
+    Integer,
+    Mapping,
+    Nullable,
+    Number,
+    Sequence,
+    String,
+    join,
+    show,
+)
 from capssim.imageio import GT_IMAGE_SUFFIXES
 from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS
 

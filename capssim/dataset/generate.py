@@ -31,10 +31,18 @@ from pathlib import Path
 from typing import Callable
 
 from capssim.dataset.config import DatasetConfig
-from capssim.dataset.manifest import (DATASET_JSON, MANIFEST, SAMPLES_DIR, DatasetLock, ManifestWriter,
-                                      is_leftover_name, is_sample_name, read_manifest, rewrite_manifest,
-                                      write_dataset_json)
-from capssim.dataset.sample import generate_sample, limit_threads
+from capssim.dataset.manifest import (
+    MANIFEST,
+    SAMPLES_DIR,
+    DatasetLock,
+    ManifestWriter,
+    is_leftover_name,
+    is_sample_name,
+    read_manifest,
+    rewrite_manifest,
+    write_dataset_json,
+)
+from capssim.dataset.sample import generate_sample
 from capssim.errors import CapssimError, InputError
 
 log = logging.getLogger(__name__)

@@ -17,8 +17,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from capssim.dataset.manifest import (MANIFEST, SAMPLES_DIR, is_leftover_name, is_sample_name, read_dataset_json,
-                                      read_manifest)
+from capssim.dataset.manifest import (
+    MANIFEST,
+    SAMPLES_DIR,
+    is_leftover_name,
+    is_sample_name,
+    read_dataset_json,
+    read_manifest,
+)
 from capssim.dataset.sample import file_sha256
 from capssim.errors import CaptureFormatError, InputError
 

@@ -25,7 +25,14 @@ from typing import Sequence
 
 import numpy as np
 
-from capssim.conventions import LR_IMAGE_CHANNELS, N_APERTURES, N_CHANNELS, N_LR_IMAGES, POLARIZER_ANGLES_DEG, BAYER_OFFSETS
+from capssim.conventions import (
+    BAYER_OFFSETS,
+    LR_IMAGE_CHANNELS,
+    N_APERTURES,
+    N_CHANNELS,
+    N_LR_IMAGES,
+    POLARIZER_ANGLES_DEG,
+)
 from capssim.errors import InputError
 from capssim.homography import aperture_from_lr
 from capssim.operators.analyzer import Analyzer, ChannelMix, analyzer_matrix

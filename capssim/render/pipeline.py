@@ -46,11 +46,11 @@ from capssim.capture import Capture, build_meta
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
 from capssim.operators import Analyzer, BayerMosaic, Convolve, IntegrateDecimate, Warp, dofp_raw_operator
+from capssim.psf import as_psf
 from capssim.render.geometry import RigTolerances, build_array, parallax_residual, scale_matrix, shift_matrix
 from capssim.render.integrator import ViewRender, combine_weighted, derive_seed, render_view, stokes_to_twelve
 from capssim.render.spectral import DEFAULT_CAMERA, CameraResponse
 from capssim.render.variants import select_variant, variant_name
-from capssim.psf import as_psf
 from capssim.sensor import NoNoiseSensor, Sensor, noise_sigma_estimate
 
 log = logging.getLogger(__name__)

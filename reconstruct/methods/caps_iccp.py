@@ -30,7 +30,6 @@ from capssim.conventions import N_APERTURES
 from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, lr_homographies, mean_psnr, psf_kernel
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
-
 #: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
 DEFAULT_BAYER_METHOD = "ri"
 
@@ -74,10 +73,9 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     from capssim.reconstruct.cagf import cagf_confidence
     from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
     from capssim.reconstruct.init_fusion import fuse_initial_estimate
+    from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function
     from capssim.reconstruct.nlstr import NonlocalSparseTensor
     from capssim.reconstruct.rearrange import Observations
-
-    from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function
 
     options = dict(context.options)
     bayer_method = bayer_demosaic_function(options.pop("bayer_method", options.pop("bayer-method", DEFAULT_BAYER_METHOD)))[0]

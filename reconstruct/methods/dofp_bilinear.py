@@ -25,8 +25,17 @@ from __future__ import annotations
 import torch
 
 from capssim.capture import Capture
-from capssim.reconstruct.dofp_common import (KERNEL_BILINEAR_QUINCUNX, KERNEL_BILINEAR_RECT, angle_offsets, as_output,
-                                     bayer_masks, check_mosaic, normalized_interpolation, split_submosaics, stack_12)
+from capssim.reconstruct.dofp_common import (
+    KERNEL_BILINEAR_QUINCUNX,
+    KERNEL_BILINEAR_RECT,
+    angle_offsets,
+    as_output,
+    bayer_masks,
+    check_mosaic,
+    normalized_interpolation,
+    split_submosaics,
+    stack_12,
+)
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Two-step bilinear colour-polarization demosaicking: bilinear Bayer demosaicking of each polarizer "

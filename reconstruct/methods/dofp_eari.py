@@ -55,9 +55,19 @@ from contextlib import nullcontext
 import torch
 
 from capssim.capture import Capture
-from capssim.reconstruct.dofp_common import (as_output, check_mosaic, clip_ceiling, correlate, merge_submosaics,
-                                     mirror_index, polarization_residual_interpolation, ri_bayer_demosaic,
-                                     run_dofp_method, split_submosaics, stack_12)
+from capssim.reconstruct.dofp_common import (
+    as_output,
+    check_mosaic,
+    clip_ceiling,
+    correlate,
+    merge_submosaics,
+    mirror_index,
+    polarization_residual_interpolation,
+    ri_bayer_demosaic,
+    run_dofp_method,
+    split_submosaics,
+    stack_12,
+)
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "

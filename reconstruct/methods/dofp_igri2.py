@@ -40,9 +40,19 @@ import torch
 from capssim.capture import Capture
 from capssim.conventions import dofp_layout
 from capssim.errors import InputError
-from capssim.reconstruct.dofp_common import (angle_offsets, as_output, check_mosaic, clip_ceiling, merge_submosaics,
-                                     polarization_residual_interpolation, ri_bayer_demosaic, ri_green,
-                                     run_dofp_method, split_submosaics, stack_12)
+from capssim.reconstruct.dofp_common import (
+    angle_offsets,
+    as_output,
+    check_mosaic,
+    clip_ceiling,
+    merge_submosaics,
+    polarization_residual_interpolation,
+    ri_bayer_demosaic,
+    ri_green,
+    run_dofp_method,
+    split_submosaics,
+    stack_12,
+)
 from capssim.reconstruct.methods.dofp_eari import DEFAULTS
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 

@@ -1,0 +1,1 @@
+"""capssim's benchmarks, one module per subject, all run as ``capssim bench SUBJECT``."""
