@@ -39,7 +39,7 @@ from capssim.conventions import (
     dofp_layout_name,
 )
 from capssim.errors import CaptureFormatError, InputError
-from capssim.homography import lr_homographies
+from capssim.geometry import ArrayGeometry
 from capssim.imageio import atomic_directory, atomic_write_json, read_tiff, write_tiff
 from capssim.psf import PSF
 from capssim.sensor import Sensor, sensor_from_meta
@@ -74,8 +74,9 @@ def build_meta(*, kind: str, hr_shape: tuple[int, int], aperture_homographies: n
     if kind not in CAPTURE_KINDS:
         raise InputError("kind", kind, f"one of {CAPTURE_KINDS}")
     hh, ww = (int(v) for v in hr_shape)
-    hn = np.asarray(aperture_homographies, dtype=np.float64)
-    hm = lr_homographies(hn)
+    geometry = (aperture_homographies if isinstance(aperture_homographies, ArrayGeometry)
+                else ArrayGeometry(aperture_homographies, (hh, ww)))
+    hn, hm = geometry.aperture_homographies, geometry.lr_homographies
     cell = dofp_layout(dofp_layout_spec)
     lr = []
     for m in range(N_LR_IMAGES):
@@ -151,6 +152,7 @@ def validate_meta(meta: dict) -> None:
         if entry.get("channel", LR_IMAGE_CHANNELS[m]) != LR_IMAGE_CHANNELS[m]:
             raise CaptureFormatError(f"meta.json lr_images[{m}].channel is {entry.get('channel')}; "
                                      f"the convention m = 4n + q gives {LR_IMAGE_CHANNELS[m]}.")
+    ArrayGeometry.from_meta(meta)
     _require(meta, "sensor")
     _require(meta, "files")
     try:
@@ -192,12 +194,18 @@ class Capture:
     def extinction_ratio(self) -> float | None:
         return self.meta.get("extinction_ratio")
 
+    @property
+    def geometry(self) -> ArrayGeometry:
+        """The array geometry stored in ``meta.json`` (its 16 sub-image homographies checked against its 4)."""
+        return ArrayGeometry.from_meta(self.meta)
+
     def aperture_homographies(self) -> np.ndarray:
-        return np.asarray(self.meta["aperture_homographies"], dtype=np.float64)
+        """``(4, 3, 3)`` stored HR reference -> aperture-HR homographies."""
+        return self.geometry.aperture_homographies.copy()
 
     def true_lr_homographies(self) -> np.ndarray:
-        """``(16, 3, 3)`` stored HR reference -> sub-image homographies."""
-        return np.asarray([e["homography"] for e in self.meta["lr_images"]], dtype=np.float64)
+        """``(16, 3, 3)`` HR reference -> sub-image homographies, derived from the stored aperture ones."""
+        return self.geometry.lr_homographies
 
     @property
     def psf(self) -> PSF:

@@ -1,16 +1,8 @@
-"""Homographies between the HR reference grid, each aperture and each Bayer sub-image.
+"""Plane homographies: construction, decomposition, application and registration error.
 
-All matrices act on ``(x=col, y=row, 1)``. Three frames matter:
-
-* HR reference: the ground-truth grid ``2H x 2W`` (the 0 deg aperture at twice its resolution).
-* aperture-HR: aperture n's own grid at twice its resolution. Its raw pixel ``(i, j)``
-  integrates aperture-HR pixels ``2i..2i+1, 2j..2j+1``. ``H_n`` maps HR reference -> aperture-HR.
-  The reference aperture has ``H_0 = I`` by definition.
-* sub-image: Bayer site q of aperture n, ``H/2 x W/2``. Sub-image pixel ``(u, v)`` is raw pixel
-  ``(2u + oy, 2v + ox)``, centred at aperture-HR ``(4u + 2oy + 0.5, 4v + 2ox + 0.5)``.
-
-The capture stores, for each of the 16 images ``m = 4n + q``, ``H_m = S_q @ H_n``: HR
-reference -> that image's own pixel coordinates.
+All matrices act on ``(x=col, y=row, 1)`` with pixel centres on integers. The array's frames
+(HR reference, aperture-HR, sub-image) and the derivation of the 16 sub-image homographies from
+the 4 aperture homographies live in :mod:`capssim.geometry`.
 """
 
 from __future__ import annotations
@@ -19,35 +11,8 @@ import math
 
 import numpy as np
 
-from capssim.conventions import BAYER_OFFSETS, N_APERTURES
+from capssim.conventions import N_APERTURES
 from capssim.errors import InputError
-
-
-def sub_image_matrix(q: int) -> np.ndarray:
-    """``S_q``: aperture-HR coordinates -> Bayer sub-image q pixel coordinates."""
-    oy, ox = BAYER_OFFSETS[q]
-    return np.array([[0.25, 0.0, -(2 * ox + 0.5) / 4], [0.0, 0.25, -(2 * oy + 0.5) / 4], [0.0, 0.0, 1.0]])
-
-
-def raw_matrix() -> np.ndarray:
-    """Aperture-HR coordinates -> raw pixel coordinates (raw pixel centres at ``2i + 0.5``)."""
-    return np.array([[0.5, 0.0, -0.25], [0.0, 0.5, -0.25], [0.0, 0.0, 1.0]])
-
-
-def lr_homographies(aperture_homographies) -> np.ndarray:
-    """``(16, 3, 3)``: ``H_{4n+q} = S_q @ H_n`` from the four aperture homographies ``(4, 3, 3)``."""
-    h = np.asarray(aperture_homographies, dtype=np.float64)
-    if h.shape != (N_APERTURES, 3, 3):
-        raise InputError("aperture_homographies", f"shape {h.shape}", "shape (4, 3, 3)")
-    return np.stack([sub_image_matrix(q) @ h[n] for n in range(N_APERTURES) for q in range(4)])
-
-
-def aperture_from_lr(lr_homographies_) -> np.ndarray:
-    """``(16, 3, 3)``: ``S_q^-1 @ H_m``, the aperture-HR warp implied by each image's homography."""
-    h = np.asarray(lr_homographies_, dtype=np.float64)
-    if h.shape != (16, 3, 3):
-        raise InputError("lr_homographies", f"shape {h.shape}", "shape (16, 3, 3)")
-    return np.stack([np.linalg.inv(sub_image_matrix(m % 4)) @ h[m] for m in range(16)])
 
 
 def similarity(shift_xy=(0.0, 0.0), rotation_deg: float = 0.0, scale: float = 1.0,
@@ -120,3 +85,6 @@ def registration_error_hr_px(estimated, true, hr_shape: tuple[int, int], *, step
         d = apply_homography(he, pts) - apply_homography(ht, pts)
         errs.append(4.0 * float(np.mean(np.hypot(d[:, 0], d[:, 1]))))
     return np.asarray(errs)
+
+
+from capssim.geometry import lr_homographies, raw_matrix, sub_image_matrix  # noqa: E402,F401  TRANSITIONAL-REEXPORT

@@ -19,14 +19,13 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
 from capssim.capture import Capture, build_meta
 from capssim.errors import InputError
 from capssim.homography import random_aperture_homographies
 from capssim.imageio import centre_crop
-from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
-from capssim.psf import as_psf
+from capssim.measurement import CameraArrayMeasurement
+from capssim.psf import PSF
 from capssim.sensor import Sensor
 
 log = logging.getLogger(__name__)
@@ -79,39 +78,34 @@ def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None) -> tuple[np
     return np.ascontiguousarray(gt, dtype=np.float32), info
 
 
-def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: dict | None = None,
+def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF | dict | None = None,
                      dofp_layout="sony", extinction_ratio: float | None = None,
                      pose_ranges: PoseRanges = PoseRanges(), aperture_homographies: np.ndarray | None = None,
                      source: dict | None = None, kind: str = "simulated", extra_meta: dict | None = None) -> Capture:
     """Simulate the CAPS raw frames and the DoFP raw frame of a ``(12, 2H, 2W)`` ground truth.
 
-    Returns a :class:`~capssim.capture.Capture` (not yet written). Reproducible under
-    ``seed``: the poses, the CAPS noise and the DoFP noise use independent streams
-    spawned from it.
+    The measurement is :class:`~capssim.measurement.CameraArrayMeasurement` (``y = sensor(A x)``,
+    paper eq. 9): reproducible under ``seed``, whose three independent streams
+    (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS noise and the DoFP noise.
+    Returns a :class:`~capssim.capture.Capture` (not yet written).
     """
     t0 = time.perf_counter()
     gt, _ = prepare_ground_truth(gt)
     hr_shape = gt.shape[1:]
-    psf_value = as_psf(psf)
-    kernel, psf = psf_value.kernel(), psf_value.to_spec()
-    pose_rng, caps_rng, dofp_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+    measurement = CameraArrayMeasurement(sensor, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio,
+                                         seed=seed)
     if aperture_homographies is None:
         aperture_homographies, pose_params = random_aperture_homographies(
-            pose_rng, hr_shape, shift_max_px=pose_ranges.shift_max_px,
+            measurement.pose_rng, hr_shape, shift_max_px=pose_ranges.shift_max_px,
             rotation_max_deg=pose_ranges.rotation_max_deg, scale_max=pose_ranges.scale_max)
     else:
         pose_params = None
-    x = torch.from_numpy(gt.astype(np.float64))
-    with torch.no_grad():
-        caps_irr = caps_raw_operator(hr_shape, aperture_homographies, kernel, extinction_ratio=extinction_ratio)(x)
-        dofp_irr = dofp_raw_operator(hr_shape, kernel, layout=dofp_layout, extinction_ratio=extinction_ratio)(x)
-    caps_raw = sensor.capture(caps_irr.numpy(), caps_rng)
-    dofp_raw = sensor.capture(dofp_irr.numpy(), dofp_rng)
+    caps_raw, dofp_raw = measurement.measure(gt, aperture_homographies)
     extra = {"poses": {"ranges": pose_ranges.__dict__, "apertures": pose_params}}
     if extra_meta:
         extra.update(extra_meta)
-    meta = build_meta(kind=kind, hr_shape=hr_shape, aperture_homographies=aperture_homographies, psf=psf,
-                      sensor=sensor, dofp_layout_spec=dofp_layout, extinction_ratio=extinction_ratio, seed=seed,
+    meta = build_meta(kind=kind, hr_shape=hr_shape, aperture_homographies=aperture_homographies,
+                      psf=measurement.psf.to_spec(), sensor=sensor, dofp_layout_spec=dofp_layout, extinction_ratio=extinction_ratio, seed=seed,
                       source=source, extra=extra)
     log.info("simulated %dx%d capture in %.2f s", hr_shape[0], hr_shape[1], time.perf_counter() - t0)
     return Capture(meta=meta, caps_raw=caps_raw, dofp_raw=dofp_raw, gt=gt)

@@ -98,7 +98,7 @@ def test_cagf_confidence_shape():
     rng = np.random.default_rng(3)
     images = torch.as_tensor(rng.random((16, 6, 6)), dtype=torch.float32)
     from capssim.conventions import LR_IMAGE_CHANNELS
-    from capssim.homography import lr_homographies
+    from capssim.geometry import lr_homographies
 
     hm = lr_homographies(np.stack([np.eye(3)] * 4))
     conf = cagf_confidence(images, hm, torch.tensor(LR_IMAGE_CHANNELS), 12, (24, 24))

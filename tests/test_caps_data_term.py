@@ -6,7 +6,8 @@ import torch
 
 from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
-from capssim.homography import lr_homographies, similarity
+from capssim.geometry import ArrayGeometry, lr_homographies
+from capssim.homography import similarity
 from capssim.operators.blur import gaussian_psf_kernel
 from capssim.operators.camera import lr_sampling_operator
 from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
@@ -20,7 +21,7 @@ def setup(seed=0, confidence=None, dtype=torch.float64):
     hn = np.stack([np.eye(3)] + [similarity(rng.uniform(-1, 1, 2), rng.uniform(-0.5, 0.5), 1.0, (15.5, 11.5))
                                  for _ in range(3)])
     hm = lr_homographies(hn)
-    op = lr_sampling_operator(HR, hm, gaussian_psf_kernel(0.5))
+    op = lr_sampling_operator(ArrayGeometry(hn, HR), gaussian_psf_kernel(0.5))
     y = torch.as_tensor(rng.random((16, 6, 8)), dtype=dtype)
     w = torch.ones_like(y)
     w[3, 2, 2] = 0  # a saturated pixel

@@ -3,7 +3,7 @@
 import numpy as np
 import torch
 
-from capssim.homography import raw_matrix
+from capssim.geometry import raw_matrix
 from capssim.reconstruct.init_fusion import fuse_initial_estimate, normalized_convolution, sample_positions, splat
 from capssim.reconstruct.rearrange import observations_from_capture
 
@@ -53,7 +53,7 @@ def bicubic_per_image(cap):
 
 
 def test_sample_positions_of_reference_r_image():
-    from capssim.homography import lr_homographies
+    from capssim.geometry import lr_homographies
 
     hm = lr_homographies(np.stack([np.eye(3)] * 4))
     pos = sample_positions(hm, (4, 5))

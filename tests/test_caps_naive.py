@@ -73,11 +73,13 @@ def test_smooth_scene_with_true_warps_is_accurate():
     # registration matters: ignoring the warps (all identity) must be clearly worse
     import copy
 
-    from capssim.homography import sub_image_matrix
+    from capssim.geometry import ArrayGeometry
 
     shifted = copy.deepcopy(capture)
-    for m, entry in enumerate(shifted.meta["lr_images"]):
-        entry["homography"] = sub_image_matrix(m % 4).tolist()  # identity aperture warps
+    identity = ArrayGeometry.identity(capture.hr_shape).to_meta()  # identity aperture warps
+    shifted.meta["aperture_homographies"] = identity["aperture_homographies"]
+    for entry, h in zip(shifted.meta["lr_images"], identity["lr_homographies"]):
+        entry["homography"] = h
     wrong, _ = reconstruct(shifted, "caps-naive", true_warps=True)
     assert _psnr(wrong.image[crop], gt[crop]) < psnr - 3
     assert set(record["stages_s"]) >= {"demosaic", "registration", "resample"}

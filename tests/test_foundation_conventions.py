@@ -17,15 +17,8 @@ from capssim.conventions import (
     lr_image_name,
 )
 from capssim.errors import InputError
-from capssim.homography import (
-    apply_homography,
-    lr_homographies,
-    raw_matrix,
-    registration_error_hr_px,
-    rotation_and_scale,
-    similarity,
-    sub_image_matrix,
-)
+from capssim.geometry import lr_homographies, raw_matrix, sub_image_matrix
+from capssim.homography import apply_homography, registration_error_hr_px, rotation_and_scale, similarity
 from capssim.operators import DoFPMosaic
 
 

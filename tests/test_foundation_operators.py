@@ -8,7 +8,8 @@ import torch
 
 from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
-from capssim.homography import lr_homographies, random_aperture_homographies, similarity
+from capssim.geometry import ArrayGeometry
+from capssim.homography import random_aperture_homographies, similarity
 from capssim.operators import (
     Analyzer,
     BayerMosaic,
@@ -71,8 +72,8 @@ def _operators():
         "reshape": Reshape((12, *HR), (4, 3, *HR)),
         "caps_raw": caps_raw_operator(HR, hn, k),
         "caps_raw_er": caps_raw_operator(HR, hn, k, extinction_ratio=100.0),
-        "lr_sampling": lr_sampling_operator(HR, lr_homographies(hn), k),
-        "lr_observation": lr_observation_operator(HR, lr_homographies(hn), k, extinction_ratio=50.0),
+        "lr_sampling": lr_sampling_operator(ArrayGeometry(hn, HR), k),
+        "lr_observation": lr_observation_operator(ArrayGeometry(hn, HR), k, extinction_ratio=50.0),
         "dofp_raw": dofp_raw_operator(HR, k),
         "dofp_raw_er": dofp_raw_operator(HR, k, layout="0-45-135-90", extinction_ratio=80.0),
         "stack_caps_dofp": Stack([caps_raw_operator(HR, hn, k), dofp_raw_operator(HR, k)]),
@@ -150,7 +151,7 @@ def test_bayer_split_matches_lr_observation_exactly():
     x = torch.rand(12, *HR, dtype=torch.float64)
     raw = caps_raw_operator(HR, hn, k)(x)
     split = BayerSplit((4, HR[0] // 2, HR[1] // 2))(raw).reshape(16, HR[0] // 4, HR[1] // 4)
-    lr = lr_observation_operator(HR, lr_homographies(hn), k)(x)
+    lr = lr_observation_operator(ArrayGeometry(hn, HR), k)(x)
     torch.testing.assert_close(split, lr, rtol=0, atol=1e-12)
 
 
@@ -169,7 +170,7 @@ def test_analyzer_extinction_ratio_physics():
 
 def test_operator_norm_of_sampling_is_bounded():
     hn = _aperture_h()
-    op = lr_sampling_operator(HR, lr_homographies(hn), gaussian_psf_kernel(0.5))
+    op = lr_sampling_operator(ArrayGeometry(hn, HR), gaussian_psf_kernel(0.5))
     assert 0.1 < operator_norm_estimate(op, iterations=20) <= 1.0 + 1e-6
 
 

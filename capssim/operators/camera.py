@@ -34,7 +34,7 @@ from capssim.conventions import (
     POLARIZER_ANGLES_DEG,
 )
 from capssim.errors import InputError
-from capssim.homography import aperture_from_lr
+from capssim.geometry import ArrayGeometry
 from capssim.operators.analyzer import Analyzer, ChannelMix, analyzer_matrix
 from capssim.operators.base import Composition, Reshape
 from capssim.operators.blur import Convolve
@@ -73,20 +73,18 @@ def caps_raw_operator(hr_shape, aperture_homographies, psf_kernel, *,
     return Composition(ops, name="caps_raw")
 
 
-def lr_sampling_operator(hr_shape, lr_homographies, psf_kernel) -> Composition:
+def lr_sampling_operator(geometry: ArrayGeometry, psf_kernel) -> Composition:
     """``M``: ``(16, 2H, 2W) -> (16, H/2, W/2)``; slice m is ``M_m`` applied to slice m (eq. 11).
 
-    ``lr_homographies`` ``(16, 3, 3)`` map HR reference -> each sub-image's pixel coordinates.
+    Sub-image ``m = 4n + q`` is aperture n's warp ``H_n`` (``geometry``), the PSF, 2x2 pixel
+    integration, then the Bayer site q's decimation: its pixels land where
+    :attr:`ArrayGeometry.lr_homographies` says.
     """
-    hh, ww = _check_hr_shape(hr_shape)
-    h = np.asarray(lr_homographies, dtype=np.float64)
-    if h.shape != (N_LR_IMAGES, 3, 3):
-        raise InputError("lr_homographies", f"shape {h.shape}", "shape (16, 3, 3)")
-    g = aperture_from_lr(h)
+    hh, ww = _check_hr_shape(geometry.hr_shape)
     offsets = [BAYER_OFFSETS[m % 4] for m in range(N_LR_IMAGES)]
     ops = [
         Reshape((N_LR_IMAGES, hh, ww), (N_LR_IMAGES, 1, hh, ww)),
-        Warp(g, 1, (hh, ww)),
+        Warp(geometry.lr_aperture_warps, 1, (hh, ww)),
         Convolve(psf_kernel, (N_LR_IMAGES, 1, hh, ww)),
         IntegrateDecimate(2, (N_LR_IMAGES, 1, hh, ww)),
         Decimation(2, (N_LR_IMAGES, 1, hh // 2, ww // 2), offsets),
@@ -101,12 +99,12 @@ def lr_channel_matrix(*, extinction_ratio: float | None = None) -> np.ndarray:
     return np.stack([full[LR_IMAGE_CHANNELS[m]] for m in range(N_LR_IMAGES)])
 
 
-def lr_observation_operator(hr_shape, lr_homographies, psf_kernel, *,
+def lr_observation_operator(geometry: ArrayGeometry, psf_kernel, *,
                             extinction_ratio: float | None = None) -> Composition:
     """``(12, 2H, 2W) -> (16, H/2, W/2)``: all 16 Bayer sub-images from the 12-channel image."""
-    hh, ww = _check_hr_shape(hr_shape)
+    hh, ww = _check_hr_shape(geometry.hr_shape)
     mix = ChannelMix(lr_channel_matrix(extinction_ratio=extinction_ratio), hh, ww)
-    return Composition([mix, lr_sampling_operator(hr_shape, lr_homographies, psf_kernel)], name="lr_observation")
+    return Composition([mix, lr_sampling_operator(geometry, psf_kernel)], name="lr_observation")
 
 
 def dofp_raw_operator(hr_shape, psf_kernel, *, layout="sony", extinction_ratio: float | None = None) -> Composition:

@@ -27,7 +27,9 @@ import numpy as np
 import torch
 
 from capssim.conventions import N_APERTURES
-from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, lr_homographies, mean_psnr, psf_kernel
+from capssim.geometry import ArrayGeometry
+from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, mean_psnr
+from capssim.reconstruct.observation_model import method_geometry, method_psf
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 #: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
@@ -46,18 +48,18 @@ def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *,
     return rgb, (~near_saturated).astype(np.float32)
 
 
-def aperture_sampling_operator(hr_shape, aperture_homographies, kernel):
+def aperture_sampling_operator(geometry: ArrayGeometry, kernel):
     """``(4, 2H, 2W) -> (4, H, W)``: warp, PSF, 2x2 integration (the CAPS raw model without CFA)."""
     from capssim.operators.base import Composition, Reshape
     from capssim.operators.blur import Convolve
     from capssim.operators.sampling import IntegrateDecimate
     from capssim.operators.warp import Warp
 
-    hh, ww = hr_shape
-    n = len(aperture_homographies)
+    hh, ww = geometry.hr_shape
+    n = N_APERTURES
     return Composition([
         Reshape((n, hh, ww), (n, 1, hh, ww)),
-        Warp(np.asarray(aperture_homographies), 1, (hh, ww)),
+        Warp(geometry.aperture_homographies, 1, (hh, ww)),
         Convolve(kernel, (n, 1, hh, ww)),
         IntegrateDecimate(2, (n, 1, hh, ww)),
         Reshape((n, 1, hh // 2, ww // 2), (n, hh // 2, ww // 2)),
@@ -68,7 +70,6 @@ def aperture_sampling_operator(hr_shape, aperture_homographies, kernel):
                  description="CAPS ablation: cascade - demosaic each aperture (residual interpolation), then SR per "
                              "RGB channel on its 4 polarization images (c1=0.001, c2=0.01)")
 def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
-    from capssim.homography import aperture_from_lr, raw_matrix
     from capssim.reconstruct.admm import admm
     from capssim.reconstruct.cagf import cagf_confidence
     from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
@@ -88,12 +89,11 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
         rgb, weights = demosaic_apertures(raw, capture.caps_saturated(), bayer_method=bayer_method)
         lr_images, lr_saturated = capture.lr_images()
     with timer.stage("registration"):
-        homographies, reg_record = lr_homographies(capture, context, images=lr_images, saturated=lr_saturated)
-        aperture_h = aperture_from_lr(homographies)[0::4]           # from each aperture's R site
-        raw_h = np.stack([raw_matrix() @ h for h in aperture_h])   # HR reference -> raw pixel
+        geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)
+        raw_h = geometry.raw_homographies   # HR reference -> raw pixel of each aperture
     with timer.stage("operator"):
-        kernel, psf_record = psf_kernel(capture, opts)
-        operator = aperture_sampling_operator(hr_shape, aperture_h, kernel)
+        kernel, psf_record = method_psf(capture, opts.psf_sigma)
+        operator = aperture_sampling_operator(geometry, kernel)
         inside = field_of_view_mask(raw_h, raw.shape[-2:], hr_shape, half_extent=0.25) if opts.fov_mask else 1.0
         weights = weights * inside
     nlstr = None

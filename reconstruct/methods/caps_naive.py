@@ -45,7 +45,8 @@ import torch.nn.functional as F
 
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
-from capssim.reconstruct.methods.caps import CapsOptions, _coerce, lr_homographies, mean_psnr
+from capssim.reconstruct.methods.caps import CapsOptions, _coerce, mean_psnr
+from capssim.reconstruct.observation_model import method_geometry
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 log = logging.getLogger(__name__)
@@ -137,19 +138,6 @@ def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007") -> n
     return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0).astype(np.float32)
 
 
-def aperture_warps(lr_h: np.ndarray) -> np.ndarray:
-    """``(16, 3, 3)`` HR reference -> sub-image  ->  ``(4, 3, 3)`` HR reference -> aperture-HR.
-
-    Each aperture's warp is the mean of the four warps its Bayer sites imply (normalized to
-    ``h[2, 2] = 1``); the four are identical for true warps.
-    """
-    from capssim.homography import aperture_from_lr
-
-    per_site = aperture_from_lr(lr_h)
-    per_site = per_site / per_site[:, 2:3, 2:3]
-    return per_site.reshape(4, 4, 3, 3).mean(axis=1)
-
-
 def sampling_grid(homographies: np.ndarray, out_hw: tuple[int, int], in_hw: tuple[int, int],
                   device: torch.device) -> torch.Tensor:
     """``grid_sample`` grid ``(B, Hout, Wout, 2)``: output pixel ``(x, y)`` reads input ``h (x, y, 1)``.
@@ -177,17 +165,16 @@ def bicubic_warp(images: torch.Tensor, homographies: np.ndarray, out_hw: tuple[i
 
 
 def demosaic_and_register(capture, context: RunContext, opts: NaiveOptions):
-    """Steps 1-2: ``(4, 3, H, W)`` demosaicked frames (tensor on the context device), the
-    ``(4, 3, 3)`` aperture warps (HR reference -> aperture-HR) and the registration record."""
+    """Steps 1-2: ``(4, 3, H, W)`` demosaicked frames (tensor on the context device), the array
+    geometry (true or registered) and the registration record."""
     timer = context.timer
     with timer.stage("demosaic"):
         rgb = demosaic_apertures(capture.caps_float(), bayer_method=opts.bayer_method)
         rgb = torch.from_numpy(rgb).to(context.device)
     with timer.stage("registration"):
         lr_images, lr_saturated = capture.lr_images()
-        lr_h, reg_record = lr_homographies(capture, context, images=lr_images, saturated=lr_saturated)
-        warps = aperture_warps(lr_h)
-    return rgb, warps, reg_record
+        geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)
+    return rgb, geometry, reg_record
 
 
 def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext, params: dict,
@@ -212,13 +199,9 @@ def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext
 def caps_naive(capture, *, context: RunContext) -> MethodOutput:
     with context.timer.stage("setup"):  # option parsing; the first call imports colour-demosaicing (~1 s)
         opts, _ = NaiveOptions.from_options(context.options)
-    rgb, warps, reg_record = demosaic_and_register(capture, context, opts)
-    hr_shape = capture.hr_shape
+    rgb, geometry, reg_record = demosaic_and_register(capture, context, opts)
     with context.timer.stage("resample"):
-        from capssim.homography import raw_matrix
-
-        to_raw = np.stack([raw_matrix() @ h for h in warps])  # HR reference -> raw pixel of aperture n
-        image = bicubic_warp(rgb, to_raw, hr_shape)  # (4, 3, 2H, 2W)
+        image = bicubic_warp(rgb, geometry.raw_homographies, geometry.hr_shape)  # (4, 3, 2H, 2W)
     params = {"resampling": "bicubic (a=-0.75), x2 upsampling and registration warp composed, replicate border",
-              "aperture_warps": warps.tolist()}
+              "aperture_warps": geometry.aperture_homographies.tolist()}
     return finish(capture, image, opts, context, params, reg_record)

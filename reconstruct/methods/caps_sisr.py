@@ -90,7 +90,7 @@ def caps_sisr(capture, *, context: RunContext) -> MethodOutput:
     model_path = str(rest.get("model") or "").strip() or None
     with context.timer.stage("load_model"):
         upsample, upsampler = load_upsampler(model_path, context.device, scale=scale)
-    rgb, warps, reg_record = demosaic_and_register(capture, context, opts)
+    rgb, geometry, reg_record = demosaic_and_register(capture, context, opts)
     n, c, h, w = rgb.shape
     with context.timer.stage("sisr"):
         x = rgb.reshape(n * c, 1, h, w) if channels == 1 else rgb
@@ -100,8 +100,8 @@ def caps_sisr(capture, *, context: RunContext) -> MethodOutput:
                                f"{tuple(x.shape)}; an x2 model must return {(x.shape[0], x.shape[1], 2 * h, 2 * w)}.")
         y = torch.nan_to_num(y.to(device=rgb.device, dtype=torch.float32)).reshape(n, c, 2 * h, 2 * w)
     with context.timer.stage("resample"):
-        image = bicubic_warp(y, warps, capture.hr_shape)
+        image = bicubic_warp(y, geometry.aperture_homographies, geometry.hr_shape)
     params = {"upsampler": upsampler, "model_channels": channels, "model_scale": scale,
               "resampling": "x2 SR on the aperture-HR grid, then bicubic (a=-0.75) warp by H_n, replicate border",
-              "aperture_warps": warps.tolist()}
+              "aperture_warps": geometry.aperture_homographies.tolist()}
     return finish(capture, image, opts, context, params, reg_record, extra={"upsampler": upsampler})

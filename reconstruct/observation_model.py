@@ -1,0 +1,77 @@
+"""A capture's observation model as a reconstruction method sees it: array geometry and PSF.
+
+The geometry is either the one stored with the capture (``true_warps``) or the one the
+registration estimates from the 16 Bayer sub-images (:mod:`capssim.reconstruct.registration`);
+either way it is one :class:`capssim.geometry.ArrayGeometry`, from which every method takes the
+16 sub-image homographies (paper section 3.1) or the 4 aperture homographies.
+The PSF is the capture's (``meta.json["psf"]``) unless the method's ``psf_sigma`` option names a
+Gaussian (the paper's isotropic Gaussian kernel; useful for real captures).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from capssim.capture import Capture
+from capssim.errors import CapssimError
+from capssim.geometry import ArrayGeometry
+from capssim.homography import registration_error_hr_px
+from capssim.psf import PSF
+from capssim.reconstruct.registration import estimate_lr_homographies, registration_mode_arguments
+from capssim.reconstruct.registry import RunContext
+
+
+def truth_known(capture: Capture) -> bool:
+    """Whether the capture's stored warps and PSF are the true ones (simulated or rendered)."""
+    return capture.meta.get("kind") in ("simulated", "rendered")
+
+
+def method_psf(capture: Capture, psf_sigma: float) -> tuple[np.ndarray, dict]:
+    """The sampling kernel on the HR grid ``(k, k)`` and its record.
+
+    ``psf_sigma`` (HR pixels) ``>= 0`` names a Gaussian; ``< 0`` takes the capture's PSF.
+    """
+    if psf_sigma >= 0:
+        return PSF.gaussian(psf_sigma).kernel(), {"type": "gaussian", "sigma_hr_px": psf_sigma,
+                                                   "source": "option psf_sigma"}
+    spec = dict(capture.meta.get("psf") or {"type": "none"})
+    spec["source"] = "capture meta.json"
+    return capture.psf_kernel(), spec
+
+
+def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray,
+                    saturated: np.ndarray) -> tuple[ArrayGeometry, dict]:
+    """The array geometry a method reconstructs with (true or estimated) and a record of it.
+
+    ``images`` ``(16, H/2, W/2)`` and ``saturated`` (same shape, bool) are the Bayer sub-images
+    the registration works on. When the capture's truth is known, the record holds the
+    registration error in HR pixels per sub-image.
+    """
+    hr_shape = capture.hr_shape
+    if context.true_warps:
+        geometry = capture.geometry
+        record = {"source": "true (meta.json)"}
+    else:
+        result = estimate_lr_homographies(images.astype(np.float32), hr_shape=hr_shape, saturated=saturated,
+                                          model="similarity", device=str(context.device),
+                                          **registration_mode_arguments(context.registration))
+        aperture = np.asarray(result.aperture_homographies, dtype=np.float64)
+        if aperture.shape != (4, 3, 3) or not np.all(np.isfinite(aperture)):
+            raise CapssimError(f"registration returned invalid homographies (shape {aperture.shape}, "
+                               f"finite: {bool(np.all(np.isfinite(aperture)))})")
+        geometry = ArrayGeometry(aperture, hr_shape)
+        record = _registration_record(result, context.registration)
+    if truth_known(capture):
+        err = registration_error_hr_px(geometry.lr_homographies, capture.true_lr_homographies(), hr_shape)
+        record.update({"error_hr_px_median": float(np.median(err)), "error_hr_px_max": float(np.max(err)),
+                       "error_hr_px": [float(e) for e in err]})
+    return geometry, record
+
+
+def _registration_record(result, mode: str) -> dict:
+    diagnostics = result.diagnostics
+    return {"source": "estimated (capssim.reconstruct.registration)", "mode": mode,
+            "luminance": diagnostics.get("luminance"), "time_s": diagnostics.get("time_s"),
+            "warnings": list(diagnostics.get("warnings", [])),
+            "fallbacks": {str(a["aperture"]): a["fallback"] for a in diagnostics.get("apertures", [])
+                          if a.get("fallback") not in ("none", "reference")}}
