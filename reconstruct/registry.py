@@ -85,21 +85,27 @@ class MethodSpec:
     description: str
     reference: str
     module: str
+    #: for DoFP methods, the plain array function ``fn(mosaic, *, layout, device, timer)`` behind the method
+    array_function: Callable | None = None
 
 
 _METHODS: dict[str, MethodSpec] = {}
 _LOADED = False
 
 
-def register_method(name: str, *, input_kind: str, description: str, reference: str):
-    """Decorator registering a reconstruction function under ``name``."""
+def register_method(name: str, *, input_kind: str, description: str, reference: str,
+                    array_function: Callable | None = None):
+    """Decorator registering a reconstruction function under ``name``.
+
+    ``array_function``: the method's plain array form, for ``capssim demosaic`` (DoFP mosaics).
+    """
     if input_kind not in ("caps", "dofp"):
         raise ValueError(f"input_kind must be 'caps' or 'dofp', got {input_kind!r}")
 
     def wrap(fn):
         if name in _METHODS and _METHODS[name].function is not fn:
             raise ValueError(f"method {name!r} is registered twice ({_METHODS[name].module} and {fn.__module__})")
-        _METHODS[name] = MethodSpec(name, fn, input_kind, description, reference, fn.__module__)
+        _METHODS[name] = MethodSpec(name, fn, input_kind, description, reference, fn.__module__, array_function)
         return fn
 
     return wrap
@@ -127,6 +133,14 @@ def get_method(name: str) -> MethodSpec:
     if name not in methods:
         raise UnknownNameError("method", name, list(methods))
     return methods[name]
+
+
+def dofp_array_function(method: str) -> Callable:
+    """The plain array function ``fn(mosaic, *, layout, device, timer)`` behind a DoFP method name."""
+    names = [n for n, spec in available_methods().items() if spec.array_function is not None]
+    if method not in names:
+        raise UnknownNameError("DoFP method", method, names)
+    return get_method(method).array_function
 
 
 def resolve_device(device: str | torch.device = "cpu") -> torch.device:

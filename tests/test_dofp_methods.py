@@ -11,13 +11,12 @@ from capssim.conventions import POLARIZER_ANGLES_DEG, dofp_channel_map
 from capssim.errors import InputError
 from capssim.reconstruct.dofp_common import (
     angle_offsets,
-    box_sum,
     check_mosaic,
-    correlate,
     merge_submosaics,
     polarization_masks,
     split_submosaics,
 )
+from capssim.reconstruct.filters import box_sum, correlate
 from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
 from capssim.reconstruct.methods.dofp_eari import demosaic_dofp_eari
 from capssim.reconstruct.methods.dofp_igri2 import QuincunxRotation, demosaic_dofp_igri2

@@ -103,8 +103,7 @@ def demosaic(
         raise UnknownNameError("DoFP method", method, list(DOFP_METHODS))
     cell = dofp_layout(layout)
     check_output_free(output, overwrite=overwrite)
-    from capssim.reconstruct.dofp_common import dofp_array_function
-    from capssim.reconstruct.registry import StageTimer, resolve_device
+    from capssim.reconstruct.registry import StageTimer, dofp_array_function, resolve_device
 
     dev = resolve_device(device)
     t0 = time.perf_counter()

@@ -8,14 +8,13 @@ posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
 
 1. Demosaick each aperture's RGGB raw frame ``(H, W)`` on its own (``bayer_method``:
    ``menon2007`` (default), ``malvar2004`` or ``bilinear``, from ``colour-demosaicing``, or
-   ``ri``, the residual interpolation of :func:`reconstruct.dofp_common.ri_bayer_demosaic`),
+   ``ri``, the residual interpolation of :func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`),
    clipped to [0, 1] -> ``(4, 3, H, W)``; each frame is mirror-padded by 6 pixels with its
    Bayer phase kept (:func:`demosaic_apertures`), so constant images stay exact at the border.
-2. Registration: the 16 HR-reference -> sub-image homographies of the CAPS method
-   (:func:`reconstruct.methods.caps.lr_homographies`: estimated by ``reconstruct.registration``,
-   or the stored ones under ``--true-warps``). Aperture n's warp ``H_n`` (HR reference ->
-   aperture-HR) is the mean of the four ``S_q^-1 H_{4n+q}`` (identical for true warps; the
-   mean averages the per-site estimation noise).
+2. Registration: the array geometry of the CAPS method
+   (:func:`capssim.reconstruct.observation_model.method_geometry`: estimated by
+   :mod:`capssim.reconstruct.registration`, or the stored one under ``--true-warps``), whose
+   aperture warps ``H_n`` map the HR reference to each aperture-HR grid.
 3. One bicubic resampling per aperture onto the HR reference grid ``(2H, 2W)``: HR pixel
    ``(x, y)`` samples the demosaicked frame at raw coordinates ``R H_n (x, y, 1)``, where
    ``R = capssim.homography.raw_matrix()`` (aperture-HR -> raw pixel), i.e. the x2 upsampling
@@ -55,14 +54,13 @@ REFERENCE = (CAPS_REFERENCE + " (camera-array baseline, 5.2); Bayer demosaicking
              "IEEE TIP 16(1) 2007 (colour-demosaicing)")
 
 #: the selectable Bayer demosaicking algorithms: residual interpolation (``ri``, Kiku et al. 2016, the
-#: colour stage of EARI [15]; :func:`reconstruct.dofp_common.ri_bayer_demosaic`) and three of colour-demosaicing
+#: colour stage of EARI [15]; :func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`) and three of colour-demosaicing
 BAYER_METHODS = ("ri", "menon2007", "malvar2004", "bilinear")
 
 
 def ri_demosaic_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
     """``(H, W)`` RGGB frame -> ``(H, W, 3)`` RGB by residual interpolation (colour-demosaicing's signature):
-    :func:`reconstruct.methods.dofp_eari.ri_bayer_demosaic_frames`, ``dofp-eari``'s colour stage."""
-    from capssim.reconstruct.methods.dofp_eari import ri_bayer_demosaic_frames
+    :func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic_frames`, ``dofp-eari``'s colour stage."""
 
     if pattern != "RGGB":
         raise InputError("pattern", pattern, "'RGGB' (the CAPS sensors' Bayer layout)")
@@ -86,7 +84,7 @@ def bayer_demosaic_function(name: str):
     return key, table[key]
 
 
-_CAPS_OPTION_NAMES = frozenset(f.name for f in fields(CapsOptions))
+_CAPS_OPTION_NAMES = frozenset(CapsOptions.option_names())
 
 
 @dataclass

@@ -13,7 +13,7 @@ in polanalyser (Maeda, ``polanalyser.demosaicing`` with ``COLOR_PolarRGB``) and 
    full grid and fill the other three pixels of every 2x2 cell by bilinear interpolation of that
    lattice (kernel ``[[1,2,1],[2,4,2],[1,2,1]]/4`` on the full grid).
 
-Both steps use normalized convolution (:func:`reconstruct.dofp_common.normalized_interpolation`),
+Both steps use normalized convolution (:func:`capssim.reconstruct.filters.normalized_interpolation`),
 which equals the plain kernels in the interior and averages the available samples at the borders.
 Float end to end. Exactness: constant images are reproduced exactly everywhere; linear ramps are
 reproduced exactly except in a border band of 4 pixels (the bilinear kernels need both neighbours;
@@ -32,10 +32,10 @@ from capssim.reconstruct.dofp_common import (
     as_output,
     bayer_masks,
     check_mosaic,
-    normalized_interpolation,
     split_submosaics,
     stack_12,
 )
+from capssim.reconstruct.filters import normalized_interpolation
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Two-step bilinear colour-polarization demosaicking: bilinear Bayer demosaicking of each polarizer "
@@ -87,7 +87,7 @@ def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device 
     return as_output(out, mosaic)
 
 
-@register_method("dofp-bilinear", input_kind="dofp",
+@register_method("dofp-bilinear", input_kind="dofp", array_function=demosaic_dofp_bilinear,
                  description="DoFP colour-polarization camera, two-step bilinear demosaicking (Bayer, then polarization)",
                  reference=REFERENCE)
 def dofp_bilinear(capture: Capture, *, context: RunContext) -> MethodOutput:

@@ -11,7 +11,7 @@ Steps, for a mosaic ``M`` ``(H, W)`` on [0, 1]:
 
 1. Colour (CPFA stage 1). Each polarizer sub-mosaic ``M[dr::2, dc::2]`` is an RGGB Bayer
    image; demosaick it by residual interpolation
-   (:func:`reconstruct.dofp_common.ri_bayer_demosaic`): directional (horizontal/vertical) MLRI
+   (:func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`): directional (horizontal/vertical) MLRI
    estimates of the colour differences ``G - R``, ``G - B``, combined with gradient weights into
    a full green; then R and B by MLRI guided upsampling under the green, with bilinear residuals.
 2. Put the RGB of each sub-mosaic back at its own lattice: the "RGB polarization mosaic" ``P``
@@ -25,7 +25,7 @@ Steps, for a mosaic ``M`` ``(H, W)`` on [0, 1]:
    responds to intensity edges between the two rows (columns); averaged over the 3x5 (5x3)
    half-window on that side it gives ``w_d``. Guide ``= sum_d X_d / (w_d + eps_e) / sum_d 1 / (w_d + eps_e)``.
 4. Residual interpolation of every (angle, colour) lattice under that colour's guide
-   (:func:`reconstruct.dofp_common.residual_interpolation`): MLRI tentative estimate in 11x11
+   (:func:`capssim.reconstruct.residual_interpolation.residual_interpolation`): MLRI tentative estimate in 11x11
    windows with the step-2 Laplacian, clipped, plus the bilinearly interpolated residual.
 
 Numerical choices (where the descriptions are silent), each measured by
@@ -59,40 +59,26 @@ from capssim.reconstruct.dofp_common import (
     as_output,
     check_mosaic,
     clip_ceiling,
-    correlate,
     merge_submosaics,
-    mirror_index,
-    polarization_residual_interpolation,
-    ri_bayer_demosaic,
     run_dofp_method,
     split_submosaics,
     stack_12,
 )
+from capssim.reconstruct.filters import correlate
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.residual_interpolation import (  # noqa: F401  ri_bayer_demosaic_frames: TRANSITIONAL-REEXPORT
+    RI_BAYER_DEFAULTS,
+    polarization_residual_interpolation,
+    ri_bayer_demosaic,
+    ri_bayer_demosaic_frames,
+)
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "
              "residual interpolation', IEEE ICIP 2020; colour stage: Kiku et al., 'Beyond color difference: residual "
              "interpolation for color image demosaicking', IEEE TIP 25(3) 2016")
 
-DEFAULTS = {"eps": 1e-10, "weight_floor": 0.01 / 255 ** 2, "edge_eps": 1e-32, "bayer_sigma": 1.0}
-
-#: mirror padding (pixels, even: keeps the Bayer phase) of :func:`ri_bayer_demosaic_frames`
-RI_FRAME_PAD = 6
-
-
-def ri_bayer_demosaic_frames(raw: torch.Tensor) -> torch.Tensor:
-    """RGGB frames ``(..., H, W)`` of any size >= 1 -> RGB ``(..., 3, H, W)``: the colour stage of EARI
-    (:func:`reconstruct.dofp_common.ri_bayer_demosaic` with :data:`DEFAULTS`), on frames mirror-padded by
-    :data:`RI_FRAME_PAD` pixels (the 11x11 MLRI windows need >= 12 px), clipped to ``[0, max(1, max(raw))]``.
-
-    Used by ``caps-iccp`` / ``caps-naive`` (``bayer_method=ri``) and the registration's ``ri-binomial`` image.
-    """
-    h, w = raw.shape[-2:]
-    iy, ix = mirror_index(h, RI_FRAME_PAD, raw.device), mirror_index(w, RI_FRAME_PAD, raw.device)
-    padded = raw[..., iy, :][..., ix]
-    rgb = ri_bayer_demosaic(padded, eps=DEFAULTS["eps"], weight_floor=DEFAULTS["weight_floor"],
-                            clip_max=max(1.0, float(raw.max())), sigma=DEFAULTS["bayer_sigma"])
-    return rgb[..., RI_FRAME_PAD:RI_FRAME_PAD + h, RI_FRAME_PAD:RI_FRAME_PAD + w]
+DEFAULTS = {"eps": RI_BAYER_DEFAULTS["eps"], "weight_floor": RI_BAYER_DEFAULTS["weight_floor"], "edge_eps": 1e-32,
+            "bayer_sigma": RI_BAYER_DEFAULTS["bayer_sigma"]}
 
 
 # 2x3 directional intensity kernel (mean of two 2x2 windows), north side; others by flip/transpose
@@ -151,7 +137,7 @@ def demosaic_dofp_eari(mosaic, *, layout="sony", device: str | torch.device | No
     return as_output(stack_12(out), mosaic)
 
 
-@register_method("dofp-eari", input_kind="dofp",
+@register_method("dofp-eari", input_kind="dofp", array_function=demosaic_dofp_eari,
                  description="DoFP colour-polarization camera, edge-aware residual interpolation (EARI) demosaicking",
                  reference=REFERENCE)
 def dofp_eari(capture: Capture, *, context: RunContext) -> MethodOutput:

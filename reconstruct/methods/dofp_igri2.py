@@ -17,7 +17,7 @@ For each colour plane ``P`` of the RGB polarization mosaic (after EARI's colour 
    -> ``((y + x') / 2, (x' - y) / 2 + offset)``, ``x' = x - parity``); there the two angles of
    the pair form a checkerboard, like G against R/B in a Bayer image. Estimate each angle at the
    other's sites with the residual-interpolation green step of Kiku et al. (TIP 2016;
-   :func:`reconstruct.dofp_common.ri_green`), which interpolates along the rotated axes, i.e. the
+   :func:`capssim.reconstruct.residual_interpolation.ri_green`), which interpolates along the rotated axes, i.e. the
    image diagonals. Now each quincunx holds both angles of its pair.
 2. Intensity. ``(I_a + I_(a+90)) / 2`` on each quincunx (= ``S0 / 2``).
 3. Horizontal/vertical pass. For each angle: an image with that angle on its quincunx and the
@@ -46,15 +46,13 @@ from capssim.reconstruct.dofp_common import (
     check_mosaic,
     clip_ceiling,
     merge_submosaics,
-    polarization_residual_interpolation,
-    ri_bayer_demosaic,
-    ri_green,
     run_dofp_method,
     split_submosaics,
     stack_12,
 )
 from capssim.reconstruct.methods.dofp_eari import DEFAULTS
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.residual_interpolation import polarization_residual_interpolation, ri_bayer_demosaic, ri_green
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking based on "
              "intensity-guided residual interpolation', IEEE Sensors Journal 21(23) 2021 (IGRI2); colour stage: "
@@ -169,7 +167,7 @@ def demosaic_dofp_igri2(mosaic, *, layout="sony", device: str | torch.device | N
     return as_output(stack_12(out), mosaic)
 
 
-@register_method("dofp-igri2", input_kind="dofp",
+@register_method("dofp-igri2", input_kind="dofp", array_function=demosaic_dofp_igri2,
                  description="DoFP colour-polarization camera, intensity-guided residual interpolation (IGRI2)",
                  reference=REFERENCE)
 def dofp_igri2(capture: Capture, *, context: RunContext) -> MethodOutput:

@@ -1,0 +1,173 @@
+"""The house: one import namespace, floors that import only downwards, no import circles.
+
+Floors (DESIGN.md "Data flow"), lowest first; a module may import its own floor and the ones
+below. Within a floor, the import graph must still have no circle.
+"""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+#: installed package name -> folder of the repository (pyproject.toml [tool.setuptools] package-dir)
+ROOTS = {"capssim": "capssim", "capssim.reconstruct": "reconstruct", "capssim.eval": "eval",
+         "capssim.scenes": "scenes"}
+
+PHYSICS = ("capssim", "capssim.errors", "capssim.conventions", "capssim.homography", "capssim.geometry",
+           "capssim.psf", "capssim.measurement", "capssim.imageio", "capssim.sensor", "capssim.capture",
+           "capssim.polarization", "capssim.design", "capssim.visualize", "capssim.operators")
+#: (floor name, module prefixes), lowest floor first
+FLOORS = (
+    ("physics", PHYSICS),
+    ("simulation and rendering", ("capssim.simulate", "capssim.render")),
+    ("scenes", ("capssim.scenes",)),
+    ("datasets", ("capssim.dataset",)),
+    ("reconstruction", ("capssim.reconstruct",)),
+    ("evaluation", ("capssim.eval",)),
+    ("command line", ("capssim.cli", "capssim.__main__")),
+)
+#: floors whose functions may import project modules lazily (start-up time of the command line)
+LAZY_IMPORT_FLOORS = ("command line",)
+
+
+def _modules() -> dict[str, Path]:
+    found = {}
+    for package, folder in ROOTS.items():
+        for path in sorted((REPO / folder).rglob("*.py")):
+            rel = path.relative_to(REPO / folder).with_suffix("")
+            parts = [p for p in rel.parts if p != "__init__"]
+            name = ".".join([package, *parts])
+            if package == "capssim" and any(name == r or name.startswith(r + ".") for r in ROOTS if r != "capssim"):
+                continue
+            found[name] = path
+    return found
+
+
+MODULES = _modules()
+
+
+def floor_of(module: str) -> int:
+    best = None
+    for rank, (_, prefixes) in enumerate(FLOORS):
+        for prefix in prefixes:
+            if module == prefix or (prefix != "capssim" and module.startswith(prefix + ".")):
+                best = rank
+    if best is None:
+        raise AssertionError(f"{module} is on no floor: add it to FLOORS in {Path(__file__).name}")
+    return best
+
+
+def _imports(path: Path) -> list[tuple[str, bool, int]]:
+    """``(imported project module, inside a function?, line)`` for each project import of a file."""
+    tree = ast.parse(path.read_text())
+    top_level = {id(node) for node in tree.body}
+    for node in ast.walk(tree):  # imports under module-level if/try count as top level
+        if isinstance(node, (ast.If, ast.Try)) and id(node) in top_level:
+            top_level.update(id(child) for child in ast.walk(node))
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names = [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+        else:
+            continue
+        for name in names:
+            if name in MODULES:
+                out.append((name, id(node) not in top_level, node.lineno))
+    return out
+
+
+GRAPH = {module: _imports(path) for module, path in MODULES.items()}
+
+
+def test_every_module_is_on_a_floor():
+    assert len(MODULES) > 50
+    for module in MODULES:
+        floor_of(module)
+
+
+@pytest.mark.parametrize("floor", [name for name, _ in FLOORS])
+def test_floor_imports_only_downwards(floor):
+    rank = [name for name, _ in FLOORS].index(floor)
+    upward = []
+    for module, imports in GRAPH.items():
+        if floor_of(module) != rank:
+            continue
+        for target, _, line in imports:
+            if floor_of(target) > rank:
+                upward.append(f"{MODULES[module].relative_to(REPO)}:{line} imports {target} "
+                              f"({FLOORS[floor_of(target)][0]} floor)")
+    assert not upward, "imports that run up a floor:\n" + "\n".join(upward)
+
+
+def test_renderer_never_imports_the_scenes():
+    offenders = [f"{module} -> {target}" for module, imports in GRAPH.items() if module.startswith("capssim.render")
+                 for target, _, _ in imports if target.startswith("capssim.scenes")]
+    assert not offenders
+
+
+def test_no_import_circles():
+    edges = {m: sorted({t for t, _, _ in imports if t != m}) for m, imports in GRAPH.items()}
+    index, low, stack, on_stack, circles = {}, {}, [], set(), []
+
+    def visit(v):  # Tarjan's strongly connected components
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in edges[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                circles.append(sorted(component))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+    for v in edges:
+        if v not in index:
+            visit(v)
+    assert not circles, "import circles:\n" + "\n".join(" <-> ".join(c) for c in circles)
+
+
+def test_project_imports_inside_functions_only_where_start_up_time_needs_them():
+    lazy_ok = {[name for name, _ in FLOORS].index(f) for f in LAZY_IMPORT_FLOORS}
+    lazy = [f"{MODULES[m].relative_to(REPO)}:{line} imports {t} inside a function"
+            for m, imports in GRAPH.items() if floor_of(m) not in lazy_ok
+            for t, inside, line in imports if inside]
+    assert not lazy, "move these imports to the top of their modules:\n" + "\n".join(lazy)
+
+
+def test_pyproject_installs_one_namespace_covering_every_package_folder():
+    config = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert config["package-dir"] == ROOTS
+    listed = set(config["packages"])
+    assert all(name == "capssim" or name.startswith("capssim.") for name in listed)
+    folders = {m for m, p in MODULES.items() if p.name == "__init__.py"}
+    assert listed == folders, f"not listed: {sorted(folders - listed)}; listed but absent: {sorted(listed - folders)}"
+
+
+@pytest.mark.parametrize("name", ["eval", "reconstruct", "scenes"])
+def test_bare_folder_names_do_not_import(name, tmp_path):
+    for cwd in (REPO, tmp_path):  # the clone's root (folder on sys.path) and anywhere else
+        result = subprocess.run([sys.executable, "-c", f"import {name}"], cwd=cwd, capture_output=True, text=True)
+        assert result.returncode != 0
+        assert "ImportError" in result.stderr or "ModuleNotFoundError" in result.stderr
+    result = subprocess.run([sys.executable, "-c", f"import capssim.{name}"], cwd=tmp_path, capture_output=True,
+                            text=True)
+    assert result.returncode == 0, result.stderr
