@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from capssim.errors import InputError
+
 POLARIZER_ANGLES_DEG: tuple[int, ...] = (0, 45, 90, 135)
 COLOURS: tuple[str, ...] = ("R", "G", "B")
 N_CHANNELS = 12
@@ -65,8 +67,6 @@ def lr_image_name(m: int) -> str:
 
 def dofp_layout(layout: str | tuple | list) -> tuple[tuple[int, int], tuple[int, int]]:
     """Resolve a DoFP 2x2 polarizer layout given by name or as ``[[a, b], [c, d]]`` degrees."""
-    from capssim.errors import InputError
-
     if isinstance(layout, str):
         key = layout.strip().lower()
         if key in DOFP_LAYOUTS:

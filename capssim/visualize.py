@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from capssim.imageio import write_png
 from capssim.polarization import aop_deg, dolp, stokes_from_12
 
 
@@ -84,7 +85,6 @@ def preview_panel(image12: np.ndarray, *, white: float | None = None, dolp_max: 
 def write_previews(image12: np.ndarray, out_dir, *, prefix: str = "", white: float | None = None,
                    dolp_max: float = 0.5) -> dict[str, Path]:
     """Write ``intensity.png``, ``dolp.png``, ``aop.png`` and ``panel.png`` (with ``prefix``)."""
-    from capssim.imageio import write_png
 
     out_dir = Path(out_dir)
     paths = {

@@ -1,7 +1,9 @@
 """The scene library: one module per scene, each describing geometry, materials, depth and purpose.
 
-Every module defines one :class:`capssim.render.scene_base.Scene` subclass and registers
-it with :func:`register`. ``capssim scenes`` lists them; ``capssim render NAME`` renders one.
+Every module defines one :class:`capssim.render.scene_base.Scene` subclass and registers it
+with the renderer's registry (:func:`capssim.render.scene_registry.register`). Importing this
+package imports every scene module, so the registry then holds the whole library:
+``capssim scenes`` lists it; ``capssim render NAME`` renders one.
 """
 
 from __future__ import annotations
@@ -14,31 +16,15 @@ if __name__ != "capssim.scenes":
 import importlib
 import pkgutil
 
-from capssim.errors import UnknownNameError
+from capssim.render.scene_registry import all_scenes, get_scene, register
 
-SCENES: dict = {}
 
-def register(cls):
-    """Class decorator: add a scene (instance of ``cls``) to the library under ``cls.info.name``."""
-    instance = cls()
-    name = instance.info.name
-    if name in SCENES and type(SCENES[name]) is not cls:
-        raise ValueError(f"scene {name!r} registered twice")
-    SCENES[name] = instance
-    return cls
-
-def _load_all() -> None:
+def _import_all() -> None:
+    """Import (and so register) every scene module of this package, in name order."""
     for module in sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")):
         importlib.import_module(f"{__name__}.{module}")
 
-def get_scene(name: str):
-    """The registered scene called ``name`` (raises :class:`UnknownNameError`)."""
-    _load_all()
-    key = str(name).strip().lower()
-    if key not in SCENES:
-        raise UnknownNameError("scene", name, list(SCENES))
-    return SCENES[key]
 
-def all_scenes() -> dict:
-    _load_all()
-    return dict(sorted(SCENES.items()))
+_import_all()
+
+__all__ = ["all_scenes", "get_scene", "register"]

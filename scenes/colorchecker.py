@@ -19,7 +19,8 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65
-from capssim.scenes import register
+from capssim.render.scene_registry import register
+from capssim.render.spectral import CameraResponse, cached_arrays
 from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
 CHART = "ColorChecker N Ohta"
@@ -30,8 +31,6 @@ CARD_REFLECTANCE = 0.04
 
 def colorchecker_spectra() -> tuple[list[str], np.ndarray, np.ndarray]:
     """Patch names, wavelengths (nm) and reflectances ``(24, K)`` (cached after first use)."""
-    from capssim.render.spectral import cached_arrays
-
     def build():
         import colour
 
@@ -91,8 +90,6 @@ class ColorChecker(FacingCardScene):
         return scene
 
     def truth(self, p, camera):
-        from capssim.render.spectral import CameraResponse
-
         names, lam, refl = colorchecker_spectra()
         response = CameraResponse()
         patches = []

@@ -22,8 +22,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from capssim.errors import InputError
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo, d65, scale_pose, scale_scene
-from capssim.scenes import register
+from capssim.render.scene_registry import register
 
 RADIUS = 0.08
 XS = (-0.425, -0.255, -0.085, 0.085, 0.255, 0.425)
@@ -59,8 +60,6 @@ class Materials(Scene):
     )
 
     def check_params(self, p):
-        from capssim.errors import InputError
-
         if not 0.1 <= p["scale"] <= 100:
             raise InputError("scene_params.scale", p["scale"], "a factor in [0.1, 100]")
 

@@ -18,8 +18,8 @@ from __future__ import annotations
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.render.scene_base import SceneInfo, d65, pattern
-from capssim.scenes import register
+from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
+from capssim.render.scene_registry import register
 from capssim.scenes._targets import DiscCardScene, card_half_size, rectangle
 
 
@@ -61,8 +61,6 @@ class SiemensStar(DiscCardScene):
                          "applies_to": "all 12 channels (unpolarized, neutral)"}}
 
     def analytic_stokes(self, p, camera, xy):
-        from capssim.render.scene_base import evaluate_pattern, plate_coordinates
-
         loc = plate_coordinates(camera, xy)
         s0 = evaluate_pattern("siemens", loc[:, 0], loc[:, 1], cycles=p["cycles"], contrast=p["contrast"],
                               mean=p["mean"], radius=self.disc_radius_m(p))

@@ -20,7 +20,8 @@ from __future__ import annotations
 import math
 
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo
-from capssim.scenes import register
+from capssim.render.scene_registry import register
+from capssim.scenes._procedural import sand_texture, sky_envmap
 from capssim.scenes.window_reflection import fresnel_dolp
 
 N_WATER = 1.333
@@ -46,8 +47,6 @@ class WaterGlare(Scene):
 
     def mitsuba_dict(self, p):
         import mitsuba as mi
-
-        from capssim.scenes._procedural import sand_texture, sky_envmap
 
         T = mi.ScalarTransform4f
         scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 8},

@@ -22,8 +22,10 @@ import math
 
 import numpy as np
 
+from capssim.errors import InputError
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo, d65, scale_pose, scale_scene
-from capssim.scenes import register
+from capssim.render.scene_registry import register
+from capssim.scenes._procedural import poster_texture
 from capssim.scenes.materials import checker
 
 PANE_ANGLE_DEG = 40.0
@@ -57,15 +59,11 @@ class WindowReflection(Scene):
                                      fov_deg=30.0), p["scale"])
 
     def check_params(self, p):
-        from capssim.errors import InputError
-
         if not 0.1 <= p["scale"] <= 100:
             raise InputError("scene_params.scale", p["scale"], "a factor in [0.1, 100]")
 
     def mitsuba_dict(self, p):
         import mitsuba as mi
-
-        from capssim.scenes._procedural import poster_texture
 
         T = mi.ScalarTransform4f
         a = math.radians(PANE_ANGLE_DEG)

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Idempotent set-up: a virtual environment in .venv with everything capssim needs.
 #  - torch==2.13.0 first (a CPU build is cached on the project machines; a bare 'torch' pulls GBs)
-#  - the project and its test extras, editable
+#  - the project with its test (pytest, ruff) and docs (MkDocs) extras, editable
 #  - libllvm19 for Mitsuba's LLVM variants where apt can install it; otherwise capssim falls back
 #    to the scalar variants with a one-line notice.
 set -euo pipefail
@@ -18,7 +18,7 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
 "$VENV/bin/python" -m pip install -q "torch==2.13.0"
-"$VENV/bin/python" -m pip install -q -e ".[test]"
+"$VENV/bin/python" -m pip install -q -e ".[test,docs]"
 
 if ! ls /usr/lib/*/libLLVM.so.19* /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1; then
   SUDO=""

@@ -10,7 +10,6 @@ import subprocess
 import sys
 import textwrap
 import time
-import types
 from pathlib import Path
 
 import pytest
@@ -196,11 +195,12 @@ def test_failing_sample_is_recorded_and_bad_input_stops(tmp_path):
 
 
 def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
-    """With a stand-in capssim.render (simulate underneath), scene samples get the drawn
+    """With a stand-in render_capture (simulate underneath), scene samples get the drawn
     parameters, record_timing=False, and byte-identical regeneration."""
     from conftest import smooth_random_scene
 
-    import capssim
+    import capssim.dataset.sample as sample_module
+    from capssim.psf import PSF
     from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
@@ -216,13 +216,7 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
         return simulate_capture(gt, sensor or make_sensor("none"), seed=seed, dofp_layout=dofp_layout,
                                 kind="rendered", source={"scene": scene})
 
-    fake = types.ModuleType("capssim.render")
-    fake.render_capture = render_capture
-    def info(**defaults):
-        return types.SimpleNamespace(defaults=defaults)
-    fake.list_scenes = lambda: {"materials": info(material="gold", rotation_deg=0.0), "siemens-star": info(cycles=72)}
-    monkeypatch.setitem(sys.modules, "capssim.render", fake)
-    monkeypatch.setattr(capssim, "render", fake, raising=False)
+    monkeypatch.setattr(sample_module, "render_capture", render_capture)
     path = tmp_path / "config.yaml"
     path.write_text(textwrap.dedent("""
         seed: 4
@@ -231,7 +225,7 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
           - scene: materials
             size: {choice: [16, 32]}
             spp: 8
-            scene_params: {material: {choice: [gold, pplastic]}, rotation_deg: {uniform: [0, 90]}}
+            scene_params: {light: {choice: [8.0, 9.5]}, scale: {uniform: [2, 4]}}
             geometry_params: {depth_m: {uniform: [2, 10]}}
             sensor: {noise: gaussian, sigma: 0.01}
             extinction_ratio: 50
@@ -245,9 +239,9 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     assert result.complete
     assert all(c["record_timing"] is False for c in calls)
     first = calls[0]
-    assert first["scene"] == "materials" and first["spp"] == 8 and first["scene_params"]["material"] in ("gold", "pplastic")
-    assert 2 <= first["geometry_params"]["depth_m"] < 10 and 0 <= first["scene_params"]["rotation_deg"] < 90
-    assert first["extinction_ratio"] == 50 and first["psf"] == {"type": "gaussian", "sigma_hr_px": 0.7}
+    assert first["scene"] == "materials" and first["spp"] == 8 and first["scene_params"]["light"] in (8.0, 9.5)
+    assert 2 <= first["geometry_params"]["depth_m"] < 10 and 2 <= first["scene_params"]["scale"] < 4
+    assert first["extinction_ratio"] == 50 and first["psf"] == PSF.gaussian(0.7)
     assert calls[1]["scene_params"] is None and calls[1]["spp"] is None
     assert calls[1]["psf"] is None and calls[1]["extinction_ratio"] is None  # the renderer's defaults
     records = records_by_index(out)
@@ -258,8 +252,8 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     again.mkdir()
     assert generate_sample(cfg.sample_spec(2), str(again))["files"] == records[2]["files"]
     # scene parameters are checked against the scene's own
-    path.write_text(path.read_text().replace("rotation_deg:", "rotaton_deg:"))
-    with pytest.raises(InputError, match=r"sources\[0\]\.scene_params\.rotaton_deg.*material, rotation_deg"):
+    path.write_text(path.read_text().replace("scale:", "scal:"))
+    with pytest.raises(InputError, match=r"sources\[0\]\.scene_params\.scal.*light, scale, sky"):
         load_config(path)
 
 

@@ -18,7 +18,9 @@ from scipy import ndimage
 from capssim.capture import list_reconstructions, read_capture, write_capture, write_reconstruction
 from capssim.conventions import bayer_channel_map, dofp_channel_map
 from capssim.errors import CaptureFormatError, InputError
+from capssim.homography import random_aperture_homographies
 from capssim.imageio import read_gt_scene
+from capssim.measurement import CameraArrayMeasurement, seed_streams
 from capssim.sensor import GaussianSensor, NoNoiseSensor, make_sensor
 from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
 
@@ -100,6 +102,25 @@ def test_noisy_capture_is_uint16_and_decodes(tmp_path):
     assert abs(resid.std() - 0.01) < 0.001
     lr, sat = back.lr_images()
     assert lr.shape == (16, 8, 8) and sat.dtype == bool
+
+
+def test_seed_streams_are_the_spawned_seed_sequence():
+    expected = [np.random.default_rng(s) for s in np.random.SeedSequence(11).spawn(3)]
+    for stream, reference in zip(seed_streams(11), expected):
+        assert np.array_equal(stream.random(5), reference.random(5))
+
+
+def test_simulate_is_the_camera_array_measurement():
+    """simulate_capture's raw frames are y = sensor(A x) of the measurement object with the same seed."""
+    gt = smooth_random_scene(32, seed=4)
+    homographies, _ = random_aperture_homographies(np.random.default_rng(1), (32, 32), shift_max_px=1.5,
+                                                   rotation_max_deg=0.5, scale_max=0.005)
+    sensor = GaussianSensor(sigma=0.01)
+    cap = simulate_capture(gt, sensor, seed=3, aperture_homographies=homographies, extinction_ratio=50.0)
+    measurement = CameraArrayMeasurement(sensor, seed=3, extinction_ratio=50.0)
+    caps, dofp = measurement.measure(gt, homographies)
+    assert np.array_equal(caps, cap.caps_raw) and np.array_equal(dofp, cap.dofp_raw)
+    assert cap.meta["psf"] == measurement.psf.to_spec()
 
 
 def test_gt_reading_8_and_16_bit_and_errors(tmp_path):

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 import capssim.render  # noqa: F401  (sets DRJIT_LIBLLVM_PATH)
+import capssim.scenes  # noqa: F401  (registers the scene library)
 from capssim.polarization import angle_difference_deg, aop_deg, dolp
 from capssim.render.geometry import PinholeCamera, look_at_rotation
 from capssim.render.integrator import render_view

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-import capssim.render  # noqa: F401
+import capssim.scenes  # noqa: F401  (registers the scene library)
 from capssim.capture import read_capture, write_capture
 from capssim.errors import InputError, UnknownNameError
-from capssim.render import list_scenes, render_capture
+from capssim.render import RenderSettings, list_scenes, render_capture
+from capssim.render.scene_registry import register
 from capssim.sensor import GaussianSensor
 
 REQUIRED_SCENES = {"siemens-star", "polarization-star", "aop-wheel", "dolp-ramp", "materials", "window-reflection",
@@ -132,6 +133,23 @@ def test_bad_arguments_raise_clear_errors(kwargs, error):
     args.update(kwargs)
     with pytest.raises(error):
         render_capture("siemens-star", **args)
+
+
+def test_settings_object_and_keyword_options_render_the_same(star):
+    settings = RenderSettings(size=32, spp=4, record_timing=False)
+    cap = render_capture("siemens-star", settings=settings, spp=16)  # keywords replace its fields
+    assert np.array_equal(cap.caps_raw, star.caps_raw) and np.array_equal(cap.dofp_raw, star.dofp_raw)
+    assert cap.meta == star.meta
+    with pytest.raises(TypeError):
+        render_capture("siemens-star", size=16, no_such_option=1)
+
+
+def test_scenes_register_themselves_once():
+    scene_class = type(capssim.scenes.get_scene("aop-wheel"))
+    assert register(scene_class) is scene_class  # the same class again: a no-op
+    impostor = type("Impostor", (scene_class,), {})
+    with pytest.raises(ValueError, match="registered twice"):
+        register(impostor)
 
 
 def test_unknown_scene_and_wrong_variant_for_the_scene():

@@ -17,6 +17,8 @@ from capssim.cli._options import (
     SigmaOption,
     sensor_from_options,
 )
+from capssim.design import DesignInputs, system_design
+from capssim.imageio import atomic_write_json, check_output_free, read_gt_scene
 
 
 def simulate(
@@ -28,7 +30,8 @@ def simulate(
     sigma: Optional[float] = SigmaOption,
     sensor: Optional[str] = SensorOption,
     dofp_layout: str = DofpLayoutOption,
-    psf_sigma: float = typer.Option(0.5, "--psf-sigma", help="Gaussian optical PSF std in HR pixels (0 = none)."),
+    psf_sigma: Optional[float] = typer.Option(
+        None, "--psf-sigma", help="Gaussian optical PSF std in HR pixels (0 = none; default: capssim's default PSF)."),
     shift_max: float = typer.Option(2.0, "--shift-max", help="Max random aperture offset, HR pixels."),
     rotation_max: float = typer.Option(0.5, "--rotation-max", help="Max random aperture rotation, degrees."),
     scale_max: float = typer.Option(0.005, "--scale-max", help="Max random relative scale error."),
@@ -37,8 +40,9 @@ def simulate(
     overwrite: bool = OverwriteOption,
 ) -> None:
     """Simulate CAPS and DoFP captures from a ground-truth scene (paper section 5.2)."""
+    # these pull torch and the operators: loaded when the command runs (start-up time)
     from capssim.capture import write_capture
-    from capssim.imageio import check_output_free, read_gt_scene
+    from capssim.psf import PSF
     from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
 
     t0 = time.perf_counter()
@@ -46,7 +50,7 @@ def simulate(
     image, source = read_gt_scene(gt)
     image, crop_info = prepare_ground_truth(image, crop=crop)
     source.update(crop_info)
-    psf = {"type": "gaussian", "sigma_hr_px": psf_sigma} if psf_sigma > 0 else {"type": "none"}
+    psf = None if psf_sigma is None else PSF.gaussian(psf_sigma)
     capture = simulate_capture(
         image, sensor_from_options(noise, sigma, sensor), seed=seed, psf=psf, dofp_layout=dofp_layout,
         extinction_ratio=extinction_ratio, pose_ranges=PoseRanges(shift_max, rotation_max, scale_max), source=source)
@@ -69,9 +73,6 @@ def design(
     as_json: Optional[Path] = typer.Option(None, "--json", help="Also write the numbers to this JSON file."),
 ) -> None:
     """Print the system-design quantities of the paper (eq. 5-8). Defaults: the paper's prototype."""
-    from capssim.design import DesignInputs, system_design
-    from capssim.imageio import atomic_write_json
-
     d = system_design(DesignInputs(focal_length_mm, f_number, pixel_um, wavelength_nm, apertures, baseline_mm,
                                    depth_m, width_px, height_px))
     rows = [

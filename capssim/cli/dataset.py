@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import sys
 from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+from capssim.errors import InputError
 
 
 def _fmt_duration(seconds: float | None) -> str:
@@ -20,9 +24,7 @@ def _fmt_duration(seconds: float | None) -> str:
 
 
 def _verify(out: Path) -> int:
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
-    from capssim.dataset.verify import verify_dataset
+    from capssim.dataset.verify import verify_dataset  # pulls torch and Dask (start-up time)
 
     with Progress(TextColumn("verifying"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                   transient=True, disable=not sys.stderr.isatty()) as bar:
@@ -53,8 +55,6 @@ def dataset(
     capssim dataset CONFIG -o OUT [--workers N | --scheduler ADDRESS] [--verify]
     capssim dataset --verify OUT
     """
-    from capssim.errors import InputError
-
     if verify and output is None:
         if config is None:
             raise InputError("dataset", "nothing", "a dataset folder", "Run: capssim dataset --verify OUT")
@@ -65,12 +65,10 @@ def dataset(
     if workers is not None and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
 
-    from capssim.dataset.config import load_config
+    from capssim.dataset.config import load_config  # pulls torch, Dask and the scene library (start-up time)
 
     cfg = load_config(config)
     if dry_run:
-        import json
-
         typer.echo(f"config {config}: {cfg.samples} samples, {len(cfg.sources)} sources, seed {cfg.seed}, "
                    f"fingerprint {cfg.fingerprint()[:12]}")
         for index in range(min(cfg.samples, 5)):
@@ -85,9 +83,7 @@ def dataset(
         for name in ("distributed", "bokeh", "tornado"):
             logging.getLogger(name).setLevel(logging.WARNING)
 
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
-
-    from capssim.dataset.generate import generate_dataset
+    from capssim.dataset.generate import generate_dataset  # pulls torch and Dask (start-up time)
 
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[status]}"), transient=False) as bar:

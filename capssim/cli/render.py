@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import List, Optional
 
 import typer
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from capssim.cli._options import (
     DofpLayoutOption,
@@ -18,11 +20,11 @@ from capssim.cli._options import (
     SigmaOption,
     sensor_from_options,
 )
+from capssim.errors import InputError
+from capssim.imageio import check_output_free, write_png
 
 
 def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:
-    from capssim.errors import InputError
-
     out: dict = {}
     for item in pairs or []:
         if "=" not in item:
@@ -38,16 +40,17 @@ def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:
     return out
 
 
-def _psf_spec(psf: str, sigma: float, f_number: float, wavelength_nm: float, pixel_um: float) -> dict:
-    from capssim.errors import InputError
+def _psf(psf: str, sigma: Optional[float], f_number: float, wavelength_nm: float, pixel_um: float):
+    """The :class:`capssim.psf.PSF` the --psf options describe (``sigma`` None: the default Gaussian)."""
+    from capssim.psf import DEFAULT_PSF, PSF  # pulls torch: loaded when a command runs (start-up time)
 
     kind = psf.lower()
     if kind == "gaussian":
-        return {"type": "gaussian", "sigma_hr_px": sigma} if sigma > 0 else {"type": "none"}
+        return DEFAULT_PSF if sigma is None else PSF.gaussian(sigma)
     if kind == "airy":
-        return {"type": "airy", "f_number": f_number, "wavelength_nm": wavelength_nm, "hr_pixel_um": pixel_um / 2.0}
+        return PSF.airy(f_number, wavelength_nm, pixel_um / 2.0)
     if kind == "none":
-        return {"type": "none"}
+        return PSF.none()
     raise InputError("--psf", psf, "gaussian, airy or none")
 
 
@@ -67,7 +70,8 @@ def render(
     variant: str = typer.Option("auto", "--variant", help="Mitsuba variant: auto (cuda -> llvm -> scalar) or a name."),
     dofp_layout: str = DofpLayoutOption,
     psf: str = typer.Option("gaussian", "--psf", help="Optical PSF: gaussian | airy | none."),
-    psf_sigma: float = typer.Option(0.5, "--psf-sigma", help="Gaussian PSF std in HR pixels."),
+    psf_sigma: Optional[float] = typer.Option(None, "--psf-sigma",
+                                              help="Gaussian PSF std in HR pixels (default: capssim's default PSF)."),
     f_number: float = typer.Option(1.65, "--f-number", help="f-number for --psf airy."),
     wavelength_nm: float = typer.Option(550.0, "--wavelength-nm", help="Wavelength for --psf airy."),
     pixel_um: float = typer.Option(4.8, "--pixel-um", help="Raw pixel pitch for --psf airy (HR pitch is half)."),
@@ -91,16 +95,15 @@ def render(
     overwrite: bool = OverwriteOption,
 ) -> None:
     """Render a library scene through the four CAPS apertures and a DoFP camera (Mitsuba 3)."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
+    # these pull torch, the operators and the scene library: loaded when the command runs (start-up time)
+    import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
     from capssim.capture import write_capture
-    from capssim.imageio import check_output_free
     from capssim.render import render_capture
 
     t0 = time.perf_counter()
     check_output_free(output, overwrite=overwrite)
     sens = sensor_from_options(noise, sigma, sensor)
-    psf_spec = _psf_spec(psf, psf_sigma, f_number, wavelength_nm, pixel_um)
+    psf_value = _psf(psf, psf_sigma, f_number, wavelength_nm, pixel_um)
     tasks: dict = {}
     with Progress(TextColumn("{task.description:<22}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
                   TimeElapsedColumn(), transient=True) as bar:
@@ -112,7 +115,7 @@ def render(
         capture = render_capture(
             scene, size=size, spp=spp, seed=seed, sensor=sens, variant=variant, dofp_layout=dofp_layout,
             scene_params=_parse_pairs(param, "--param"), geometry_params=_parse_pairs(geometry, "--geometry"),
-            target_noise=target_noise, record_timing=not no_timing, progress=progress, psf=psf_spec,
+            target_noise=target_noise, record_timing=not no_timing, progress=progress, psf=psf_value,
             extinction_ratio=extinction_ratio, planar=planar, oversample=oversample, camera=camera,
             max_spp=max_spp, measure_savings=measure_savings)
     write_capture(output, capture, overwrite=overwrite)
@@ -133,8 +136,7 @@ def render(
         saved_text = f"saved {saved:+.1f} s ({c['saved_how']})" if saved is not None else ""
         typer.echo(f"  choice {c['choice']}: {c['value']} instead of {c['instead_of']}; {saved_text}")
     if preview is not None:
-        from capssim.imageio import write_png
-        from capssim.visualize import preview_panel
+        from capssim.visualize import preview_panel  # pulls torch (start-up time)
 
         write_png(preview, preview_panel(capture.gt, white=preview_white, dolp_max=preview_dolp_max))
         typer.echo(f"  preview {preview}")
@@ -145,14 +147,12 @@ def scenes(
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
 ) -> None:
     """List the scene library (or describe one scene)."""
-    from dataclasses import asdict
-
-    from capssim.render import list_scenes
+    # the scene library and the renderer pull torch: loaded when the command runs (start-up time)
+    import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
+    from capssim.render import get_scene, list_scenes
 
     infos = list_scenes()
     if name is not None:
-        from capssim.scenes import get_scene
-
         info = get_scene(name).info
         if as_json:
             typer.echo(json.dumps(asdict(info), indent=2))
@@ -173,55 +173,6 @@ def scenes(
         typer.echo(f"{'':<{width}}  {'':<21}         for: {info.purpose}")
 
 
-def render_bench(
-    scenes_csv: str = typer.Option("siemens-star,aop-wheel,colorchecker,textured,materials,window-reflection,"
-                                   "water-glare,polarization-star,dolp-ramp", "--scenes",
-                                   help="Comma-separated scenes for the cost table."),
-    size: int = typer.Option(128, "--size", help="HR size."),
-    spp: Optional[int] = typer.Option(None, "--spp", help="Fixed spp per HR pixel (default: --target-noise)."),
-    target_noise: Optional[float] = typer.Option(None, "--target-noise", help="Monte-Carlo target (default 0.004)."),
-    measure: bool = typer.Option(False, "--measure-savings", help="Measure each choice's saving (slow)."),
-    warp_scene: Optional[str] = typer.Option(None, "--warp-accuracy",
-                                             help="Planar scene: raw error of the planar warp vs real renders."),
-    warp_spp: int = typer.Option(256, "--warp-spp", help="spp per HR pixel for --warp-accuracy."),
-    sampler_scene: Optional[str] = typer.Option(None, "--samplers",
-                                                help="Scene: RMS error of independent vs multijitter sampling."),
-) -> None:
-    """Benchmark tables for the rendering choices: cost per scene, planar-warp accuracy, sampler gain."""
-    from capssim.render import bench
-
-    names = [n.strip() for n in scenes_csv.split(",") if n.strip()]
-    if names:
-        typer.echo(f"render cost, {size} px HR ({'--spp ' + str(spp) if spp else 'target noise'}), "
-                   "time in render_capture")
-        rows = bench.scene_costs(names, size=size, spp=spp, target_noise=target_noise, measure=measure)
-        keys = sorted({k for r in rows for k in r if k.startswith("saved:")})
-        header = f"{'scene':<18} {'variant':<28} {'path':<13} {'spp':>5} {'render s':>9} {'wall s':>7}"
-        typer.echo(header + "".join(f" {k[6:]:>22}" for k in keys))
-        for r in rows:
-            line = (f"{r['scene']:<18} {r['variant']:<28} {r['path']:<13} {r['spp']:>5} {r['render_s']:>9.1f} "
-                    f"{r['wall_s']:>7.1f}")
-            for k in keys:
-                v = r.get(k)
-                line += f" {'-' if v is None or v[0] is None else f'{v[0]:+.1f}' + (' m' if 'measured' in v[1] else ' e'):>22}"
-            typer.echo(line)
-        typer.echo("saved seconds: m = measured by rendering the alternative (compile excluded), e = estimated")
-    if warp_scene:
-        typer.echo(f"\nplanar warp accuracy, {warp_scene}, {size} px, {warp_spp} spp, no PSF: raw frames of apertures "
-                   "1-3 against real per-aperture renders")
-        typer.echo(f"{'method':<42} {'rms':>9} {'rel. to mean':>13} {'MC noise':>9} {'s':>6}")
-        for r in bench.warp_accuracy(warp_scene, size=size, spp=warp_spp):
-            noise = "-" if r["mc_noise_rms"] is None else f"{r['mc_noise_rms']:.5f}"
-            secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
-            typer.echo(f"{r['method']:<42} {r['rms']:>9.5f} {r['relative']:>12.2%} {noise:>9} {secs:>6}")
-    if sampler_scene:
-        typer.echo(f"\nsampler, {sampler_scene} reference view, {size} px: RMS error against a 1024 spp render")
-        typer.echo(f"{'sampler':<12} {'spp':>5} {'rms error':>10}")
-        for r in bench.sampler_gain(sampler_scene, size=size):
-            typer.echo(f"{r['sampler']:<12} {r['spp']:>5} {r['rms_error']:>10.5f}")
-
-
 def register(app: typer.Typer) -> None:
     app.command("render")(render)
     app.command("scenes")(scenes)
-    app.command("render-bench")(render_bench)

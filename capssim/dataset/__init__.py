@@ -11,18 +11,8 @@ The CLI is ``capssim dataset CONFIG -o OUT`` (README "Datasets").
 """
 
 from capssim.dataset.config import DatasetConfig, load_config, parse_config
+from capssim.dataset.generate import generate_dataset
 from capssim.dataset.schema import ConfigError
+from capssim.dataset.verify import verify_dataset
 
 __all__ = ["ConfigError", "DatasetConfig", "generate_dataset", "load_config", "parse_config", "verify_dataset"]
-
-
-def __getattr__(name):  # keep `import capssim.dataset` light: Dask and torch load on use
-    if name == "generate_dataset":
-        from capssim.dataset.generate import generate_dataset
-
-        return generate_dataset
-    if name == "verify_dataset":
-        from capssim.dataset.verify import verify_dataset
-
-        return verify_dataset
-    raise AttributeError(name)

@@ -1,4 +1,4 @@
-"""Dask pieces that need ``distributed`` at import time (imported lazily by generate.py)."""
+"""Dask pieces that need ``distributed`` at import time: the worker plugin that limits compute threads."""
 
 from __future__ import annotations
 

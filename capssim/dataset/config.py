@@ -30,6 +30,7 @@ relative to the config file. Errors name the key path, e.g. ``sources[1].size``.
 from __future__ import annotations
 
 import copy
+import difflib
 import glob
 import hashlib
 import json
@@ -39,16 +40,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import yaml
 
+import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
 from capssim.conventions import POLARIZER_ANGLES_DEG, dofp_layout, dofp_layout_name
-from capssim.dataset.distributions import Choice, Const, Dist, draw_tree, key_rng
+from capssim.dataset.distributions import Choice, Const, Dist, Distribution, draw_tree, key_rng
 from capssim.dataset.schema import (
     AnyMapping,
     Anything,
     Boolean,
     ConfigError,
     Custom,
-    Distribution,
     Integer,
     Mapping,
     Nullable,
@@ -59,7 +61,9 @@ from capssim.dataset.schema import (
     show,
 )
 from capssim.imageio import GT_IMAGE_SUFFIXES
-from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS
+from capssim.psf import DEFAULT_SIGMA_HR_PX
+from capssim.render import list_scenes
+from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS, make_sensor
 
 log = logging.getLogger(__name__)
 
@@ -138,20 +142,6 @@ TOP_SPEC = Mapping({
     "defaults": Mapping(SHARED_SPECS, what="default parameters (sensor, dofp_layout, pose, psf_sigma_hr_px, extinction_ratio)"),
     "sources": Sequence(AnyMapping("a source (gt: FOLDER or scene: NAME)"), min_length=1, what="sources"),
 }, required=("seed", "samples", "sources"), what="a dataset config")
-
-
-# -- rendered scenes (capssim.render, imported lazily) ----------------------------------------
-def render_api():
-    """``(render_capture, list_scenes)`` from :mod:`capssim.render`, or raise a clear error."""
-    try:
-        from capssim.render import list_scenes, render_capture
-    except ImportError as exc:
-        raise RenderUnavailable(str(exc)) from exc
-    return render_capture, list_scenes
-
-
-class RenderUnavailable(ImportError):
-    pass
 
 
 def _possible_values(dist: Dist) -> list | None:
@@ -248,7 +238,7 @@ class DatasetConfig:
             params["pose"] = {"shift_max_px": float(pose.get("shift_max_px", 2.0)),
                               "rotation_max_deg": float(pose.get("rotation_max_deg", 0.5)),
                               "scale_max": float(pose.get("scale_max", 0.005))}
-            params["psf_sigma_hr_px"] = float(drawn.get("psf_sigma_hr_px", 0.5))
+            params["psf_sigma_hr_px"] = float(drawn.get("psf_sigma_hr_px", DEFAULT_SIGMA_HR_PX))
             params["extinction_ratio"] = drawn.get("extinction_ratio")
             resolved["gt_path"] = src.gt_resolved[k]
         else:
@@ -285,8 +275,6 @@ def _canonical_sensor(drawn: dict) -> dict:
 
 def make_sample_sensor(sensor_params: dict):
     """A :class:`capssim.sensor.Sensor` from a sample's canonical sensor parameters."""
-    from capssim.sensor import make_sensor
-
     p = dict(sensor_params)
     noise = p.pop("noise")
     if noise == "none":
@@ -299,8 +287,6 @@ def make_sample_sensor(sensor_params: dict):
 # -- reading and checking -----------------------------------------------------------------------
 def load_config(path) -> DatasetConfig:
     """Read and validate a dataset config file (YAML). Raises :class:`ConfigError`."""
-    import yaml
-
     path = Path(path)
     label = str(path)
     if not path.is_file():
@@ -390,34 +376,19 @@ def _parse_source(raw, index: int, base_dir: Path, selection: str) -> Source:
 
 
 def _check_scene(spec: dict, source_key: str) -> None:
-    """The scene exists, its scene_params are its own, and render_capture takes the optics keys."""
-    import inspect
-
+    """The scene is registered (:mod:`capssim.scenes`) and its scene_params are its own."""
     name, key = spec["scene"], join(source_key, "scene")
-    try:
-        _, list_scenes = render_api()
-    except RenderUnavailable as exc:
-        raise ConfigError(key, repr(name), "a ground-truth source (gt: FOLDER) in this installation",
-                          f"Rendered scenes need the module capssim.render, which cannot be imported here ({exc}).") from None
-    known = sorted(list_scenes())
+    scenes = list_scenes()
+    known = sorted(scenes)
     if name not in known:
-        import difflib
-
         close = difflib.get_close_matches(name, known, n=1)
         raise ConfigError(key, f"unknown scene {name!r}", f"one of {', '.join(known)}",
                           (f"Did you mean {close[0]!r}? " if close else "") + "'capssim scenes' lists them.")
-    defaults = getattr(list_scenes()[name], "defaults", None)
-    if isinstance(defaults, dict):
-        for param in spec.get("scene_params") or {}:
-            if param not in defaults:
-                raise ConfigError(join(join(source_key, "scene_params"), param), "an unknown parameter",
-                                  f"a parameter of scene {name!r}: {', '.join(sorted(defaults)) or 'none'}")
-    render_capture, _ = render_api()
-    accepted = inspect.signature(render_capture).parameters
-    for k, arg in (("psf_sigma_hr_px", "psf"), ("extinction_ratio", "extinction_ratio")):
-        if k in spec and arg not in accepted:
-            raise ConfigError(join(source_key, k), "a value for a rendered scene",
-                              f"no {k} here: this capssim.render takes no {arg!r} argument")
+    defaults = scenes[name].defaults
+    for param in spec.get("scene_params") or {}:
+        if param not in defaults:
+            raise ConfigError(join(join(source_key, "scene_params"), param), "an unknown parameter",
+                              f"a parameter of scene {name!r}: {', '.join(sorted(defaults)) or 'none'}")
 
 
 def _is_gt(path: Path) -> bool:

@@ -264,6 +264,17 @@ def parse_distribution(value, inner: Spec, path: str) -> Dist:
     return Normal(mean, std, clip)
 
 
+class Distribution(Spec):
+    """Schema spec (:mod:`capssim.dataset.schema`): a constant value of ``inner`` or a distribution over such values."""
+
+    def __init__(self, inner: Spec):
+        self.inner = inner
+        self.description = f"{inner.description}, or a distribution over such values"
+
+    def check(self, value, path):
+        return parse_distribution(value, self.inner, path)
+
+
 def draw_tree(tree, master_seed: int, index: int, path: str):
     """Draw every :class:`Dist` in a nested dict/list ``tree`` for sample ``index``."""
     if isinstance(tree, Dist):

@@ -30,6 +30,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable
 
+from capssim.dataset._dask import ThreadLimitPlugin
 from capssim.dataset.config import DatasetConfig
 from capssim.dataset.manifest import (
     MANIFEST,
@@ -247,8 +248,6 @@ def _run_on_dask(config, samples_dir, todo, writer, result, *, t_start, progress
             compute_threads = compute_threads or 1
         else:
             compute_threads = compute_threads or 1
-        from capssim.dataset._dask import ThreadLimitPlugin
-
         client.register_plugin(ThreadLimitPlugin(compute_threads), name=ThreadLimitPlugin.name)
         result.compute_threads = compute_threads
         nthreads = sum(client.nthreads().values()) or 1

@@ -14,13 +14,22 @@ import logging
 import math
 import os
 import socket
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
+import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
+from capssim.capture import write_capture
 from capssim.dataset.augment import rotate_flip_twelve
+from capssim.dataset.config import make_sample_sensor
 from capssim.errors import InputError
+from capssim.imageio import read_gt_scene
+from capssim.psf import PSF
+from capssim.render import render_capture
+from capssim.simulate import PoseRanges, simulate_capture
 
 log = logging.getLogger(__name__)
 
@@ -38,16 +47,12 @@ def limit_threads(n: int) -> None:
     n = max(1, int(n))
     for var in THREAD_ENV_VARS:
         os.environ[var] = str(n)
-    import torch
-
     torch.set_num_threads(n)
     try:
         torch.set_num_interop_threads(n)
     except RuntimeError:  # only allowed before any inter-op work; harmless otherwise
         pass
     _render_threads = n
-    import sys
-
     if "drjit" in sys.modules:
         sys.modules["drjit"].set_thread_count(n)
 
@@ -62,8 +67,6 @@ def _apply_render_threads() -> None:
 
 @functools.lru_cache(maxsize=4)
 def _read_gt_cached(path: str):
-    from capssim.imageio import read_gt_scene
-
     gt, info = read_gt_scene(path)
     gt.setflags(write=False)
     return gt, info
@@ -134,8 +137,6 @@ def fsync_folder(folder: Path) -> None:
 
 def build_capture(spec: dict):
     """The :class:`~capssim.capture.Capture` of a sample spec, and a timing dict (seconds)."""
-    from capssim.dataset.config import make_sample_sensor
-
     params = spec["params"]
     src = params["source"]
     sensor = make_sample_sensor(params["sensor"])
@@ -143,8 +144,6 @@ def build_capture(spec: dict):
                     "params": params}
     timing: dict = {}
     if src["type"] == "gt":
-        from capssim.simulate import PoseRanges, simulate_capture
-
         t = time.perf_counter()
         full, info = _read_gt_cached(spec["resolved"]["gt_path"])
         gt, crop_info = crop_ground_truth(full, src)
@@ -152,22 +151,16 @@ def build_capture(spec: dict):
         source = {"type": info["type"], "path": src["path"], "bit_depth": info.get("bit_depth"), **crop_info}
         if "files" in info:
             source["files"] = info["files"]
-        psf_sigma = params["psf_sigma_hr_px"]
-        psf = {"type": "gaussian", "sigma_hr_px": psf_sigma} if psf_sigma > 0 else {"type": "none"}
         t = time.perf_counter()
-        capture = simulate_capture(gt, sensor, seed=spec["seed"], psf=psf, dofp_layout=params["dofp_layout"],
+        capture = simulate_capture(gt, sensor, seed=spec["seed"], psf=PSF.gaussian(params["psf_sigma_hr_px"]), dofp_layout=params["dofp_layout"],
                                    extinction_ratio=params["extinction_ratio"], pose_ranges=PoseRanges(**params["pose"]),
                                    source=source, extra_meta={"dataset": dataset_meta})
         timing["simulate_s"] = time.perf_counter() - t
     else:
-        from capssim.dataset.config import render_api
-
-        render_capture, _ = render_api()
         _apply_render_threads()
         optics = {}
         if params.get("psf_sigma_hr_px") is not None:
-            sigma = params["psf_sigma_hr_px"]
-            optics["psf"] = {"type": "gaussian", "sigma_hr_px": sigma} if sigma > 0 else {"type": "none"}
+            optics["psf"] = PSF.gaussian(params["psf_sigma_hr_px"])
         if params.get("extinction_ratio") is not None:
             optics["extinction_ratio"] = params["extinction_ratio"]
         t = time.perf_counter()
@@ -190,8 +183,6 @@ def generate_sample(spec: dict, samples_dir: str) -> dict:
     """Make sample ``spec`` under ``samples_dir/NAME`` and return its manifest record (without
     ``finished_at``). The folder is built under a temporary name and renamed when complete;
     an existing folder of that name (an unlisted leftover) is replaced."""
-    from capssim.capture import write_capture
-
     t0 = time.perf_counter()
     capture, timing = build_capture(spec)
     t = time.perf_counter()

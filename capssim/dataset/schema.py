@@ -1,13 +1,14 @@
 """A tiny schema validator for the dataset config: every error names the key path.
 
 A schema is a tree of small spec objects (:class:`Integer`, :class:`Number`, :class:`String`,
-:class:`Mapping`, :class:`Sequence`, :class:`Distribution`, ...). ``spec.check(value, path)``
-returns the normalised value or raises :class:`ConfigError` naming ``path`` (e.g.
-``sources[1].size``), what it got, what is valid and, where it helps, how to fix it.
+:class:`Mapping`, :class:`Sequence`, ...). ``spec.check(value, path)`` returns the normalised
+value or raises :class:`ConfigError` naming ``path`` (e.g. ``sources[1].size``), what it got,
+what is valid and, where it helps, how to fix it.
 
-Distributions (see :mod:`capssim.dataset.distributions`) are values too: a key whose spec is
-``Distribution(Number(minimum=0))`` accepts a constant ``0.01`` or ``{uniform: [0.001, 0.02]}``,
-and the validator checks that every value the distribution can draw satisfies the inner spec.
+Distributions are values too: a key whose spec is ``Distribution(Number(minimum=0))``
+(:class:`capssim.dataset.distributions.Distribution`, built on these specs) accepts a constant
+``0.01`` or ``{uniform: [0.001, 0.02]}``, and the validator checks that every value the
+distribution can draw satisfies the inner spec.
 """
 
 from __future__ import annotations
@@ -238,16 +239,3 @@ class Mapping(Spec):
                                   f"Did you mean {close[0]!r}?" if close else None)
             out[key] = spec.check(item, key_path)
         return out
-
-
-class Distribution(Spec):
-    """A constant value of ``inner`` or a distribution over such values (see distributions.py)."""
-
-    def __init__(self, inner: Spec):
-        self.inner = inner
-        self.description = f"{inner.description}, or a distribution over such values"
-
-    def check(self, value, path):
-        from capssim.dataset.distributions import parse_distribution
-
-        return parse_distribution(value, self.inner, path)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from capssim.capture import read_meta
 from capssim.dataset.manifest import (
     MANIFEST,
     SAMPLES_DIR,
@@ -70,8 +71,6 @@ class VerifyReport:
 
 def _check_sample(samples_dir: Path, record: dict) -> tuple[list[str], list[str]]:
     """(problems, extra files) of one manifest record."""
-    from capssim.capture import read_meta
-
     folder = samples_dir / record["name"]
     if not folder.is_dir():
         return [f"folder {folder} is missing"], []

@@ -3,16 +3,16 @@ Stokes vectors integrated against real camera sensitivities.
 
 Why not Mitsuba's own film + ``stokes`` integrator: in spectral variants ``stokes`` converts
 each Stokes component to linear sRGB (not camera RGB), and ``specfilm`` + ``stokes`` is
-broken in Mitsuba 3.9.1 (RENDERING-NOTES.md). So this module drives the scene's own
+broken in Mitsuba 3.9.1 (``docs/notes/rendering-internals.md``). So this module drives the scene's own
 (nested) integrator, ``volpath`` or ``path``, itself:
 
 1. Rays: pixel ``(i, j)`` gets ``spp`` samples at ``(j - 0.5 + u, i - 0.5 + v)`` with
    ``(u, v)`` a scrambled (0,2)-sequence per pixel (:func:`stratified_samples`), i.e. an
    exact box pixel filter with stratified positions. The light paths use Mitsuba's
    ``multijitter`` sampler laid out per pixel (``set_samples_per_wavefront(spp)``), which
-   stratifies every path dimension across a pixel's samples; on the water-glare scene this
-   cut the RMS error at 64 spp from 0.019 (``independent``) to 0.007, i.e. about 7x fewer
-   samples for the same noise. ``spp`` must therefore be a perfect square (1, 4, 9, ...). Rays come from our own pinhole model
+   stratifies every path dimension across a pixel's samples (far fewer samples for the same
+   noise than ``independent``). ``spp`` must therefore be a perfect square (1, 4, 9, ...).
+   Rays come from our own pinhole model
    (:class:`~capssim.render.geometry.PinholeCamera`, pinned against Mitsuba's
    ``perspective`` sensor by a test), so the stored homographies and the renders agree.
 2. Wavelengths: four per ray, importance-sampled from the camera sensitivities
@@ -30,7 +30,7 @@ broken in Mitsuba 3.9.1 (RENDERING-NOTES.md). So this module drives the scene's 
 
 Kernel reuse: camera parameters, image width, spp, seeds and the chunk offset enter the
 traced kernel as opaque values, so every chunk, pilot and aperture of one scene reuses one
-compiled kernel (a compile costs 1-5 s on 2 cores; a scene renders with exactly one).
+compiled kernel (a scene renders with exactly one compile).
 """
 
 from __future__ import annotations
@@ -45,6 +45,7 @@ from typing import Callable
 import numpy as np
 
 from capssim.errors import InputError
+from capssim.polarization import twelve_from_stokes
 from capssim.render.geometry import PinholeCamera
 from capssim.render.spectral import CameraResponse
 
@@ -304,7 +305,7 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
     var = np.clip(sq / spp - np.square(i_mean), 0.0, None) * (spp / max(spp - 1, 1))
     if nonfinite:
         log.warning("%d non-finite radiance samples were set to 0 (a known Mitsuba bug in some scalar "
-                    "variants; see RENDERING-NOTES.md)", nonfinite)
+                    "variants; see docs/notes/rendering-internals.md)", nonfinite)
     return ViewRender(mean=mean, sample_variance=var, spp=int(spp), seconds=seconds, nonfinite_samples=nonfinite,
                       lanes=height * width * int(spp))
 
@@ -331,7 +332,5 @@ def combine_weighted(views: list[ViewRender], noise_rms: list[float]) -> ViewRen
 
 def stokes_to_twelve(stokes9: np.ndarray) -> np.ndarray:
     """``(9 [S0.RGB, S1.RGB, S2.RGB], H, W)`` -> ``(12, H, W)`` analyzer images (Malus, c = 3p + k)."""
-    from capssim.polarization import twelve_from_stokes
-
     s = stokes9.reshape(3, 3, *stokes9.shape[1:])
     return twelve_from_stokes(s)

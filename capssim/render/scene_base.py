@@ -1,7 +1,7 @@
 """What a scene in ``scenes/`` provides, and the analytic Mitsuba plugins the scenes share.
 
-A scene is one module in ``scenes/`` with one :class:`Scene` subclass registered by
-:func:`scenes.register`. It says, in one place:
+A scene is one module of :mod:`capssim.scenes` with one :class:`Scene` subclass registered by
+:func:`capssim.render.scene_registry.register`. It says, in one place:
 
 * :class:`SceneInfo`: name, description, purpose, geometry, materials, depth, known
   truth, and what it needs from the renderer (``planar``, ``polarizing``, ``spectral``);

@@ -10,7 +10,7 @@ with ``s_c`` a measured camera spectral sensitivity (colour-science
 linearly interpolated) and ``wb_c`` a fixed white balance: a white Lambertian reflector
 under the D65 illuminant of radiance 1 reads ``(1, 1, 1)``. Light is integrated separately
 for each Stokes component ``S0, S1, S2`` (they are linear in the radiance), which is what
-Mitsuba's ``stokes`` integrator cannot do (it converts to sRGB; RENDERING-NOTES.md).
+Mitsuba's ``stokes`` integrator cannot do (it converts to sRGB; docs/notes/rendering-internals.md).
 
 Wavelengths are importance-sampled with a pdf proportional to ``D65 * sum_c wb_c s_c``
 (each channel's daylight response, mixed equally), four per ray (hero wavelengths,
@@ -20,12 +20,16 @@ estimator ``mean_i S(lambda_i) wb_c s_c(lambda_i) / p(lambda_i)`` has bounded we
 
 from __future__ import annotations
 
+import io
+import os
 from dataclasses import dataclass
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
 from capssim.errors import InputError, UnknownNameError
+from capssim.imageio import atomic_write_bytes
 
 DEFAULT_CAMERA = "Nikon 5100 (NPL)"
 WAVELENGTH_STEP_NM = 1.0
@@ -34,9 +38,6 @@ N_WAVELENGTHS = 4
 
 
 def _cache_file(name: str):
-    import os
-    from pathlib import Path
-
     base = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "capssim"
     safe = "".join(ch if ch.isalnum() else "_" for ch in name)
     return base / f"{safe}.npz"
@@ -56,10 +57,6 @@ def cached_arrays(name: str, build) -> dict:
         pass
     data = build()
     try:
-        import io
-
-        from capssim.imageio import atomic_write_bytes
-
         buf = io.BytesIO()
         np.savez(buf, **data)
         atomic_write_bytes(path, buf.getvalue())

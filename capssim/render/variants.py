@@ -14,11 +14,8 @@ Backends, fastest first: ``cuda`` -> ``llvm`` -> ``scalar``. The LLVM backend ne
 libLLVM >= 16 (Debian's libLLVM 15 aborts with ``Cannot select ... fminimum``);
 :func:`configure_llvm_environment` points ``DRJIT_LIBLLVM_PATH`` at libLLVM 19 when it is
 installed and no path was set. The scalar backend has no ``mono`` variants, so there a
-neutral scene uses ``scalar_spectral[_polarized]``.
-
-Measured on the 2-core development machine (``capssim render-bench``-style runs in the README
-render section): ``llvm_ad_spectral_polarized`` about 5 Msamples/s, ``scalar_spectral_polarized``
-about 0.7 Msamples/s.
+neutral scene uses ``scalar_spectral[_polarized]``. The throughput of each backend is in
+``docs/notes/rendering-internals.md``.
 """
 
 from __future__ import annotations

@@ -28,24 +28,15 @@ Steps, for a mosaic ``M`` ``(H, W)`` on [0, 1]:
    (:func:`capssim.reconstruct.residual_interpolation.residual_interpolation`): MLRI tentative estimate in 11x11
    windows with the step-2 Laplacian, clipped, plus the bilinearly interpolated residual.
 
-Numerical choices (where the descriptions are silent), each measured by
-``python -m reconstruct.dofp_bench --eari-variants``:
+Numerical choices where the descriptions are silent (their measured cost: docs, notes/dofp-eari.md):
 
-* ``eps`` of the MLRI slope: 1e-10 (on [0, 1] data) instead of the reference code's 1e-32. With
-  1e-32 the slope ``a`` is a ratio of rounding noise wherever the guide's Laplacian vanishes
-  (flat or linear regions), which in float32 breaks exactness on linear ramps; 1e-10 is far below
-  any real texture's Laplacian energy (~1e-6 and up). Measured cost on the benchmark: none (float64
-  with 1e-32 and float32 with 1e-10 agree to 0.01 dB on both Qiu scenes).
+* ``eps`` of the MLRI slope: 1e-10 (on [0, 1] data) instead of the reference code's 1e-32, which
+  makes the slope a ratio of rounding noise where the guide's Laplacian vanishes;
 * window weights ``1 / max(e_k, weight_floor)`` with ``weight_floor = 0.01 / 255^2``: the RI
-  papers' inverse-residual weighting with the reference threshold 0.01 of 8-bit-scale data
-  rescaled to [0, 1] data. The reference EARI code applies 0.01 to [0, 1] data, which makes the
-  weights uniform in practice; that variant scores 0.0-0.4 dB lower (DoLP on qiu-kettle 38.94 vs
-  39.38 dB) and is available as ``weight_floor=0.01``.
-* intermediate estimates, and the output, are clipped to ``[0, max(1, max(M))]`` (the reference
-  code leaves the final residual step unclipped; negative intensities would make DoLP meaningless).
-* filters mirror-pad (``x[-k] = x[k]``), which keeps the mosaic phase at the borders; the
-  reference code replicates the edge pixel. Only the outermost few pixels differ (outside the
-  15-pixel frame that the benchmark metrics crop).
+  papers' threshold 0.01 on 8-bit-scale data rescaled to [0, 1] (``weight_floor=0.01`` gives the
+  reference code's variant);
+* intermediate estimates and the output are clipped to ``[0, max(1, max(M))]``;
+* filters mirror-pad (``x[-k] = x[k]``), which keeps the mosaic phase at the borders.
 """
 
 from __future__ import annotations

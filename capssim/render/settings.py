@@ -1,0 +1,121 @@
+"""What a render of a library scene may be asked for: :class:`RenderSettings`, with its checks and defaults."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from capssim.errors import InputError
+from capssim.psf import PSF, as_psf
+from capssim.render.geometry import RigTolerances
+from capssim.render.spectral import DEFAULT_CAMERA
+from capssim.sensor import NoNoiseSensor, Sensor, noise_sigma_estimate
+
+#: smallest HR ground-truth size (pixels)
+MIN_SIZE = 16
+#: default Monte-Carlo target (RMS std of the 12-channel ground truth, full scale) without sensor noise
+DEFAULT_TARGET_NOISE = 0.004
+#: with sensor noise: this fraction of the sensor's noise at mid grey (Monte-Carlo adds <= 12% to the total)
+TARGET_NOISE_FRACTION_OF_SENSOR = 0.5
+#: upper limit of samples per HR ground-truth pixel when spp comes from the target noise
+DEFAULT_MAX_SPP = 1024
+#: planar warp: the reference is rendered 4x finer than the ground truth up to this size, 2x above
+#: (to bound memory); docs/notes/rendering-internals.md gives the accuracy of each factor
+OVERSAMPLE_4_MAX_SIZE = 512
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Options of :func:`capssim.render.render_capture` (all optional).
+
+    ``size``: HR ground-truth size in pixels (raw frames are ``size/2``). ``spp``: samples per
+    HR ground-truth pixel (``None``: from ``target_noise``, the RMS Monte-Carlo std wanted in
+    the 12-channel ground truth on [0, 1] full scale; default :data:`DEFAULT_TARGET_NOISE`
+    without sensor noise, :data:`TARGET_NOISE_FRACTION_OF_SENSOR` of the sensor's mid-grey
+    noise with it), at most ``max_spp``. ``seed``: the array errors and the sensor noise
+    (:func:`capssim.measurement.seed_streams`); ``render_seed`` (default ``seed``) seeds only
+    the Monte-Carlo sampling, so two renders of the same array geometry can differ in noise
+    alone. ``sensor`` ``None`` is noiseless. ``variant``: Mitsuba variant or ``auto``.
+    ``scene_params`` / ``geometry_params``: the scene's parameters and the array's
+    :class:`~capssim.render.geometry.RigTolerances`. ``psf``: the optical PSF (default
+    :data:`capssim.psf.DEFAULT_PSF`). ``extinction_ratio``: of the polarizers (``None``:
+    ideal). ``planar``: ``auto`` (scene flag + measured parallax), ``on`` or ``off``;
+    ``oversample``: the planar warp's render grid factor (``None``: 4 up to
+    :data:`OVERSAMPLE_4_MAX_SIZE` px, else 2). ``camera``: the camera sensitivities.
+    ``progress(stage, done, total)`` is called as rays finish. With ``record_timing=False``
+    ``meta.json`` holds no wall times (byte-identical regeneration). ``measure_savings`` also
+    renders the alternatives each choice avoided and records the measured times (slow).
+    """
+
+    size: int = 256
+    spp: int | None = None
+    seed: int = 0
+    sensor: Sensor | None = None
+    variant: str = "auto"
+    dofp_layout: object = "sony"
+    scene_params: dict | None = None
+    geometry_params: dict | None = None
+    target_noise: float | None = None
+    record_timing: bool = True
+    progress: Callable[[str, int, int], None] | None = None
+    psf: PSF | dict | None = None
+    extinction_ratio: float | None = None
+    planar: str = "auto"
+    oversample: int | None = None
+    camera: str = DEFAULT_CAMERA
+    max_spp: int = DEFAULT_MAX_SPP
+    measure_savings: bool = False
+    render_seed: int | None = None
+
+    def checked(self) -> "RenderSettings":
+        """These settings checked (:class:`~capssim.errors.InputError` otherwise), with defaults filled in.
+
+        The result has an integer ``size``, a ``sensor``, a :class:`~capssim.psf.PSF`, the
+        ``oversample`` factor in effect and an integer ``render_seed``.
+        """
+        size = _check_size(self.size)
+        sensor = self.sensor if self.sensor is not None else NoNoiseSensor()
+        if not isinstance(sensor, Sensor):
+            raise InputError("sensor", type(sensor).__name__, "a capssim.sensor.Sensor or None")
+        RigTolerances.from_params(self.geometry_params)
+        psf = as_psf(self.psf)
+        if self.planar not in ("auto", "on", "off"):
+            raise InputError("planar", self.planar, "'auto', 'on' or 'off'")
+        oversample = (4 if size <= OVERSAMPLE_4_MAX_SIZE else 2) if self.oversample is None else self.oversample
+        if oversample not in (1, 2, 3, 4):
+            raise InputError("oversample", self.oversample, "1, 2, 3 or 4 (or None for automatic)")
+        spp = self.spp
+        if spp is not None and not (isinstance(spp, (int, np.integer)) and 1 <= spp <= 1 << 16):
+            raise InputError("spp", spp, "an integer in [1, 65536] (samples per HR pixel), or None for --target-noise")
+        if self.target_noise is not None and not (math.isfinite(self.target_noise) and self.target_noise > 0):
+            raise InputError("target_noise", self.target_noise, "a positive number (RMS std on [0, 1] full scale)")
+        if self.extinction_ratio is not None and not self.extinction_ratio >= 1.0:
+            raise InputError("extinction_ratio", self.extinction_ratio, "a number >= 1, or None for ideal polarizers")
+        render_seed = self.seed if self.render_seed is None else int(self.render_seed)
+        return replace(self, size=size, sensor=sensor, psf=psf, oversample=oversample, render_seed=render_seed)
+
+    def target(self) -> float:
+        """The Monte-Carlo target: ``target_noise``, or the default for this sensor (checked settings)."""
+        if self.target_noise is not None:
+            return self.target_noise
+        sigma = noise_sigma_estimate(self.sensor, 0.5)
+        if sigma <= 0:
+            return DEFAULT_TARGET_NOISE
+        return max(1e-3, TARGET_NOISE_FRACTION_OF_SENSOR * sigma)
+
+
+def _check_size(size) -> int:
+    try:
+        s = int(size)
+    except (TypeError, ValueError):
+        raise InputError("size", repr(size), "an integer") from None
+    if s != size or s < MIN_SIZE or s % 4:
+        raise InputError("size", size, f"a multiple of 4 that is at least {MIN_SIZE} (the HR ground-truth size)",
+                         f"Try --size {max(MIN_SIZE, s - s % 4)}.")
+    return s
+
+
+__all__ = ["DEFAULT_MAX_SPP", "DEFAULT_TARGET_NOISE", "MIN_SIZE", "RenderSettings"]
