@@ -12,14 +12,53 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import erf, j1
 
 from capssim.errors import InputError
-from capssim.operators.blur import airy_psf_kernel, gaussian_psf_kernel
 
 #: default Gaussian PSF std, in HR pixels (half a raw pixel)
 DEFAULT_SIGMA_HR_PX = 0.5
 
 PSF_TYPES = ("none", "gaussian", "airy", "kernel")
+
+
+def gaussian_psf_kernel(sigma_px: float, *, truncate: float = 3.5) -> np.ndarray:
+    """Pixel-integrated isotropic Gaussian PSF of std ``sigma_px`` (pixels), odd square, sums to 1."""
+    if not (sigma_px >= 0 and math.isfinite(sigma_px)):
+        raise InputError("sigma_px", sigma_px, "a finite number >= 0 (pixels)")
+    if sigma_px < 1e-6:
+        return np.ones((1, 1))
+    radius = max(1, int(math.ceil(truncate * sigma_px)))
+    edges = np.arange(-radius, radius + 2) - 0.5
+    cdf = 0.5 * (1 + erf(edges / (math.sqrt(2) * sigma_px)))
+    taps = np.diff(cdf)
+    taps /= taps.sum()
+    return np.outer(taps, taps)
+
+
+def airy_psf_kernel(f_number: float, wavelength_nm: float, pixel_um: float, *,
+                    rings: int = 3, supersample: int = 9) -> np.ndarray:
+    """Diffraction-limited Airy PSF ``[2 J1(v)/v]^2``, ``v = pi r / (lambda N)``, pixel-integrated.
+
+    ``pixel_um`` is the pitch of the grid it is applied on. The kernel covers ``rings``
+    dark rings (first zero at ``1.22 lambda N``) and is normalised to sum 1.
+    """
+    for arg, value in (("f_number", f_number), ("wavelength_nm", wavelength_nm), ("pixel_um", pixel_um)):
+        if not (value > 0 and math.isfinite(value)):
+            raise InputError(arg, value, "a finite positive number")
+    lam_n_um = wavelength_nm * 1e-3 * f_number
+    radius_um = (rings + 0.22) * lam_n_um
+    radius = max(1, int(math.ceil(radius_um / pixel_um)))
+    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+    grid = np.arange(-radius, radius + 1)
+    fine = (grid[:, None] + offsets[None, :]).ravel() * pixel_um
+    yy, xx = np.meshgrid(fine, fine, indexing="ij")
+    v = np.pi * np.hypot(xx, yy) / lam_n_um
+    with np.errstate(invalid="ignore", divide="ignore"):
+        psf = np.where(v < 1e-9, 1.0, (2 * j1(v) / np.where(v < 1e-9, 1.0, v)) ** 2)
+    n = 2 * radius + 1
+    psf = psf.reshape(n, supersample, n, supersample).sum(axis=(1, 3))
+    return psf / psf.sum()
 
 
 @dataclass(frozen=True)
@@ -121,3 +160,4 @@ def as_psf(psf: "PSF | dict | None") -> PSF:
     if psf is None:
         return DEFAULT_PSF
     return psf if isinstance(psf, PSF) else PSF.from_spec(psf)
+

@@ -8,8 +8,8 @@ from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
 from capssim.geometry import ArrayGeometry, lr_homographies
 from capssim.homography import similarity
-from capssim.operators.blur import gaussian_psf_kernel
 from capssim.operators.camera import lr_sampling_operator
+from capssim.psf import gaussian_psf_kernel
 from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
 from capssim.reconstruct.rearrange import Observations
 

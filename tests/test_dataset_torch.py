@@ -15,8 +15,8 @@ from capssim.dataset.generate import generate_dataset
 from capssim.dataset.torch import CaptureDataset, crop_homographies
 from capssim.errors import CaptureFormatError, InputError
 from capssim.homography import lr_homographies
-from capssim.operators.blur import gaussian_psf_kernel
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
+from capssim.psf import gaussian_psf_kernel
 
 
 @pytest.fixture(scope="module")

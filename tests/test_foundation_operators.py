@@ -26,14 +26,13 @@ from capssim.operators import (
     Stack,
     Warp,
     adjointness_error,
-    airy_psf_kernel,
     caps_raw_operator,
     dofp_raw_operator,
-    gaussian_psf_kernel,
     lr_observation_operator,
     lr_sampling_operator,
     operator_norm_estimate,
 )
+from capssim.psf import airy_psf_kernel, gaussian_psf_kernel
 
 TOL = 1e-10
 HR = (24, 32)

@@ -39,7 +39,7 @@ def _write_png_scene(folder: Path, gt12: np.ndarray, bits: int = 8) -> Path:
 
 def _by_hand_raw(gt: np.ndarray, meta: dict) -> np.ndarray:
     """An independent implementation (scipy) of the documented model, from meta.json alone."""
-    from capssim.operators.blur import gaussian_psf_kernel
+    from capssim.psf import gaussian_psf_kernel
 
     hh, ww = gt.shape[1:]
     kernel = gaussian_psf_kernel(meta["psf"]["sigma_hr_px"])
@@ -67,7 +67,7 @@ def test_noise_free_capture_reproduced_by_hand(tmp_path):
     back = read_capture(tmp_path / "cap")
     np.testing.assert_allclose(back.caps_raw, _by_hand_raw(back.gt, back.meta), atol=2e-6)
     # reference aperture R = 2x2 box of the PSF-blurred GT red channel at 0 deg
-    from capssim.operators.blur import gaussian_psf_kernel
+    from capssim.psf import gaussian_psf_kernel
 
     red = ndimage.correlate(back.gt[0].astype(np.float64), gaussian_psf_kernel(0.5), mode="nearest")
     box = red.reshape(24, 2, 24, 2).mean(axis=(1, 3))

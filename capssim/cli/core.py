@@ -19,6 +19,7 @@ from capssim.cli._options import (
 )
 from capssim.design import DesignInputs, system_design
 from capssim.imageio import atomic_write_json, check_output_free, read_gt_scene
+from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 
 
 def simulate(
@@ -30,8 +31,8 @@ def simulate(
     sigma: Optional[float] = SigmaOption,
     sensor: Optional[str] = SensorOption,
     dofp_layout: str = DofpLayoutOption,
-    psf_sigma: Optional[float] = typer.Option(
-        None, "--psf-sigma", help="Gaussian optical PSF std in HR pixels (0 = none; default: capssim's default PSF)."),
+    psf_sigma: float = typer.Option(DEFAULT_SIGMA_HR_PX, "--psf-sigma",
+                                    help="Gaussian optical PSF std in HR pixels (0 = none)."),
     shift_max: float = typer.Option(2.0, "--shift-max", help="Max random aperture offset, HR pixels."),
     rotation_max: float = typer.Option(0.5, "--rotation-max", help="Max random aperture rotation, degrees."),
     scale_max: float = typer.Option(0.005, "--scale-max", help="Max random relative scale error."),
@@ -42,7 +43,6 @@ def simulate(
     """Simulate CAPS and DoFP captures from a ground-truth scene (paper section 5.2)."""
     # these pull torch and the operators: loaded when the command runs (start-up time)
     from capssim.capture import write_capture
-    from capssim.psf import PSF
     from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
 
     t0 = time.perf_counter()
@@ -50,7 +50,7 @@ def simulate(
     image, source = read_gt_scene(gt)
     image, crop_info = prepare_ground_truth(image, crop=crop)
     source.update(crop_info)
-    psf = None if psf_sigma is None else PSF.gaussian(psf_sigma)
+    psf = PSF.gaussian(psf_sigma)
     capture = simulate_capture(
         image, sensor_from_options(noise, sigma, sensor), seed=seed, psf=psf, dofp_layout=dofp_layout,
         extinction_ratio=extinction_ratio, pose_ranges=PoseRanges(shift_max, rotation_max, scale_max), source=source)

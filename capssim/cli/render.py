@@ -22,6 +22,7 @@ from capssim.cli._options import (
 )
 from capssim.errors import InputError
 from capssim.imageio import check_output_free, write_png
+from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 
 
 def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:
@@ -40,13 +41,11 @@ def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:
     return out
 
 
-def _psf(psf: str, sigma: Optional[float], f_number: float, wavelength_nm: float, pixel_um: float):
-    """The :class:`capssim.psf.PSF` the --psf options describe (``sigma`` None: the default Gaussian)."""
-    from capssim.psf import DEFAULT_PSF, PSF  # pulls torch: loaded when a command runs (start-up time)
-
+def _psf(psf: str, sigma: float, f_number: float, wavelength_nm: float, pixel_um: float) -> PSF:
+    """The :class:`capssim.psf.PSF` the --psf options describe."""
     kind = psf.lower()
     if kind == "gaussian":
-        return DEFAULT_PSF if sigma is None else PSF.gaussian(sigma)
+        return PSF.gaussian(sigma)
     if kind == "airy":
         return PSF.airy(f_number, wavelength_nm, pixel_um / 2.0)
     if kind == "none":
@@ -70,8 +69,7 @@ def render(
     variant: str = typer.Option("auto", "--variant", help="Mitsuba variant: auto (cuda -> llvm -> scalar) or a name."),
     dofp_layout: str = DofpLayoutOption,
     psf: str = typer.Option("gaussian", "--psf", help="Optical PSF: gaussian | airy | none."),
-    psf_sigma: Optional[float] = typer.Option(None, "--psf-sigma",
-                                              help="Gaussian PSF std in HR pixels (default: capssim's default PSF)."),
+    psf_sigma: float = typer.Option(DEFAULT_SIGMA_HR_PX, "--psf-sigma", help="Gaussian PSF std in HR pixels."),
     f_number: float = typer.Option(1.65, "--f-number", help="f-number for --psf airy."),
     wavelength_nm: float = typer.Option(550.0, "--wavelength-nm", help="Wavelength for --psf airy."),
     pixel_um: float = typer.Option(4.8, "--pixel-um", help="Raw pixel pitch for --psf airy (HR pitch is half)."),

@@ -10,7 +10,7 @@ from capssim.operators.base import (
     adjointness_error,
     operator_norm_estimate,
 )
-from capssim.operators.blur import Convolve, airy_psf_kernel, gaussian_psf_kernel
+from capssim.operators.blur import Convolve
 from capssim.operators.camera import (
     caps_raw_operator,
     dofp_raw_operator,
@@ -25,8 +25,8 @@ from capssim.operators.warp import Warp, warp_image
 __all__ = [
     "Adjoint", "Analyzer", "BayerMosaic", "BayerSplit", "ChannelMix", "ChannelSample", "ChannelSelect",
     "Composition", "Convolve", "Decimation", "DoFPMosaic", "IntegrateDecimate", "LinearOperator",
-    "PixelIntegration", "Reshape", "Stack", "Warp", "adjointness_error", "airy_psf_kernel", "analyzer_matrix",
-    "caps_raw_operator", "dofp_raw_operator", "gaussian_psf_kernel", "lr_channel_matrix",
+    "PixelIntegration", "Reshape", "Stack", "Warp", "adjointness_error", "analyzer_matrix",
+    "caps_raw_operator", "dofp_raw_operator", "lr_channel_matrix",
     "lr_observation_operator", "lr_sampling_operator", "operator_norm_estimate",
     "warp_image",
 ]
