@@ -10,7 +10,7 @@ with window means computed by box filters. The confidence is ``L_k = exp(-r_k / 
 (eq. 13), and the confidence between channels k and j is the smaller of the two
 directions (eq. 14), i.e. ``exp(-max(r(k|j), r(j|k)) / nu)``.
 
-Choices where the paper is silent (documented in the README):
+Choices where the paper is silent:
 
 * the residual is the window *sum* (n_k terms, as eq. 12 writes it), window 9x9 LR
   pixels (``radius=4``, the window of the paper's Fig. 5) and ``eps = 1e-4`` on [0, 1] data;
@@ -26,14 +26,26 @@ A zero-variance guide gives ``a = 0`` and ``r = n var_A`` (no division by zero).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
 
+DEFAULT_NU = 0.2
 DEFAULT_RADIUS = 4
 DEFAULT_EPS = 1e-4
+
+
+@dataclass(frozen=True)
+class CAGFParameters:
+    """The CAGF settings: ``nu`` of eq. 13, window radius (LR pixels) and ``eps`` of eq. 12."""
+
+    nu: float = DEFAULT_NU
+    radius: int = DEFAULT_RADIUS
+    eps: float = DEFAULT_EPS
 
 
 def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
@@ -75,7 +87,7 @@ def guided_filter_residual(target: torch.Tensor, guide: torch.Tensor, *, radius:
     return n * torch.clamp(var_a - cov * cov / (var_g + eps), min=0)
 
 
-def pairwise_confidence(channels: torch.Tensor, *, nu: float = 0.2, radius: int = DEFAULT_RADIUS,
+def pairwise_confidence(channels: torch.Tensor, *, nu: float = DEFAULT_NU, radius: int = DEFAULT_RADIUS,
                         eps: float = DEFAULT_EPS) -> torch.Tensor:
     """Eq. 13-14 for every pair of the ``C`` aligned channel images ``(C, h, w)``.
 
@@ -165,7 +177,7 @@ def resize_to_hr(maps: torch.Tensor, reference_homography, hr_shape: tuple[int, 
 
 
 def cagf_confidence(images: torch.Tensor, homographies, channel_of: torch.Tensor, n_channels: int,
-                    hr_shape: tuple[int, int], *, weights: torch.Tensor | None = None, nu: float = 0.2,
+                    hr_shape: tuple[int, int], *, weights: torch.Tensor | None = None, nu: float = DEFAULT_NU,
                     radius: int = DEFAULT_RADIUS, eps: float = DEFAULT_EPS, reference: int = 0) -> torch.Tensor:
     """The HR confidence ``L^H`` ``(C, C, H, W)`` between all channel pairs (eq. 12-14, 16).
 
@@ -179,5 +191,5 @@ def cagf_confidence(images: torch.Tensor, homographies, channel_of: torch.Tensor
     return resize_to_hr(conf_lr, np.asarray(homographies)[reference], hr_shape)
 
 
-__all__ = ["align_to_reference", "box_mean", "cagf_confidence", "channel_images", "guided_filter_residual",
+__all__ = ["CAGFParameters", "align_to_reference", "box_mean", "cagf_confidence", "channel_images", "guided_filter_residual",
            "pairwise_confidence", "resize_to_hr", "window_count"]

@@ -25,8 +25,8 @@ convolution (scattered-data interpolation) and a guided-filter style linear mode
 
 Differences to SCSR: local windows instead of global spectral clusters; no iterative
 reconstruction inside the initialization. Its own accuracy is reported by
-``reconstruct.methods.caps`` (``init_psnr_db`` in the JSON record, when ground truth is
-given) and in the README.
+``capssim.reconstruct.methods.caps`` (``init_psnr_db`` in the JSON record, when ground
+truth is given).
 """
 
 from __future__ import annotations

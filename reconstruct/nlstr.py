@@ -25,13 +25,16 @@ For each reference block:
    ``lambda/mu = c1 / |alpha|`` and ``t = eta/mu = c2 / |alpha - beta|^2``.
    ``adaptive="element"`` (default) takes these norms per coefficient (re-weighted l1,
    as in the NCSR-style rule the paper cites [17]); ``adaptive="block"`` takes the
-   literal block norms ``||alpha||_1`` and ``||alpha - beta||_2^2``, which on [0, 1]
-   data give thresholds of ~1e-4 and so almost no denoising (README, measured).
+   literal block norms ``||alpha||_1`` and ``||alpha - beta||_2^2`` (see
+   docs/notes/solver.md for why the default is per coefficient).
 4. **Aggregation** (eq. 29): ``X = (sum_k R_k^T 1)^-1 sum_k R_k^T (C x1 Phi_h x2 Phi_w
    x3 Phi_c)``, by ``index_add`` into the image.
 
 Memory is bounded by processing reference rows in strips (each with the rows its
-search window needs), sized by ``strip_bytes``. On CUDA the same code runs unchanged.
+search window needs), sized by ``strip_mb``. On CUDA the same code runs unchanged.
+
+The block-matching schedule across ADMM iterations belongs to the prior,
+:class:`capssim.reconstruct.nlstr_prior.NLSTRPrior`.
 """
 
 from __future__ import annotations
@@ -61,7 +64,12 @@ class NLSTRParameters:
     adaptive: str = "element"
     weight_bandwidth: float = 1.0
     eps: float = 1e-8
-    strip_bytes: int = 32 * 2**20
+    strip_mb: float = 48.0  # working-set bound of one strip of reference rows (MiB)
+
+    @property
+    def strip_bytes(self) -> int:
+        """``strip_mb`` in bytes."""
+        return int(self.strip_mb * 2**20)
 
     def validate(self) -> None:
         if self.block < 2:
@@ -156,7 +164,7 @@ class NonlocalSparseTensor:
         return b * (b + 1) + c * (c + 1) // 2
 
     def _plan_strips(self) -> list[_Strip]:
-        """Group reference rows so each strip's Gram maps fit in ``strip_bytes``."""
+        """Group reference rows so each strip's Gram maps fit in ``strip_mb``."""
         c, h, w = self.shape
         b, s, r = self.params.block, self.params.stride, self.params.search_radius
         per_row = (w - b + 1) * self._map_planes() * 4 + 15 * c * w * 4

@@ -32,8 +32,9 @@ def test_mu_schedule_eq27():
 
 
 def test_parameter_validation():
+    # the block-matching schedule's own checks: tests/test_caps_nlstr.py (MatchSchedule)
     for bad in (ADMMParameters(iterations=-1), ADMMParameters(dt=0), ADMMParameters(grow_step=0),
-                ADMMParameters(rematch_min_gap=5, rematch_max_gap=2)):
+                ADMMParameters(mu0=float("nan"))):
         with pytest.raises(InputError):
             bad.validate()
 

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from capssim.errors import CapssimError, InputError, UnknownNameError
+from capssim.reconstruct.methods.caps import CapsOptions
 from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
@@ -166,3 +167,21 @@ def test_cuda_matches_cpu():
     gpu, rec = reconstruct(cap, "caps", device="cuda", true_warps=True, iterations=3)
     assert rec["device"].startswith("cuda")
     assert np.abs(cpu.image - gpu.image).max() < 1e-2
+
+
+def test_options_compose_the_parameter_objects_under_the_same_names():
+    """CapsOptions holds one parameter object per step; the option names and the record stay flat."""
+    names = ["iterations", "mu0", "grow_rate", "grow_step", "dt", "n_similar", "n_similar_step", "n_similar_min",
+             "rematch_change", "rematch_min_gap", "rematch_max_gap", "block", "stride", "search_radius", "c1", "c2",
+             "adaptive", "weight_bandwidth", "strip_mb", "nu", "cagf_radius", "cagf_eps", "psf_sigma", "fov_mask",
+             "track_psnr"]
+    assert list(CapsOptions().to_dict()) == names == list(CapsOptions.option_names())
+    opts = CapsOptions.from_options({"iterations": "7", "strip-mb": "0.5", "cagf_radius": 2, "rematch_max_gap": 4,
+                                     "fov_mask": "off"}, c1=0.001)
+    assert (opts.admm.iterations, opts.nlstr.strip_mb, opts.cagf.radius, opts.matching.rematch_max_gap,
+            opts.nlstr.c1, opts.fov_mask) == (7, 0.5, 2, 4, 0.001, False)
+    assert CapsOptions().to_dict()["strip_mb"] == 48.0 and CapsOptions().nlstr.strip_bytes == 48 * 2**20
+    with pytest.raises(UnknownNameError):
+        CapsOptions.from_options({"eps": 1e-3})  # NLSTR's eps is not an option
+    with pytest.raises(InputError):
+        CapsOptions.from_options({"rematch_min_gap": 5, "rematch_max_gap": 2}).validated_parameters()

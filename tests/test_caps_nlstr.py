@@ -6,7 +6,9 @@ import torch
 
 from capssim.errors import InputError
 from capssim.reconstruct.dofp_common import sliding_window_sum
+from capssim.reconstruct.interfaces import no_stage
 from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, reference_positions, shrink_core
+from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
 
 
 def piecewise_scene(c=12, h=48, w=56, seed=0):
@@ -134,8 +136,8 @@ def test_strips_give_the_same_result():
     # float64: in float32 the vectorized sums differ in the last bit between regions
     gen = torch.Generator().manual_seed(1)
     z = piecewise_scene(h=64, w=40) + 0.02 * torch.randn(12, 64, 40, generator=gen, dtype=torch.float64)
-    one = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_bytes=2**30), dtype=torch.float64)
-    many = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_bytes=1), dtype=torch.float64)
+    one = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_mb=1024.0), dtype=torch.float64)
+    many = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_mb=2.0**-20), dtype=torch.float64)  # 1 byte
     assert len(one.strips) == 1 and len(many.strips) > 3
     m1, m2 = one.match(z, 20), many.match(z, 20)
     assert torch.equal(m1.pos_y, m2.pos_y) and torch.equal(m1.pos_x, m2.pos_x)
@@ -160,6 +162,36 @@ def test_parameter_validation():
         NonlocalSparseTensor((12, 6, 16), NLSTRParameters())
     with pytest.raises(InputError):
         NonlocalSparseTensor((12, 16, 16), NLSTRParameters(adaptive="bogus"))
+    for bad in (MatchSchedule(rematch_min_gap=5, rematch_max_gap=2), MatchSchedule(rematch_change=0),
+                MatchSchedule(n_similar=0), MatchSchedule(n_similar_step=-1)):
+        with pytest.raises(InputError):
+            bad.validate()
+
+
+def test_the_prior_owns_its_matching_schedule():
+    """Blocks are matched at the first iteration, then when the change predicts a relative change of
+    ``rematch_change`` (within the gaps), with ``n_similar_step`` fewer blocks each time; ``begin``
+    starts over."""
+    z = piecewise_scene(c=4, h=24, w=24)
+    nl = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(), dtype=torch.float64)
+    schedule = MatchSchedule(n_similar=12, n_similar_step=5, n_similar_min=4, rematch_change=0.02,
+                             rematch_min_gap=2, rematch_max_gap=4)
+    prior = NLSTRPrior(nl, schedule)
+    changes = [0.02, 0.5, 0.001, 0.1, 0.1, 0.1, 0.1, 0.1, 0.1]
+    rows = []
+    for i, change in enumerate(changes):
+        x, fields = prior.estimate(z, mu=0.5, iteration=i, stage=no_stage)
+        rows.append((fields["n_similar"], fields["rematched"], prior.after_step(iteration=i, change=change)))
+    # iteration 0 matches 12 (gap 1 -> 2), 2 matches 7 (gap 20 -> 4), 6 matches 4 (gap 1 -> 2), 8 matches 4
+    assert [r[1] for r in rows] == [True, False, True, False, False, False, True, False, True]
+    assert [r[0] for r in rows] == [12, 12, 7, 7, 7, 7, 4, 4, 4]
+    assert [r[2] for r in rows if r[2]] == [{"next_match": 3}, {"next_match": 7}, {"next_match": 9},
+                                            {"next_match": 11}]
+    assert schedule.next_gap(0.0) == 4 and schedule.next_gap(1.0) == 2
+    prior.begin()
+    _, fields = prior.estimate(z, mu=1.0, iteration=0, stage=no_stage)
+    assert fields["rematched"] and fields["n_similar"] == 12
+    assert torch.equal(x, nl.estimate(z, nl.match(z, 4))[0])
 
 
 

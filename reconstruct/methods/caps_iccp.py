@@ -6,7 +6,7 @@ employed the joint constraints of (2) and (3)" with ``c1 = 0.001``, ``c2 = 0.01`
 
 1. each aperture's RGGB frame is demosaicked on its own by the Bayer demosaicking of [15]
    (Morimatsu et al., EARI), i.e. its colour stage, the residual interpolation of Kiku et al.
-   (:func:`reconstruct.dofp_common.ri_bayer_demosaic`, the settings of ``dofp-eari``);
+   (:func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`, the settings of ``dofp-eari``);
    ``-O bayer_method=menon2007`` (or ``malvar2004``, ``bilinear``) swaps it
    (:func:`reconstruct.methods.caps_naive.demosaic_apertures`);
 2. for each colour k, the 4 demosaicked frames (one per polarizer angle, raw resolution
@@ -28,8 +28,21 @@ import torch
 
 from capssim.conventions import N_APERTURES
 from capssim.geometry import ArrayGeometry
+from capssim.operators.base import Composition, Reshape
+from capssim.operators.blur import Convolve
+from capssim.operators.sampling import IntegrateDecimate
+from capssim.operators.warp import Warp
+from capssim.reconstruct.admm import admm
+from capssim.reconstruct.cagf import cagf_confidence
+from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
+from capssim.reconstruct.init_fusion import fuse_initial_estimate
 from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, mean_psnr
+from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function
+from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
+from capssim.reconstruct.nlstr import NonlocalSparseTensor
+from capssim.reconstruct.nlstr_prior import NLSTRPrior
 from capssim.reconstruct.observation_model import method_geometry, method_psf
+from capssim.reconstruct.rearrange import Observations
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 #: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
@@ -41,8 +54,6 @@ def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *,
     """``(4, H, W)`` RGGB frames -> ``(4, 3, H, W)`` RGB and ``(4, H, W)`` data weights."""
     from scipy.ndimage import maximum_filter
 
-    from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
-
     rgb = demosaic(raw, bayer_method=bayer_method)
     near_saturated = np.stack([maximum_filter(saturated[n].astype(np.uint8), size=3) > 0 for n in range(raw.shape[0])])
     return rgb, (~near_saturated).astype(np.float32)
@@ -50,10 +61,6 @@ def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *,
 
 def aperture_sampling_operator(geometry: ArrayGeometry, kernel):
     """``(4, 2H, 2W) -> (4, H, W)``: warp, PSF, 2x2 integration (the CAPS raw model without CFA)."""
-    from capssim.operators.base import Composition, Reshape
-    from capssim.operators.blur import Convolve
-    from capssim.operators.sampling import IntegrateDecimate
-    from capssim.operators.warp import Warp
 
     hh, ww = geometry.hr_shape
     n = N_APERTURES
@@ -70,13 +77,6 @@ def aperture_sampling_operator(geometry: ArrayGeometry, kernel):
                  description="CAPS ablation: cascade - demosaic each aperture (residual interpolation), then SR per "
                              "RGB channel on its 4 polarization images (c1=0.001, c2=0.01)")
 def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
-    from capssim.reconstruct.admm import admm
-    from capssim.reconstruct.cagf import cagf_confidence
-    from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
-    from capssim.reconstruct.init_fusion import fuse_initial_estimate
-    from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function
-    from capssim.reconstruct.nlstr import NonlocalSparseTensor
-    from capssim.reconstruct.rearrange import Observations
 
     options = dict(context.options)
     bayer_method = bayer_demosaic_function(options.pop("bayer_method", options.pop("bayer-method", DEFAULT_BAYER_METHOD)))[0]
@@ -110,7 +110,7 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
                            channel_of=torch.arange(N_APERTURES, device=dev), n_channels=N_APERTURES)
         with timer.stage("cagf"):
             conf = cagf_confidence(obs.images, raw_h, obs.channel_of, N_APERTURES, hr_shape, weights=obs.weights,
-                                   nu=opts.nu, radius=opts.cagf_radius, eps=opts.cagf_eps)
+                                   nu=opts.cagf.nu, radius=opts.cagf.radius, eps=opts.cagf.eps)
         with timer.stage("init"):
             init = fuse_initial_estimate(obs, raw_h, hr_shape)
         data = ConfidenceDataTerm(obs, operator, confidence=conf)
@@ -118,7 +118,8 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
         def progress(done, _total, message, k=k):
             context.report(k * admm_params.iterations + done, total, f"colour {'RGB'[k]}: {message}")
 
-        image, hist = admm(data, init, nlstr, admm_params, stage=timer.stage, progress=progress)
+        image, hist = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, stage=timer.stage,
+                           progress=progress)
         out[k::3] = image
         inits[k::3] = init
         history.extend({**h, "colour": "RGB"[k]} for h in hist)

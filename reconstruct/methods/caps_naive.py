@@ -47,6 +47,7 @@ from capssim.reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
 from capssim.reconstruct.methods.caps import CapsOptions, _coerce, mean_psnr
 from capssim.reconstruct.observation_model import method_geometry
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.residual_interpolation import ri_bayer_demosaic_frames
 
 log = logging.getLogger(__name__)
 
