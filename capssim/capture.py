@@ -37,6 +37,7 @@ from capssim.conventions import (
     SR_FACTOR,
     dofp_layout,
     dofp_layout_name,
+    split_bayer,
 )
 from capssim.errors import CaptureFormatError, InputError
 from capssim.geometry import ArrayGeometry
@@ -226,10 +227,7 @@ class Capture:
 
     def lr_images(self) -> tuple[np.ndarray, np.ndarray]:
         """The 16 Bayer sub-images ``(16, H/2, W/2)`` float32 and their saturation masks (paper 3.1)."""
-        h, w = self.raw_shape
-        def split(a):
-            return a.reshape(N_APERTURES, h // 2, 2, w // 2, 2).transpose(0, 2, 4, 1, 3).reshape(N_LR_IMAGES, h // 2, w // 2)
-        return np.ascontiguousarray(split(self.caps_float())), np.ascontiguousarray(split(self.caps_saturated()))
+        return split_bayer(self.caps_float()), split_bayer(self.caps_saturated(), argument="saturated")
 
     def dofp_float(self) -> np.ndarray:
         if self.dofp_raw is None:

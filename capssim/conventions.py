@@ -120,3 +120,14 @@ def bayer_channel_map(height: int, width: int) -> np.ndarray:
     rows = np.arange(height)[:, None]
     cols = np.arange(width)[None, :]
     return np.asarray(BAYER_RGGB)[rows % 2, cols % 2].astype(np.int64)
+
+
+def split_bayer(raw, *, argument: str = "raw") -> np.ndarray:
+    """``(4, H, W)`` RGGB frames -> ``(16, H/2, W/2)``: image ``4n + q`` is site q of frame n."""
+    arr = np.asarray(raw)
+    if arr.ndim != 3 or arr.shape[0] != N_APERTURES:
+        raise InputError(argument, f"shape {arr.shape}", "(4, H, W): one RGGB raw frame per polarizer angle")
+    n, h, w = arr.shape
+    if h % 2 or w % 2 or h < 2 or w < 2:
+        raise InputError(argument, f"frames of {h}x{w}", "even height and width (whole RGGB cells)")
+    return np.ascontiguousarray(arr.reshape(n, h // 2, 2, w // 2, 2).transpose(0, 2, 4, 1, 3).reshape(N_LR_IMAGES, h // 2, w // 2))

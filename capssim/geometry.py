@@ -107,6 +107,18 @@ class ArrayGeometry:
         """``(4, 3, 3)`` HR reference -> raw pixel of aperture n: ``R @ H_n``."""
         return np.stack([raw_matrix() @ h for h in self.aperture_homographies])
 
+    def cropped(self, top: int, left: int, hr_shape) -> "ArrayGeometry":
+        """The geometry of the HR window at (``top``, ``left``) of size ``hr_shape`` (HR pixels).
+
+        Offsets must be multiples of 4 HR pixels (one Bayer cell of every aperture), so that each
+        sub-image keeps its Bayer site; the crop's frames start at the window's corner.
+        """
+        if top % 4 or left % 4:
+            raise InputError("crop offset", (top, left), "multiples of 4 HR pixels (one RGGB cell)")
+        into = np.array([[1.0, 0.0, left], [0.0, 1.0, top], [0.0, 0.0, 1.0]])
+        back = np.array([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
+        return ArrayGeometry(back @ self.aperture_homographies @ into, hr_shape)
+
     # capture format --------------------------------------------------------------------
     def to_meta(self) -> dict:
         """``meta.json`` entries: ``aperture_homographies`` and the 16 derived ``homography`` values."""

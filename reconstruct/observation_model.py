@@ -17,7 +17,7 @@ from capssim.errors import CapssimError
 from capssim.geometry import ArrayGeometry
 from capssim.homography import registration_error_hr_px
 from capssim.psf import PSF
-from capssim.reconstruct.registration import estimate_lr_homographies, registration_mode_arguments
+from capssim.reconstruct.registration import estimate_lr_homographies, registration_parameters
 from capssim.reconstruct.registry import RunContext
 
 
@@ -53,8 +53,8 @@ def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray
         record = {"source": "true (meta.json)"}
     else:
         result = estimate_lr_homographies(images.astype(np.float32), hr_shape=hr_shape, saturated=saturated,
-                                          model="similarity", device=str(context.device),
-                                          **registration_mode_arguments(context.registration))
+                                          parameters=registration_parameters(context.registration),
+                                          device=str(context.device))
         aperture = np.asarray(result.aperture_homographies, dtype=np.float64)
         if aperture.shape != (4, 3, 3) or not np.all(np.isfinite(aperture)):
             raise CapssimError(f"registration returned invalid homographies (shape {aperture.shape}, "

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from capssim.conventions import LR_IMAGE_CHANNELS, N_APERTURES, N_CHANNELS, N_LR_IMAGES
+from capssim.conventions import LR_IMAGE_CHANNELS, N_CHANNELS, split_bayer
 from capssim.errors import InputError
 
 
@@ -45,17 +45,6 @@ class Observations:
     def images_per_channel(self) -> torch.Tensor:
         """``(n_channels,)`` number of images observing each channel."""
         return torch.bincount(self.channel_of, minlength=self.n_channels)
-
-
-def split_bayer(raw, *, argument: str = "raw") -> np.ndarray:
-    """``(4, H, W)`` RGGB frames -> ``(16, H/2, W/2)``: image ``4n + q`` is site q of frame n."""
-    arr = np.asarray(raw)
-    if arr.ndim != 3 or arr.shape[0] != N_APERTURES:
-        raise InputError(argument, f"shape {arr.shape}", "(4, H, W): one RGGB raw frame per polarizer angle")
-    n, h, w = arr.shape
-    if h % 2 or w % 2 or h < 2 or w < 2:
-        raise InputError(argument, f"frames of {h}x{w}", "even height and width (whole RGGB cells)")
-    return np.ascontiguousarray(arr.reshape(n, h // 2, 2, w // 2, 2).transpose(0, 2, 4, 1, 3).reshape(N_LR_IMAGES, h // 2, w // 2))
 
 
 def rearrange_raw(raw, saturated=None, *, device="cpu") -> Observations:
@@ -89,4 +78,4 @@ def observations_from_capture(capture, *, device="cpu") -> Observations:
     return rearrange_raw(capture.caps_float(), capture.caps_saturated(), device=device)
 
 
-__all__ = ["Observations", "observations_from_capture", "rearrange_raw", "split_bayer"]
+__all__ = ["Observations", "observations_from_capture", "rearrange_raw"]

@@ -27,6 +27,7 @@ import torch
 
 from capssim.capture import Capture, read_capture, write_reconstruction
 from capssim.errors import CaptureFormatError, InputError, UnknownNameError
+from capssim.reconstruct.registration_parameters import registration_parameters
 
 log = logging.getLogger(__name__)
 
@@ -163,9 +164,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     spec = get_method(method)
     dev = resolve_device(device)
     if spec.input_kind == "caps" and not true_warps:
-        from capssim.reconstruct.registration import registration_mode_arguments
-
-        registration_mode_arguments(registration)  # UnknownNameError lists the modes
+        registration_parameters(registration)  # UnknownNameError lists the modes
     if spec.input_kind == "dofp" and capture.dofp_raw is None:
         raise CaptureFormatError(f"method {method!r} needs dofp_raw.tiff, which this capture lacks.")
     timer = StageTimer(dev)

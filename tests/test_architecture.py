@@ -171,3 +171,23 @@ def test_bare_folder_names_do_not_import(name, tmp_path):
     result = subprocess.run([sys.executable, "-c", f"import capssim.{name}"], cwd=tmp_path, capture_output=True,
                             text=True)
     assert result.returncode == 0, result.stderr
+
+
+MAX_MODULE_LINES = 450
+MAX_FUNCTION_LINES = 120
+
+
+def test_modules_and_functions_stay_small():
+    too_long = []
+    for module, path in MODULES.items():
+        text = path.read_text()
+        lines = text.count("\n") + 1
+        if lines > MAX_MODULE_LINES:
+            too_long.append(f"{path.relative_to(REPO)}: {lines} lines (at most {MAX_MODULE_LINES})")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                length = node.end_lineno - node.lineno + 1
+                if length > MAX_FUNCTION_LINES:
+                    too_long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name}: {length} lines "
+                                    f"(at most {MAX_FUNCTION_LINES})")
+    assert not too_long, "split these:\n" + "\n".join(too_long)

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.conventions import LR_IMAGE_CHANNELS
+from capssim.conventions import LR_IMAGE_CHANNELS, split_bayer
 from capssim.errors import InputError
-from capssim.reconstruct.rearrange import rearrange_raw, split_bayer
+from capssim.reconstruct.rearrange import rearrange_raw
 
 
 def test_split_bayer_sites_and_order():

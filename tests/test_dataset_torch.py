@@ -14,7 +14,7 @@ from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
 from capssim.dataset.torch import CaptureDataset, crop_homographies
 from capssim.errors import CaptureFormatError, InputError
-from capssim.homography import lr_homographies
+from capssim.geometry import ArrayGeometry, lr_homographies
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
 from capssim.psf import gaussian_psf_kernel
 
@@ -126,11 +126,11 @@ def test_crops_are_aligned_with_the_camera_model(dataset_dir):
 def test_crop_homographies_rules_and_errors(dataset_dir):
     h = np.stack([np.eye(3)] * 4)
     h[1, 0, 2] = 0.7
-    ap, lr = crop_homographies(h, lr_homographies(h), 8, 4)
+    ap, lr = crop_homographies(ArrayGeometry(h, (32, 32)), 8, 4, (16, 16))
     np.testing.assert_allclose(lr, lr_homographies(ap), atol=1e-12)
     np.testing.assert_allclose(ap[1], h[1])  # a pure translation commutes with the crop shift
     with pytest.raises(InputError, match="multiples of 4"):
-        crop_homographies(h, lr_homographies(h), 2, 0)
+        crop_homographies(ArrayGeometry(h, (32, 32)), 2, 0, (16, 16))
     with pytest.raises(InputError, match="multiple of 4"):
         CaptureDataset(dataset_dir / "noisy", crop=18)
     with pytest.raises(InputError, match="at most the capture size"):

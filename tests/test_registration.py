@@ -4,12 +4,23 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from scipy.ndimage import gaussian_filter
 
+from capssim.capture import write_capture
 from capssim.errors import InputError, UnknownNameError
+from capssim.eval.benchmarks.registration import (
+    content_lr_homographies,
+    format_registration_bench,
+    run_registration_bench,
+)
+from capssim.eval.synthetic import star_scene
 from capssim.homography import registration_error_hr_px
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registration import estimate_lr_homographies
+from capssim.reconstruct.registration_core import register_stack, stokes_residual_rms
+from capssim.reconstruct.registration_filters import box_sum
+from capssim.reconstruct.registration_parameters import RegistrationParameters
 from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
 
@@ -98,7 +109,7 @@ def test_bad_input_is_a_clear_error():
     with pytest.raises(InputError, match="hr_shape"):
         estimate_lr_homographies(imgs, hr_shape=(10, 10))
     with pytest.raises(UnknownNameError):
-        estimate_lr_homographies(imgs, hr_shape=cap.hr_shape, model="elastic")
+        estimate_lr_homographies(imgs, hr_shape=cap.hr_shape, parameters=RegistrationParameters(model="elastic"))
     with pytest.raises(InputError, match="lr_images"):
         estimate_lr_homographies(imgs.astype(np.int32), hr_shape=cap.hr_shape)
 
@@ -107,8 +118,6 @@ def test_siemens_star_is_registered_despite_its_self_similarity():
     # a sinusoidal star is (nearly) invariant to scale and rotation about its centre: without the
     # translation-first pyramid and the restart from more phase-correlation peaks this case landed
     # 1.85 HR px off (median; 2-7 px on a rendered 256 px star)
-    from capssim.eval.synthetic import star_scene
-
     gt, _ = star_scene(192, cycles=72)
     cap = simulate_capture(gt.astype(np.float32), make_sensor("gaussian", sigma=0.01), seed=0)
     res, err = register(cap)
@@ -122,16 +131,22 @@ def test_siemens_star_is_registered_despite_its_self_similarity():
 def test_bench_reports_the_error_against_content_warps(tmp_path):
     """``--content-alignment``: identity gt-check matrices give content warps = stored warps; a shifted
     ground truth moves them by the shift; a record without matrices is a clear error."""
-    from capssim.capture import write_capture
-    from capssim.homography import registration_error_hr_px
-    from capssim.reconstruct.registration import bench, content_lr_homographies
+    def bench(paths, **kwargs):
+        return run_registration_bench(paths, **kwargs)["rows"]
 
     cap = simulate_capture(textured_scene(64, seed=4), make_sensor("gaussian", sigma=0.0), seed=1)
     write_capture(tmp_path / "cap", cap)
     eye = np.eye(3).tolist()
-    (row,) = bench([tmp_path / "cap"], content_alignment={"alignment_matrices": [eye] * 3})
+    result = run_registration_bench([tmp_path / "cap"], mode="binomial-luminance",
+                                    content_alignment={"alignment_matrices": [eye] * 3})
+    (row,) = result["rows"]
+    assert result["mode"] == "binomial-luminance" and result["parameters"]["luminance"] == "binomial"
     assert row["content_median_hr_px"] == pytest.approx(row["median_hr_px"])
     assert row["content_vs_true_median_hr_px"] == pytest.approx(0.0, abs=1e-9)
+    table = format_registration_bench(result)
+    assert str(tmp_path / "cap") in table and "against the content warps" in table
+    with pytest.raises(UnknownNameError, match="local-correlation"):
+        run_registration_bench([tmp_path / "cap"], mode="stokes")
     shift = np.eye(3)
     shift[0, 2] = 0.5  # ground-truth content 0.5 HR px off in x in every analyzer image
     content = content_lr_homographies(cap, [shift] * 3)
@@ -163,10 +178,6 @@ def test_bench_reports_the_error_against_content_warps(tmp_path):
 def test_engine_stokes_residual_and_warm_start():
     """``stokes_residual_rms`` reproduces the engine's own figure; a warm start on the finest level from
     the estimate stays there; ``start_level`` needs initial parameters; the box sums are exact."""
-    import torch
-
-    from capssim.reconstruct.registration_core import box_sum, register_stack, stokes_residual_rms
-
     rng = np.random.default_rng(0)
     base = gaussian_filter(rng.random((96, 96)), 2.0)
     ref = torch.from_numpy(base[8:72, 8:72].copy())

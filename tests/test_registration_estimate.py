@@ -4,15 +4,23 @@ import logging
 
 import numpy as np
 import pytest
+import torch
+from scipy.ndimage import gaussian_filter
 
-from capssim.errors import InputError
+import capssim.reconstruct.registration as registration
+import capssim.reconstruct.registration_core as core
+from capssim.errors import InputError, UnknownNameError
 from capssim.homography import registration_error_hr_px, similarity
+from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registration import estimate_lr_homographies
+from capssim.reconstruct.registration_images import mosaic_from_sub_images, ri_binomial_luminance
+from capssim.reconstruct.registration_parameters import RegistrationParameters, registration_parameters
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
 from tests.conftest import smooth_random_scene
 
 SHIFTS = [(0.0, 0.0), (0.3, -0.7), (1.25, 0.5), (-0.6, 1.1)]
+TRANSLATION = RegistrationParameters(model="translation")
 
 
 def _capture(scene, homographies):
@@ -37,7 +45,7 @@ def test_recovers_known_translations_grey_unpolarized():
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(_unpolarized(size), h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     true = simulate_capture(_unpolarized(size), Sensor("none"), aperture_homographies=h,
                             psf={"type": "none"}).true_lr_homographies()
     err = registration_error_hr_px(res.lr_homographies, true, (size, size))
@@ -63,7 +71,7 @@ def test_saturated_pixels_are_finite():
     images[:, :6, :6] = 1.0
     sat = sat.copy()
     sat[:, :6, :6] = True
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     assert np.all(np.isfinite(res.lr_homographies))
 
 
@@ -94,7 +102,7 @@ def test_large_misregistration_is_finite_or_flagged():
     size = 64
     h = np.stack([similarity((40.0 * (n > 0), 0.0)) for n in range(4)])
     images, sat = _capture(_unpolarized(size, seed=2), h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     assert np.all(np.isfinite(res.lr_homographies))
 
 
@@ -105,7 +113,7 @@ def test_recovers_known_translations_independent_colour_texture():
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(_unpolarized(size, grey=False), h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     err = np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
     assert err.max() < 0.05, err
 
@@ -113,7 +121,8 @@ def test_recovers_known_translations_independent_colour_texture():
 def _translation_errors(scene, *, size=128, **kw):
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(scene, h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation", **kw)
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat,
+                                   parameters=TRANSLATION.replace(**kw))
     return np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:])), res.diagnostics
 
 
@@ -142,10 +151,6 @@ def test_ri_luminance_removes_most_of_the_colour_aliasing_bias():
 
 def test_ri_binomial_luminance_constant_colour_and_tiny_frames():
     """A constant colour gives (R + 2G + B) / 4 everywhere, border included; frames down to 2x2 work."""
-    import torch
-
-    from capssim.reconstruct.registration import mosaic_from_sub_images, ri_binomial_luminance
-
     for side in (2, 6, 16):
         sub = torch.tensor([0.2, 0.5, 0.5, 0.8], dtype=torch.float64).repeat(4)[:, None, None]
         raw = mosaic_from_sub_images(sub.expand(16, side // 2, side // 2).contiguous())
@@ -155,10 +160,9 @@ def test_ri_binomial_luminance_constant_colour_and_tiny_frames():
 
 
 def test_unknown_luminance_is_a_clear_error():
-    from capssim.errors import UnknownNameError
-
     with pytest.raises(UnknownNameError, match="luminance.*auto"):
-        estimate_lr_homographies(np.zeros((16, 8, 8), np.float32), hr_shape=(32, 32), luminance="demosaic")
+        estimate_lr_homographies(np.zeros((16, 8, 8), np.float32), hr_shape=(32, 32),
+                                 parameters=RegistrationParameters(luminance="demosaic"))
 
 
 def _grey_polarized(size, seed):
@@ -171,13 +175,11 @@ def _grey_polarized(size, seed):
 def test_stokes_subspace_mode_removes_polarization_texture_bias(seed):
     """The local-correlation estimate is biased by polarization texture (0.1-0.27 px here); the
     stokes-subspace mode fixes the directions the Stokes residual determines (< 0.05 px)."""
-    from capssim.reconstruct.registration import registration_mode_arguments
-
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(_grey_polarized(size, seed), h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation",
-                                   **registration_mode_arguments("stokes-subspace"))
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat,
+                                   parameters=registration_parameters("stokes-subspace").replace(model="translation"))
     err = np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
     assert err.max() < 0.05, err
     steps = res.diagnostics["engine"]["stokes_subspace"]["steps"]
@@ -189,28 +191,31 @@ def test_stokes_subspace_mode_keeps_unpolarized_estimate():
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(_unpolarized(size), h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation",
-                                   stokes_subspace_std=0.01)
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat,
+                                   parameters=TRANSLATION.replace(stokes_subspace_std=0.01))
     np.testing.assert_allclose(res.aperture_homographies[1:, :2, 2], np.array(SHIFTS[1:]), atol=0.05)
 
 
 def test_registration_mode_names_and_bad_values():
-    from capssim.errors import UnknownNameError
-    from capssim.reconstruct.registration import registration_mode_arguments
-
     with pytest.raises(UnknownNameError, match="local-correlation"):
-        registration_mode_arguments("stokes")
+        registration_parameters("stokes")
+    assert RegistrationParameters.for_mode("local-correlation") == RegistrationParameters()
+    assert registration_parameters("stokes-subspace").stokes_subspace_std == 0.01
     with pytest.raises(InputError, match="stokes_subspace_std"):
-        estimate_lr_homographies(np.zeros((16, 8, 8), np.float32), hr_shape=(32, 32), stokes_subspace_std=-1.0)
+        estimate_lr_homographies(np.zeros((16, 8, 8), np.float32), hr_shape=(32, 32),
+                                 parameters=RegistrationParameters(stokes_subspace_std=-1.0))
+    with pytest.raises(UnknownNameError, match="registration parameter"):
+        RegistrationParameters().replace(stokes=1.0)
+    for bad in ({"max_iterations": 0}, {"window_radius": 1.5}, {"presmooth_sigma": float("nan")}):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            RegistrationParameters(**bad).validate()
+    with pytest.raises(InputError, match="parameters"):
+        estimate_lr_homographies(np.zeros((16, 8, 8), np.float32), hr_shape=(32, 32), parameters={"model": "affine"})
 
 
 def _photoelastic(size, seed):
     """Weak S0 texture under strong S1/S2 fringes (a smooth phase field, DoLP up to 0.5, R = G = B):
     the 45 and 135 deg images look unlike the 0 deg one, as on qiu-cellphonecases."""
-    from scipy.ndimage import gaussian_filter
-
-    from capssim.polarization import twelve_from_stokes
-
     rng = np.random.default_rng(seed)
 
     def texture(sigma):
@@ -227,12 +232,10 @@ def _photoelastic(size, seed):
 def test_photoelastic_texture_is_registered_by_the_stokes_rescue(seed, monkeypatch):
     """Two or three analyzer images match the 0 deg image poorly; the local correlation alone
     lands pixels off, the Stokes-consistency rescue brings them back (README 'Registration')."""
-    import capssim.reconstruct.registration_core as core
-
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(_photoelastic(size, seed), h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     err = np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
     assert err.max() < 0.05, err
     joint = res.diagnostics["engine"]["stokes_joint"]
@@ -240,8 +243,8 @@ def test_photoelastic_texture_is_registered_by_the_stokes_rescue(seed, monkeypat
     rescued = [a for a in res.diagnostics["apertures"] if a.get("stokes_rescued")]
     assert len(rescued) >= 2 and not any(a.get("unreliable") for a in rescued)
 
-    monkeypatch.setattr(core, "_stokes_joint_rescue", lambda p, *args, **kwargs: p)
-    off = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    monkeypatch.setattr(core, "stokes_joint_rescue", lambda p, *args, **kwargs: p)
+    off = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     err_off = np.abs(off.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
     assert err_off.max() > 0.5, err_off   # the case needs the rescue
 
@@ -250,7 +253,7 @@ def test_stokes_rescue_is_not_tried_on_well_matched_apertures():
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(_unpolarized(size), h)
-    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, model="translation")
+    res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     joint = res.diagnostics["engine"]["stokes_joint"]
     assert joint["images"] == [] and "kept" not in joint
 
@@ -284,8 +287,8 @@ def test_implausible_rotation_falls_back_to_identity():
     err = registration_error_hr_px(res.lr_homographies, cap.true_lr_homographies(), (size, size))
     assert np.max(err) < 3.0, err  # the identity is off by the true shifts only (<= 1.4 px)
     # the same data with a looser limit keeps the false match
-    loose = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, max_rotation_deg=180.0,
-                                     luminance="binomial")
+    loose = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat,
+                                     parameters=RegistrationParameters(max_rotation_deg=180.0, luminance="binomial"))
     assert "identity: implausible warp" not in [a["fallback"] for a in loose.diagnostics["apertures"]]
     assert np.max(registration_error_hr_px(loose.lr_homographies, cap.true_lr_homographies(), (size, size))) > 10
 
@@ -293,9 +296,9 @@ def test_implausible_rotation_falls_back_to_identity():
 def test_plausibility_limits_are_checked():
     images = np.random.default_rng(0).random((16, 16, 16)).astype(np.float32)
     with pytest.raises(InputError, match="max_rotation_deg"):
-        estimate_lr_homographies(images, hr_shape=(64, 64), max_rotation_deg=-1.0)
+        estimate_lr_homographies(images, hr_shape=(64, 64), parameters=RegistrationParameters(max_rotation_deg=-1.0))
     with pytest.raises(InputError, match="max_scale_error"):
-        estimate_lr_homographies(images, hr_shape=(64, 64), max_scale_error=1.5)
+        estimate_lr_homographies(images, hr_shape=(64, 64), parameters=RegistrationParameters(max_scale_error=1.5))
 
 
 def test_auto_refines_the_demosaicked_image_from_the_binomial_warps():
@@ -304,9 +307,9 @@ def test_auto_refines_the_demosaicked_image_from_the_binomial_warps():
     scene = smooth_random_scene(128, seed=0, dolp_max=0.6)
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(scene, h)
-    auto = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation")
-    full = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation",
-                                    luminance="ri-binomial")
+    auto = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, parameters=TRANSLATION)
+    full = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat,
+                                    parameters=TRANSLATION.replace(luminance="ri-binomial"))
     rms = auto.diagnostics["luminance_stokes_residual_rms"]
     assert rms["ri-binomial at the binomial warps"] < rms["binomial"]
     assert auto.diagnostics["luminance"] == "ri-binomial"
@@ -315,8 +318,6 @@ def test_auto_refines_the_demosaicked_image_from_the_binomial_warps():
 
 def test_auto_keeps_the_binomial_warps_without_a_second_registration(monkeypatch):
     """When the demosaicked image is less Stokes-consistent at the binomial warps, it is not registered."""
-    import capssim.reconstruct.registration as registration
-
     scene = smooth_random_scene(128, seed=0, dolp_max=0.6)
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(scene, h)
@@ -324,9 +325,9 @@ def test_auto_keeps_the_binomial_warps_without_a_second_registration(monkeypatch
     real = registration.register_stack
     monkeypatch.setattr(registration, "register_stack", lambda *a, **k: calls.append(k) or real(*a, **k))
     monkeypatch.setattr(registration, "stokes_residual_rms", lambda *a, **k: float("inf"))
-    auto = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation")
-    binomial = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, model="translation",
-                                        luminance="binomial")
+    auto = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat, parameters=TRANSLATION)
+    binomial = estimate_lr_homographies(images, hr_shape=(128, 128), saturated=sat,
+                                        parameters=TRANSLATION.replace(luminance="binomial"))
     assert len(calls) == 2 and "initial" not in calls[0]  # one registration each
     assert auto.diagnostics["luminance"] == "binomial"
     assert "ri-binomial" not in auto.diagnostics["luminance_stokes_residual_rms"]

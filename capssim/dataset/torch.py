@@ -54,31 +54,26 @@ import torch
 from torch.utils.data import Dataset
 
 from capssim.capture import read_capture
+from capssim.conventions import split_bayer
 from capssim.dataset.manifest import MANIFEST, SAMPLES_DIR, read_manifest
 from capssim.dataset.sample import file_sha256
 from capssim.errors import CaptureFormatError, InputError
+from capssim.geometry import ArrayGeometry
 from capssim.sensor import noise_sigma_estimate
 
 CROP_MULTIPLE = 4
 
 
-def translation(dx: float, dy: float) -> np.ndarray:
-    """3x3 translation on (x=col, y=row)."""
-    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]])
+def crop_homographies(geometry: ArrayGeometry, top: int, left: int, hr_shape) -> tuple[np.ndarray, np.ndarray]:
+    """Homographies of a capture cropped to ``hr_shape`` at HR offset (``top``, ``left``), multiples of 4.
 
-
-def crop_homographies(aperture_h: np.ndarray, lr_h: np.ndarray, top: int, left: int) -> tuple[np.ndarray, np.ndarray]:
-    """Homographies of a capture cropped at HR offset (``top``, ``left``), multiples of 4.
-
-    ``aperture_h`` ``(4, 3, 3)`` HR reference -> aperture-HR; ``lr_h`` ``(16, 3, 3)`` HR
-    reference -> sub-image pixels. Returns both in the crop's coordinates (module docstring).
+    Returns ``(4, 3, 3)`` HR reference -> aperture-HR and ``(16, 3, 3)`` HR reference -> sub-image
+    pixels, both in the crop's coordinates (:meth:`capssim.geometry.ArrayGeometry.cropped`).
     """
     if top % CROP_MULTIPLE or left % CROP_MULTIPLE:
         raise InputError("crop offset", (top, left), f"multiples of {CROP_MULTIPLE} HR pixels")
-    into = translation(left, top)
-    ap = translation(-left, -top) @ np.asarray(aperture_h, dtype=np.float64) @ into
-    lr = translation(-left / 4, -top / 4) @ np.asarray(lr_h, dtype=np.float64) @ into
-    return ap, lr
+    crop = geometry.cropped(top, left, hr_shape)
+    return crop.aperture_homographies.copy(), crop.lr_homographies
 
 
 def dataset_sample_folders(root, *, indices: Iterable[int] | None = None) -> list[Path]:
@@ -181,8 +176,8 @@ class CaptureDataset(Dataset):
         raw = cap.caps_raw[:, top // 2:(top + ch) // 2, left // 2:(left + cw) // 2]
         caps = sensor.to_float(raw)
         h, w = caps.shape[1:]
-        lr = caps.reshape(4, h // 2, 2, w // 2, 2).transpose(0, 2, 4, 1, 3).reshape(16, h // 2, w // 2)
-        ap_h, lr_h = crop_homographies(cap.aperture_homographies(), cap.true_lr_homographies(), top, left)
+        lr = split_bayer(caps)
+        ap_h, lr_h = crop_homographies(cap.geometry, top, left, (ch, cw))
         er = cap.extinction_ratio
         item = {
             "caps_raw": torch.from_numpy(np.ascontiguousarray(caps)),
