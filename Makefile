@@ -5,13 +5,23 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= runs/quick
 
-.PHONY: setup demo test test-all bench-recon clean
+.PHONY: setup demo test test-all bench-check results-page bench-recon clean
 
 setup:
 	bash scripts/setup.sh
 
 demo: setup
-	$(VENV)/bin/capssim bench --suite quick -o $(OUT)
+	$(VENV)/bin/capssim bench suite quick -o $(OUT)
+
+# benchmarks (capssim bench SUBJECT; see `capssim bench --help`)
+bench-check: setup
+	$(VENV)/bin/capssim bench suite quick -o runs/ci-quick --check eval/baselines/quick.json
+
+results-page: setup
+	$(VENV)/bin/capssim bench suite quick -o $(OUT) --results-page docs/results/quick.md
+
+bench-recon: setup
+	$(VENV)/bin/capssim bench reconstruct --size 256 --size 512 --repeats 3
 
 test: setup
 	$(PY) -m pytest -q

@@ -1,9 +1,10 @@
-"""Score every reconstruction of a capture folder: ``capssim evaluate`` and the benchmark share it.
+"""The one scoring path of capssim: :class:`CaptureScorer`, used by ``capssim evaluate`` and the benchmarks.
 
-For each ``recon/NAME.tiff`` the metrics of :func:`eval.metrics.score` against ``gt.tiff``,
-the wall time and stage times from ``recon/NAME.json``, and, for Siemens-star scenes, the
-MTF / SR magnification of :mod:`eval.mtf`. Results go to ``CAPTURE/metrics.json``
-(atomic write).
+An estimate is scored by the metrics of :func:`capssim.eval.metrics.score` against the
+capture's ground truth and, for Siemens-star scenes, by the MTF / SR magnification of
+:mod:`capssim.eval.mtf` (paper section 5.3). :func:`evaluate_capture` scores every
+``recon/NAME.tiff`` of a capture folder, adds the wall time and stage times from
+``recon/NAME.json`` and writes ``CAPTURE/metrics.json`` (atomic write).
 
 Star scenes: the geometry comes from ``meta["scene"]["star"]`` (``cycles``, optional
 ``center_rowcol`` and ``radius_px``, in HR = ground-truth pixels) when the renderer records
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -65,24 +67,68 @@ def mtf_summary(result: StarMTF) -> dict:
             "reference_pitch": head.reference_pitch, "channels": channels, "mean": head.to_dict()}
 
 
-def star_mtfs(gt12: np.ndarray, estimates: dict[str, np.ndarray], star: dict) -> tuple[dict, dict[str, Any]]:
-    """MTF of the ground truth and of each estimate; returns (gt summary, {name: summary or error})."""
-    cycles = star["cycles"]
-    gt_res = measure_star(gt12, cycles, names=list(CHANNEL_NAMES), center_rowcol=star.get("center_rowcol"),
-                          radius=star.get("radius_px"), reference_modulation=star.get("contrast"),
-                          reference_pitch=SUB_IMAGE_PITCH_HR)
-    head = gt_res.results["mean"]
-    centre, radius = head.center_rowcol, head.radius_px
-    refs = [gt_res.results[n].reference_modulation for n in CHANNEL_NAMES]
-    out = {}
-    for name, est in estimates.items():
+@dataclass
+class EstimateScore:
+    """The scores of one estimate: :func:`capssim.eval.metrics.score`'s result and, for a star scene, its MTF."""
+
+    metrics: dict[str, Any]
+    mtf: dict | None = None  # :func:`mtf_summary` of the estimate; None when not measured
+    mtf_error: str | None = None  # why the estimate's MTF could not be measured
+
+    def flat(self) -> dict[str, float | None]:
+        """Scalar metrics for results.jsonl and baselines: the metrics' and the MTF's."""
+        return {**M.flatten(self.metrics), **flat_mtf(self.mtf)}
+
+
+class CaptureScorer:
+    """Scores estimates of one capture against its ground truth: the one scoring path of capssim.
+
+    ``capssim evaluate`` (:func:`evaluate_capture`) and the benchmark suites both score through
+    it. Options are those of :func:`capssim.eval.metrics.score`. For a Siemens-star scene
+    (:func:`star_geometry`) and ``with_mtf``, the ground truth's MTF is measured once (on first
+    use, or by :meth:`measure_ground_truth`) and every estimate's MTF is measured at its centre
+    and radius, normalized by its per-channel modulation; when the ground truth cannot be
+    measured, :attr:`mtf_error` says why and no MTF is reported.
+    """
+
+    def __init__(self, capture, *, convention: str | M.Convention = "capssim", min_s0: float | None = None,
+                 min_dolp: float | None = None, border: int | None = None, lpips=None, with_mtf: bool = True):
+        self.gt = capture.gt
+        self.convention = M.get_convention(convention)
+        self.score_options = {"min_s0": min_s0, "min_dolp": min_dolp, "border": border, "lpips": lpips}
+        self.star = star_geometry(capture.meta) if with_mtf else None
+        self.gt_mtf: StarMTF | None = None
+        self.mtf_error: str | None = None
+
+    def measure_ground_truth(self) -> StarMTF | None:
+        """The ground truth's MTF (measured once); None for a scene without a star or when it failed."""
+        if self.star is None or self.gt_mtf is not None:
+            return self.gt_mtf
+        star = self.star
         try:
-            r = measure_star(est, cycles, names=list(CHANNEL_NAMES), center_rowcol=centre, radius=radius,
-                             reference_modulation=refs, reference_pitch=SUB_IMAGE_PITCH_HR)
-            out[name] = mtf_summary(r)
+            self.gt_mtf = measure_star(self.gt, star["cycles"], names=list(CHANNEL_NAMES),
+                                       center_rowcol=star.get("center_rowcol"), radius=star.get("radius_px"),
+                                       reference_modulation=star.get("contrast"), reference_pitch=SUB_IMAGE_PITCH_HR)
         except CapssimError as exc:
-            out[name] = {"error": str(exc)}
-    return mtf_summary(gt_res), out
+            self.mtf_error = str(exc)
+            self.star = None
+        return self.gt_mtf
+
+    def score(self, estimate: np.ndarray) -> EstimateScore:
+        """Scores of a ``(12, 2H, 2W)`` estimate; a metric error (NaN, wrong shape) raises :class:`InputError`."""
+        result = EstimateScore(M.score(estimate, self.gt, convention=self.convention, **self.score_options))
+        gt_mtf = self.measure_ground_truth()
+        if gt_mtf is not None:
+            head = gt_mtf.results["mean"]
+            refs = [gt_mtf.results[n].reference_modulation for n in CHANNEL_NAMES]
+            try:
+                measured = measure_star(estimate, self.star["cycles"], names=list(CHANNEL_NAMES),
+                                        center_rowcol=head.center_rowcol, radius=head.radius_px,
+                                        reference_modulation=refs, reference_pitch=SUB_IMAGE_PITCH_HR)
+                result.mtf = mtf_summary(measured)
+            except CapssimError as exc:
+                result.mtf_error = str(exc)
+        return result
 
 
 def flat_mtf(summary: dict | None) -> dict[str, float]:
@@ -104,6 +150,21 @@ def read_estimate(path: Path, hr_shape: tuple[int, int]) -> np.ndarray:
     return img
 
 
+def _record_entry(record_path: Path) -> dict[str, Any]:
+    """Wall time, stage times and registration of a reconstruction's ``recon/NAME.json``."""
+    entry: dict[str, Any] = {}
+    if record_path.is_file():
+        try:
+            record = json.loads(record_path.read_text())
+            entry["wall_time_s"] = record.get("wall_time_s")
+            entry["stages_s"] = record.get("stages_s", {})
+            if "registration" in record:
+                entry["registration"] = record["registration"]
+        except json.JSONDecodeError as exc:
+            entry["record_error"] = f"corrupt {record_path.name}: {exc}"
+    return entry
+
+
 def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list[str] | None = None,
                      min_s0: float | None = None, min_dolp: float | None = None, border: int | None = None,
                      lpips=None, with_mtf: bool = True, write: bool = True) -> dict:
@@ -123,46 +184,30 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
         names = [n for n in names if n in methods]
     if not names:
         raise CaptureFormatError(f"{path}: no reconstructions in recon/; run 'capssim reconstruct {path} --method NAME' first.")
-    conv = M.get_convention(convention)
+    scorer = CaptureScorer(capture, convention=convention, min_s0=min_s0, min_dolp=min_dolp, border=border,
+                           lpips=lpips, with_mtf=with_mtf)
+    conv = scorer.convention
     result: dict[str, Any] = {"capture": str(path), "convention": conv.name, "convention_description": conv.description,
                               "methods": {}}
-    estimates = {}
     for name in names:
-        entry: dict[str, Any] = {}
-        record_path = path / "recon" / f"{name}.json"
-        if record_path.is_file():
-            try:
-                record = json.loads(record_path.read_text())
-                entry["wall_time_s"] = record.get("wall_time_s")
-                entry["stages_s"] = record.get("stages_s", {})
-                if "registration" in record:
-                    entry["registration"] = record["registration"]
-            except json.JSONDecodeError as exc:
-                entry["record_error"] = f"corrupt {record_path.name}: {exc}"
+        entry = _record_entry(path / "recon" / f"{name}.json")
         try:
-            est = read_estimate(path / "recon" / f"{name}.tiff", capture.hr_shape)
-            scored = M.score(est, capture.gt, convention=conv, min_s0=min_s0, min_dolp=min_dolp, border=border,
-                             lpips=lpips)
-            entry["metrics"] = scored
-            estimates[name] = est
+            scored = scorer.score(read_estimate(path / "recon" / f"{name}.tiff", capture.hr_shape))
+            entry["metrics"] = scored.metrics
+            if scored.mtf is not None or scored.mtf_error is not None:
+                entry["mtf"] = scored.mtf if scored.mtf is not None else {"error": scored.mtf_error}
         except CapssimError as exc:
             entry["error"] = str(exc)
         result["methods"][name] = entry
-    if result["methods"]:
-        first_ok = next((e for e in result["methods"].values() if "metrics" in e), None)
-        if first_ok is not None:
-            result["settings"] = first_ok["metrics"]["settings"]
-    star = star_geometry(capture.meta)
-    if with_mtf and star and estimates:
-        try:
-            gt_mtf, per_method = star_mtfs(capture.gt, estimates, star)
-            result["star"] = star
-            result["gt_mtf"] = gt_mtf
-            for name, summary in per_method.items():
-                result["methods"][name]["mtf"] = summary
-        except CapssimError as exc:
-            result["mtf_error"] = str(exc)
-            log.warning("MTF of %s not measured: %s", path, exc)
+    first_ok = next((e for e in result["methods"].values() if "metrics" in e), None)
+    if first_ok is not None:
+        result["settings"] = first_ok["metrics"]["settings"]
+    if scorer.gt_mtf is not None:
+        result["star"] = scorer.star
+        result["gt_mtf"] = mtf_summary(scorer.gt_mtf)
+    elif scorer.mtf_error is not None:
+        result["mtf_error"] = scorer.mtf_error
+        log.warning("MTF of %s not measured: %s", path, scorer.mtf_error)
     if write:
         atomic_write_json(path / "metrics.json", result)
     return result

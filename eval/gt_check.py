@@ -53,6 +53,7 @@ import torch.nn.functional as F
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
 from capssim.homography import rotation_and_scale
+from capssim.reconstruct.registration_core import register_stack, spline_coefficients, spline_sample
 
 log = logging.getLogger(__name__)
 
@@ -117,8 +118,6 @@ def _alignment_check(lum: torch.Tensor, valid: torch.Tensor, matrices: np.ndarra
     residual at edges, so aligning correctly lowers it; an estimate misled by polarization
     texture raises it (``reliable`` False beyond 5 % + 0.01 % of S0: resampling alone changes it
     slightly)."""
-    from capssim.reconstruct.registration_core import spline_coefficients, spline_sample
-
     h, w = lum.shape[1:]
     xy = _moving_coords(matrices, (h, w), lum.device)
     inside = ((xy[..., 0] >= 0) & (xy[..., 0] <= w - 1) & (xy[..., 1] >= 0) & (xy[..., 1] <= h - 1)).all(0)
@@ -160,8 +159,6 @@ def check_ground_truth(gt, *, dolp_max: float = 0.1, bit_depth: int = 0, device=
         image, ``consistent`` (bool),
         ``verdict`` (one line), ``time_s``.
     """
-    from capssim.reconstruct.registration_core import register_stack
-
     if not (0 < dolp_max <= 1):
         raise InputError("dolp_max", dolp_max, "a number in (0, 1]")
     if bit_depth not in (0, 8, 10, 12, 14, 16):
@@ -250,8 +247,6 @@ def aligned_ground_truth(gt, matrices, *, device="cpu") -> np.ndarray:
     :func:`check_ground_truth`). Interpolating cubic B-spline; pixels mapped from outside the
     image take the nearest edge value. Returns ``(12, H, W)`` float32 clipped to [0, 1].
     """
-    from capssim.reconstruct.registration_core import spline_coefficients, spline_sample
-
     arr = _check_gt(gt)
     g = np.asarray(matrices, dtype=np.float64)
     if g.shape != (3, 3, 3) or not np.all(np.isfinite(g)):

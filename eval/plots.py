@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import io
 import math
 from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+
+from capssim.imageio import atomic_write_bytes
+from capssim.polarization import dolp, stokes_from_12
+from capssim.visualize import aop_image, aop_legend, dolp_image, intensity_image
 
 _MARKERS = "osD^v<>pP*hX"
 
@@ -21,10 +26,6 @@ def _plt():
 
 
 def _save(fig, path: Path) -> Path:
-    import io
-
-    from capssim.imageio import atomic_write_bytes
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
     atomic_write_bytes(path, buf.getvalue())
@@ -115,9 +116,6 @@ def _crop_window(shape, size: int) -> tuple[slice, slice]:
 def crops(gt: np.ndarray, estimates: dict[str, np.ndarray], path: Path, *, title: str = "", crop: int = 128,
           center_rowcol: tuple[float, float] | None = None) -> Path:
     """Ground truth and each method: intensity, DoLP and AoP (fig. 7 colour map) of one crop."""
-    from capssim.polarization import dolp, stokes_from_12
-    from capssim.visualize import aop_image, aop_legend, dolp_image, intensity_image
-
     plt = _plt()
     if center_rowcol is not None:
         h, w = gt.shape[1:]

@@ -1,7 +1,14 @@
-"""``report.md`` of a benchmark run: tables per scene and noise level, plots, skips, verdict."""
+"""What a benchmark run writes for people: ``report.md`` next to its results, and a results page for the docs site.
+
+``report.md`` (:func:`write_report`): tables per scene and noise level, plots, skips, the
+regression verdict. The results page (:func:`write_results_page`, ``docs/results/SUITE.md``):
+the same metric and timing tables without plots or links outside the site, written atomically
+and listed in the folder's ``index.md``.
+"""
 
 from __future__ import annotations
 
+import datetime as _dt
 import logging
 import re
 from collections import defaultdict
@@ -9,7 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.imageio import atomic_write_text
+from capssim.capture import read_capture
+from capssim.eval import plots as P
+from capssim.imageio import atomic_write_text, read_tiff
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +107,7 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
         f"{sum(r['status'] == 'skipped' for r in recs)} skipped, {run.n_errors} failed; this invocation took "
         f"{run.wall_time_s:.1f} s (cached captures and completed cases are reused)",
         f"- metric convention: `{recs[0]['convention'] if recs else spec.get('convention')}` "
-        "(definitions: README, section 'Scoring')",
+        "(definitions: the scoring guide)",
         f"- git {git.get('revision') or 'unknown'}{' (dirty)' if git.get('dirty') else ''}; "
         f"CPU {env.get('cpu')} x{env.get('cpu_count')} (torch threads {env.get('torch_threads')}); "
         f"GPU {env.get('gpu') or 'none'}; device {env.get('device')}",
@@ -117,8 +126,6 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
               "cycles per Bayer sub-image pixel / 0.5). Time = the method's wall time.", ""]
     plot_paths: dict[str, list[tuple[str, Path]]] = defaultdict(list)
     if plots and ok:
-        from capssim.eval import plots as P
-
         for metric, label, hib, name in (("psnr_mean", "PSNR (dB, 12-ch mean)", True, "speed_vs_psnr.png"),
                                          ("dolp_psnr", "DoLP PSNR (dB)", True, "speed_vs_dolp.png"),
                                          ("aop_rmse_deg", "AoP RMSE (deg)", False, "speed_vs_aop.png")):
@@ -139,10 +146,6 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
         first_seed = min(r["seed"] for r in rs)
         rs0 = [r for r in rs if r["seed"] == first_seed]
         try:
-            from capssim.capture import read_capture
-            from capssim.eval import plots as P
-            from capssim.imageio import read_tiff
-
             capture = read_capture(rs0[0]["capture"], require_gt=True)
             estimates = {}
             for m in methods:
@@ -189,4 +192,64 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
         lines += ["## Metric notes", ""] + [f"- {n}" for n in notes] + [""]
     path = output / "report.md"
     atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
+
+
+def _environment_lines(run) -> list[str]:
+    env = run.environment
+    git = env.get("git", {})
+    return [f"- git {git.get('revision') or 'unknown'}{' (with uncommitted changes)' if git.get('dirty') else ''}",
+            f"- CPU {env.get('cpu')} x{env.get('cpu_count')} (torch threads {env.get('torch_threads')}); "
+            f"GPU {env.get('gpu') or 'none'}; device {env.get('device')}",
+            "- versions: " + ", ".join(f"{k} {v}" for k, v in env.get("versions", {}).items())]
+
+
+def results_page(run, *, verdict=None, written: str | None = None) -> str:
+    """Markdown results page of a run: metric and timing tables per scene and noise level."""
+    spec, recs = run.spec, run.records
+    methods = [m["label"] for m in spec["methods"]]
+    ok = [r for r in recs if r["status"] == "ok"]
+    lines = [f"# Results: suite `{spec['name']}`", ""]
+    if spec.get("description"):
+        lines += [" ".join(str(spec["description"]).split()), ""]
+    lines += [f"Written by `capssim bench suite {spec['name']} --results-page PATH` on "
+              f"{written or _dt.datetime.now(_dt.timezone.utc).strftime('%Y-%m-%d')}; the same command regenerates it.",
+              "",
+              f"- cases: {len(recs)} planned, {len(ok)} scored, {sum(r['status'] == 'skipped' for r in recs)} skipped, "
+              f"{run.n_errors} failed",
+              f"- metric convention: `{recs[0]['convention'] if recs else spec.get('convention')}`",
+              *_environment_lines(run),
+              "- timings are wall-clock seconds on a possibly shared machine: compare them within one page only.",
+              ""]
+    if verdict is not None:
+        lines += [f"Regression check against the stored baseline: **{'passed' if verdict.passed else 'FAILED'}** "
+                  f"({len(verdict.compared)} case(s) compared, {len(verdict.failures)} failure(s)).", ""]
+    if run.notes:
+        lines += ["## Substitutions", ""] + [f"- {n}" for n in run.notes] + [""]
+    lines += ["## Results", "",
+              "Means over seeds. PSNR in dB (12-channel mean; S0/S1/S2/DoLP pooled over R, G, B); AoP errors in "
+              "degrees over the masked pixels; SR magnification from the Siemens-star MTF. Time: the method's wall "
+              "time in seconds.", ""]
+    for (scene, noise), rs in sorted(group_records(recs).items()):
+        lines += [f"### {scene} / {noise}", "", results_table(rs, methods), ""]
+        stages = stage_table(rs, methods)
+        if stages:
+            lines += ["Time per stage (s):", "", stages, ""]
+    skipped = [r for r in recs if r["status"] == "skipped"]
+    if skipped:
+        lines += ["## Skipped cases", "", "| case | reason |", "|---|---|"]
+        lines += [f"| {r['key']} | {r.get('reason')} |" for r in skipped] + [""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+def write_results_page(run, path: str | Path, *, verdict=None) -> Path:
+    """Write :func:`results_page` to ``path`` (temp file, then rename) and list it in the folder's ``index.md``."""
+    path = Path(path)
+    atomic_write_text(path, results_page(run, verdict=verdict))
+    index = path.parent / "index.md"
+    if index.is_file():
+        text = index.read_text()
+        if f"]({path.name})" not in text:
+            entry = f"- [Suite `{run.spec['name']}`]({path.name})"
+            atomic_write_text(index, text.rstrip("\n") + ("\n\n" if "](" not in text else "\n") + entry + "\n")
     return path

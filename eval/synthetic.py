@@ -19,9 +19,10 @@ for ``meta["scene"]["star"]``.
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import gaussian_filter
 
 from capssim.errors import UnknownNameError
-from capssim.eval.mtf import sinusoidal_star
+from capssim.eval.star import sinusoidal_star
 from capssim.polarization import twelve_from_stokes
 
 GENERATORS = ("texture", "star", "polarization-star")
@@ -36,8 +37,6 @@ def _box_supersampled(field_fn, size: int, factor: int = 4) -> np.ndarray:
 
 
 def texture_scene(size: int = 128, *, seed: int = 0) -> tuple[np.ndarray, dict]:
-    from scipy.ndimage import gaussian_filter
-
     rng = np.random.default_rng(seed)
 
     def smooth(sigma, n=1):

@@ -17,7 +17,7 @@ def _scene_and_mosaic(shared_data, name):
 
 def test_bilinear_matches_published_scores_on_kettle(shared_data):
     """Published-style two-step bilinear on qiu-kettle: S0 39.8 dB, DoLP 33.6 dB, AoP RMSE 12.0 deg."""
-    from capssim.eval.dofp_bench import tokyotech_scores
+    from capssim.eval.metrics import tokyotech_scores
     from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
 
     gt, mosaic = _scene_and_mosaic(shared_data, "qiu-kettle")
@@ -30,7 +30,7 @@ def test_bilinear_matches_published_scores_on_kettle(shared_data):
 @pytest.mark.slow
 def test_simulated_capture_mosaic_is_the_direct_sampling(shared_data, tmp_path):
     """``capssim simulate --noise none --psf-sigma 0`` gives exactly the directly sampled mosaic."""
-    from capssim.eval.dofp_bench import make_capture
+    from capssim.eval.benchmarks.dofp import make_capture
 
     gt, mosaic = _scene_and_mosaic(shared_data, "qiu-cellphonecases")
     capture = make_capture(shared_data / "gt" / "qiu-cellphonecases")
@@ -40,7 +40,7 @@ def test_simulated_capture_mosaic_is_the_direct_sampling(shared_data, tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("scene", ["qiu-kettle", "qiu-cellphonecases"])
 def test_eari_beats_bilinear(shared_data, scene):
-    from capssim.eval.dofp_bench import tokyotech_scores
+    from capssim.eval.metrics import tokyotech_scores
     from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
     from capssim.reconstruct.methods.dofp_eari import demosaic_dofp_eari
 

@@ -1,4 +1,4 @@
-"""eval.bench through the CLI: a tiny suite with test-only methods, resume, baselines, skips, errors."""
+"""The suite runner through ``capssim bench suite``: a tiny suite with test-only methods, resume, baselines, skips, errors."""
 
 from __future__ import annotations
 
@@ -10,7 +10,9 @@ import pytest
 from typer.testing import CliRunner
 
 from capssim.cli import app
-from capssim.eval.bench import DEFAULT_TOLERANCES, check_against_baseline, load_suite, tolerance_for
+from capssim.errors import InputError, UnknownNameError
+from capssim.eval.benchmarks.baseline import DEFAULT_TOLERANCES, check_against_baseline, tolerance_for
+from capssim.eval.benchmarks.suite import BenchRun, load_suite
 from capssim.eval.plots import pareto_front
 from capssim.reconstruct.registry import MethodOutput, available_methods, register_method
 
@@ -89,9 +91,8 @@ def tiny(tmp_path, monkeypatch):
     return suite, tmp_path
 
 
-def _bench(*args):
-    result = CliRunner().invoke(app, ["bench", *map(str, args)])
-    return result
+def _bench(suite, *args):
+    return CliRunner().invoke(app, ["bench", "suite", str(suite), *map(str, args)])
 
 
 def _records(out: Path) -> dict[str, dict]:
@@ -101,7 +102,7 @@ def _records(out: Path) -> dict[str, dict]:
 def test_bench_runs_resumes_and_checks(tiny, monkeypatch):
     suite, tmp = tiny
     out, baseline = tmp / "out", tmp / "baseline.json"
-    r = _bench("--suite", suite, "-o", out, "--update-baseline", baseline)
+    r = _bench(suite, "-o", out, "--update-baseline", baseline)
     assert r.exit_code == 0, r.output
     recs = _records(out)
     ok = {k for k, v in recs.items() if v["status"] == "ok"}
@@ -125,16 +126,16 @@ def test_bench_runs_resumes_and_checks(tiny, monkeypatch):
 
     # resume: nothing is redone; after losing the last line only that case is redone
     calls = CALLS["test-upsample"]
-    assert _bench("--suite", suite, "-o", out, "--no-plots").exit_code == 0
+    assert _bench(suite, "-o", out, "--no-plots").exit_code == 0
     assert CALLS["test-upsample"] == calls
     lines = (out / "results.jsonl").read_text().splitlines()
     dropped = next(i for i, line in enumerate(lines) if '"test-upsample"' in line and '"status": "ok"' in line)
     (out / "results.jsonl").write_text("\n".join(lines[:dropped] + lines[dropped + 1:]) + "\n{corrupt")
-    assert _bench("--suite", suite, "-o", out, "--no-plots").exit_code == 0
+    assert _bench(suite, "-o", out, "--no-plots").exit_code == 0
     assert CALLS["test-upsample"] == calls + 1
 
     # the check passes against its own baseline
-    r = _bench("--suite", suite, "-o", out, "--no-plots", "--check", baseline)
+    r = _bench(suite, "-o", out, "--no-plots", "--check", baseline)
     assert r.exit_code == 0, r.output
     assert "PASSED (6 case(s) compared" in r.output
 
@@ -146,7 +147,7 @@ def test_bench_runs_resumes_and_checks(tiny, monkeypatch):
     case["mtf_magnification_hv"] = 9.0  # not measured on this scene: ignored, never a false alarm
     worse_path = tmp / "worse.json"
     worse_path.write_text(json.dumps(worse))
-    r = _bench("--suite", suite, "-o", out, "--no-plots", "--check", worse_path)
+    r = _bench(suite, "-o", out, "--no-plots", "--check", worse_path)
     assert r.exit_code == 1
     assert "texture/gauss-0.01/seed0/test-upsample psnr_mean" in r.output and "fell by 0.5000" in r.output
     assert "aop_rmse_deg" in r.output and "rose by 1.0000" in r.output
@@ -154,7 +155,7 @@ def test_bench_runs_resumes_and_checks(tiny, monkeypatch):
 
     # without the shared data its cases are skipped explicitly and not compared; the rest passes
     monkeypatch.setenv("CAPSSIM_SHARED_DATA", str(tmp / "nowhere"))
-    r = _bench("--suite", suite, "-o", tmp / "out2", "--no-plots", "--check", baseline)
+    r = _bench(suite, "-o", tmp / "out2", "--no-plots", "--check", baseline)
     assert r.exit_code == 0, r.output
     assert "not compared: real/gauss-0.01/seed0/test-upsample (skipped: real: shared data" in r.output
     assert "PASSED (4 case(s) compared" in r.output
@@ -168,11 +169,11 @@ def test_check_fails_on_errors_missing_methods_and_empty_runs(tiny):
                         "fallback: star}\n", "")
     suite.write_text(text.replace("  - {name: real, source: shared-gt, path: gt/fake-scene}\n", ""))
     out, baseline = tmp / "out", tmp / "b.json"
-    assert _bench("--suite", suite, "-o", out, "--no-plots", "--update-baseline", baseline).exit_code == 0
+    assert _bench(suite, "-o", out, "--no-plots", "--update-baseline", baseline).exit_code == 0
     # the method breaks: the case errors, the run and the check fail
     broken = suite.read_text().replace("methods: [test-upsample]", "methods: [{name: test-broken, label: test-upsample}]")
     suite.write_text(broken)
-    r = _bench("--suite", suite, "-o", tmp / "out3", "--no-plots", "--check", baseline)
+    r = _bench(suite, "-o", tmp / "out3", "--no-plots", "--check", baseline)
     assert r.exit_code == 1
     assert "error (RuntimeError: this method is broken on purpose)" in r.output
     report = (tmp / "out3" / "report.md").read_text()
@@ -201,18 +202,14 @@ def test_suites_and_helpers():
 
 
 def test_bad_suite_and_baseline(tmp_path):
-    from capssim.errors import InputError, UnknownNameError
-
     with pytest.raises(UnknownNameError, match="quick"):
         load_suite("no-such-suite")
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: x\nscenes: [{name: a, source: nowhere}]\nmethods: [caps]\n")
     with pytest.raises(InputError, match="source"):
         load_suite(bad)
-    r = CliRunner().invoke(app, ["bench", "--suite", str(bad), "-o", str(tmp_path / "o")])
+    r = CliRunner().invoke(app, ["bench", "suite", str(bad), "-o", str(tmp_path / "o")])
     assert r.exit_code != 0
-    from capssim.eval.bench import BenchRun
-
     run = BenchRun(spec={"name": "x"}, output=tmp_path, results_path=tmp_path / "r", records=[], environment={})
     with pytest.raises(InputError, match="update-baseline"):
         check_against_baseline(run, tmp_path / "missing.json")

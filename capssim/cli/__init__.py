@@ -1,8 +1,10 @@
 """The ``capssim`` command line: one app, one module per group of subcommands.
 
 Every module ``capssim.cli.<name>`` defines ``register(app)``; they are discovered
-automatically. This is the only part of ``capssim`` allowed to import ``reconstruct`` and
-``eval``, and it does so inside the command functions, so start-up stays fast.
+automatically. The command line is the top floor: nothing imports it, and it imports every
+floor below it. Modules that pull torch (the capture format, the reconstruction, the
+evaluation, the benchmarks) are imported inside the command functions, so start-up and
+``--help`` stay fast.
 """
 
 from __future__ import annotations

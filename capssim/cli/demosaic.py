@@ -6,9 +6,13 @@ import time
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
 
 from capssim.cli._options import OverwriteOption
+from capssim.conventions import dofp_layout, dofp_layout_name
+from capssim.errors import InputError, UnknownNameError
+from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
 
 DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2")
 
@@ -25,11 +29,6 @@ def read_raw_mosaic(path: Path, *, white_level: Optional[float] = None, black_le
     Odd sides are an error unless ``trim_odd``, which drops the last row and/or column (the
     2x2 polarizer cell is anchored at the top-left pixel, so the layout is unchanged).
     """
-    import numpy as np
-
-    from capssim.errors import InputError
-    from capssim.imageio import read_image
-
     raw, bits = read_image(path, argument="RAW")
     info: dict = {"path": str(path), "bit_depth": bits, "stored_shape": list(raw.shape)}
     if raw.ndim == 3:
@@ -92,18 +91,14 @@ def demosaic(
     Writes OUTPUT/demosaicked.tiff (12, H, W) float32 (channel c = 3*p + k, p over 0/45/90/135 deg,
     k over R/G/B), previews intensity.png, dolp.png, aop.png, panel.png, and demosaic.json.
     """
-    import numpy as np
-
-    from capssim.conventions import dofp_layout, dofp_layout_name
-    from capssim.errors import UnknownNameError
-    from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, write_tiff
+    # start-up time: the previews and the methods pull torch
+    from capssim.reconstruct.registry import StageTimer, dofp_array_function, resolve_device
     from capssim.visualize import write_previews
 
     if method not in DOFP_METHODS:
         raise UnknownNameError("DoFP method", method, list(DOFP_METHODS))
     cell = dofp_layout(layout)
     check_output_free(output, overwrite=overwrite)
-    from capssim.reconstruct.registry import StageTimer, dofp_array_function, resolve_device
 
     dev = resolve_device(device)
     t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""``capssim evaluate``, ``capssim mtf`` and ``capssim bench``: scoring from the command line."""
+"""``capssim evaluate`` and ``capssim mtf``: scoring from the command line (benchmarks: ``capssim bench``)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,15 @@ import math
 from pathlib import Path
 from typing import Optional
 
+import numpy as np
 import typer
 
+from capssim.conventions import CHANNEL_NAMES
+from capssim.errors import InputError
+from capssim.imageio import read_image
 
-def _fmt(value, digits: int = 2) -> str:
+
+def format_value(value, digits: int = 2) -> str:
     if value is None:
         return "-"
     if isinstance(value, float):
@@ -49,7 +54,7 @@ def evaluate(
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON instead of tables."),
 ) -> None:
     """Score every reconstruction of a capture against its ground truth; write CAPTURE/metrics.json."""
-    from capssim.eval.evaluate import evaluate_capture
+    from capssim.eval.evaluate import evaluate_capture  # start-up time: the scoring pulls torch and skimage
 
     lpips = None
     if lpips_weights is not None:
@@ -69,8 +74,8 @@ def evaluate(
 
 
 def render_evaluation(result: dict, *, lpips_used: bool) -> str:
-    from capssim.conventions import CHANNEL_NAMES
-
+    """The tables ``capssim evaluate`` prints of an :func:`~capssim.eval.evaluate.evaluate_capture` result."""
+    fv = format_value
     out = [f"capture: {result['capture']}",
            f"convention: {result['convention']} ({result['convention_description']})"]
     rows, ch_psnr, ch_ssim = [], [], []
@@ -79,11 +84,11 @@ def render_evaluation(result: dict, *, lpips_used: bool) -> str:
             rows.append([name, f"ERROR: {e['error']}"] + [""] * 10)
             continue
         m = e["metrics"]
-        rows.append([name, _fmt(m["psnr_mean"]), _fmt(m["ssim_mean"], 4), _fmt(m["s0_psnr"]), _fmt(m["s1_psnr"]),
-                     _fmt(m["s2_psnr"]), _fmt(m["dolp_psnr"]), _fmt(m["dolp_ssim"], 4), _fmt(m["aop_rmse_deg"]),
-                     _fmt(m["aop_mae_deg"]), _fmt(m.get("lpips_mean"), 4), _fmt(e.get("wall_time_s"), 2)])
-        ch_psnr.append([name] + [_fmt(m["psnr"][c]) for c in CHANNEL_NAMES] + [_fmt(m["psnr_mean"])])
-        ch_ssim.append([name] + [_fmt(m["ssim"][c], 3) for c in CHANNEL_NAMES] + [_fmt(m["ssim_mean"], 3)])
+        rows.append([name, fv(m["psnr_mean"]), fv(m["ssim_mean"], 4), fv(m["s0_psnr"]), fv(m["s1_psnr"]),
+                     fv(m["s2_psnr"]), fv(m["dolp_psnr"]), fv(m["dolp_ssim"], 4), fv(m["aop_rmse_deg"]),
+                     fv(m["aop_mae_deg"]), fv(m.get("lpips_mean"), 4), fv(e.get("wall_time_s"), 2)])
+        ch_psnr.append([name] + [fv(m["psnr"][c]) for c in CHANNEL_NAMES] + [fv(m["psnr_mean"])])
+        ch_ssim.append([name] + [fv(m["ssim"][c], 3) for c in CHANNEL_NAMES] + [fv(m["ssim_mean"], 3)])
     out.append("")
     out.append(format_table(["method", "PSNR", "SSIM", "S0", "S1", "S2", "DoLP", "DoLP-SSIM", "AoP-RMSE",
                              "AoP-MAE", "LPIPS", "time-s"], rows))
@@ -109,8 +114,8 @@ def render_evaluation(result: dict, *, lpips_used: bool) -> str:
         star = result["star"]
         rows = []
         g = result["gt_mtf"]["mean"]
-        rows.append(["(ground truth)", _fmt(g["limit_cyc_per_ref_px"]["hv"], 3), _fmt(g["magnification"]["hv"], 3),
-                     _fmt(g["limit_cyc_per_ref_px"]["diagonal"], 3), _fmt(g["magnification"]["diagonal"], 3),
+        rows.append(["(ground truth)", fv(g["limit_cyc_per_ref_px"]["hv"], 3), fv(g["magnification"]["hv"], 3),
+                     fv(g["limit_cyc_per_ref_px"]["diagonal"], 3), fv(g["magnification"]["diagonal"], 3),
                      g["limited_by"]["hv"]])
         for name, e in result["methods"].items():
             mt = e.get("mtf")
@@ -120,8 +125,8 @@ def render_evaluation(result: dict, *, lpips_used: bool) -> str:
                 rows.append([name, f"ERROR: {mt['error']}", "", "", "", ""])
                 continue
             mm = mt["mean"]
-            rows.append([name, _fmt(mm["limit_cyc_per_ref_px"]["hv"], 3), _fmt(mm["magnification"]["hv"], 3),
-                         _fmt(mm["limit_cyc_per_ref_px"]["diagonal"], 3), _fmt(mm["magnification"]["diagonal"], 3),
+            rows.append([name, fv(mm["limit_cyc_per_ref_px"]["hv"], 3), fv(mm["magnification"]["hv"], 3),
+                         fv(mm["limit_cyc_per_ref_px"]["diagonal"], 3), fv(mm["magnification"]["diagonal"], 3),
                          mm["limited_by"]["hv"]])
         out += ["", f"Siemens star ({star['cycles']} cycles): limit resolution in cycles per Bayer sub-image pixel "
                     f"(4 HR px), channel-mean MTF = 0.03; SR magnification = limit / 0.5",
@@ -134,12 +139,6 @@ def render_evaluation(result: dict, *, lpips_used: bool) -> str:
 # -- mtf -----------------------------------------------------------------------------------------
 def _read_star_image(path: Path):
     """``(C, H, W)`` float64 and channel names from a grey, RGB or 12-channel image."""
-    import numpy as np
-
-    from capssim.conventions import CHANNEL_NAMES
-    from capssim.errors import InputError
-    from capssim.imageio import read_image
-
     arr, bits = read_image(path, argument="image")
     arr = arr.astype(np.float64) / (2 ** bits - 1) if bits else arr.astype(np.float64)
     if arr.ndim == 2:
@@ -172,8 +171,7 @@ def mtf(
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
 ) -> None:
     """MTF of a sinusoidal Siemens star per segment direction, limit resolution and SR magnification."""
-    from capssim.errors import InputError
-    from capssim.eval.mtf import measure_star
+    from capssim.eval.mtf import measure_star  # start-up time
 
     imgs, names = _read_star_image(image)
     is_twelve = len(names) == 12
@@ -212,9 +210,9 @@ def mtf(
     rows = []
     for i, f in enumerate(head.frequency):
         flags = "".join("*" if not head.credited[g][i] else " " for g in ("hv", "diagonal"))
-        rows.append([f"{f:.4f}", f"{f * pitch:.3f}", _fmt(float(head.mtf["hv"][i]), 3),
-                     _fmt(float(head.mtf["diagonal"][i]), 3), _fmt(float(head.residual_ratio["hv"][i]), 3),
-                     _fmt(float(head.residual_ratio["diagonal"][i]), 3), flags])
+        rows.append([f"{f:.4f}", f"{f * pitch:.3f}", format_value(float(head.mtf["hv"][i]), 3),
+                     format_value(float(head.mtf["diagonal"][i]), 3), format_value(float(head.residual_ratio["hv"][i]), 3),
+                     format_value(float(head.residual_ratio["diagonal"][i]), 3), flags])
     lines.append(f"MTF per segment direction ({label}); hv = segments centred on 0/90/180/270 deg, "
                  f"diagonal = 45/135/225/315 deg; '*' = not credited (beyond a stop):")
     lines.append(format_table(["f", "f_ref", "MTF-hv", "MTF-diag", "resid-hv", "resid-diag", "hv/diag"], rows))
@@ -233,93 +231,6 @@ def mtf(
     typer.echo("\n".join(lines))
 
 
-# -- bench ---------------------------------------------------------------------------------------
-def bench(
-    suite: str = typer.Option(..., "--suite", help="Suite name (eval/suites/NAME.yaml: quick, ablation, paper, full) or a YAML path."),
-    output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
-    check: Optional[Path] = typer.Option(None, "--check", help="Baseline JSON: exit 1 if a metric fell beyond tolerance."),
-    update_baseline: Optional[Path] = typer.Option(None, "--update-baseline", help="Write this run's metrics as the baseline."),
-    methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated subset of the suite's methods."),
-    scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated subset of the suite's scenes."),
-    device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
-    cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/cache)."),
-    fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
-    no_plots: bool = typer.Option(False, "--no-plots", help="Skip the plots (report and results only)."),
-) -> None:
-    """Run a benchmark suite: scenes x methods x noise levels (x seeds); results.jsonl, report.md, plots."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from capssim.eval.bench import check_against_baseline, load_suite, run_suite, write_baseline
-    from capssim.eval.report import write_report
-
-    spec = load_suite(suite)
-    pick = lambda s: [t.strip() for t in s.split(",") if t.strip()] if s else None  # noqa: E731
-    console = Console(stderr=True)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.fields[case]}"), console=console, transient=False) as progress:
-        task = progress.add_task(f"bench {spec['name']}", total=None, case="")
-
-        def on_event(kind: str, **info):
-            if kind == "start":
-                progress.update(task, total=info["total"])
-            elif kind == "case":
-                progress.update(task, case=info["label"])
-            elif kind == "done":
-                progress.advance(task)
-            elif kind in ("skip", "note"):
-                progress.console.print(f"[yellow]{info['message']}")
-            elif kind == "error":
-                progress.console.print(f"[red]{info['message']}")
-
-        run = run_suite(spec, output, methods=pick(methods), scenes=pick(scenes), device=device, cache_dir=cache,
-                        fresh=fresh, events=on_event)
-    verdict = None
-    if check is not None:
-        verdict = check_against_baseline(run, check)
-    report = write_report(run, output, verdict=verdict, plots=not no_plots)
-    typer.echo(render_bench_summary(run))
-    typer.echo(f"results: {run.results_path}")
-    typer.echo(f"report:  {report}")
-    if update_baseline is not None:
-        n = write_baseline(run, update_baseline)
-        typer.echo(f"wrote baseline {update_baseline} ({n} cases)")
-    if verdict is not None:
-        typer.echo(verdict.text())
-        if not verdict.passed:
-            raise typer.Exit(1)
-    if run.n_errors:
-        typer.echo(f"{run.n_errors} case(s) failed; see {run.results_path}", err=True)
-        raise typer.Exit(1)
-
-
-def render_bench_summary(run) -> str:
-    """One compact table per scene / noise level (the full tables are in report.md)."""
-    from capssim.eval.report import group_records
-
-    lines = []
-    methods = [m["label"] for m in run.spec["methods"]]
-    for (scene, noise), recs in sorted(group_records(run.records).items()):
-        rows = []
-        for m in methods:
-            rs = [r for r in recs if r["method"] == m]
-            if not rs:
-                continue
-            mean = lambda k: (sum(r["metrics"][k] for r in rs if r["metrics"].get(k) is not None) /  # noqa: E731
-                              max(1, sum(r["metrics"].get(k) is not None for r in rs))
-                              if any(r["metrics"].get(k) is not None for r in rs) else None)
-            t = sum(r["wall_time_s"] for r in rs) / len(rs)
-            rows.append([m, _fmt(mean("psnr_mean")), _fmt(mean("ssim_mean"), 4), _fmt(mean("dolp_psnr")),
-                         _fmt(mean("aop_rmse_deg")), _fmt(mean("mtf_magnification_hv")), _fmt(t, 2)])
-        lines += ["", f"{scene} / {noise}:",
-                  format_table(["method", "PSNR", "SSIM", "DoLP", "AoP-RMSE", "SR-mag", "time-s"], rows)]
-    skipped = [r for r in run.records if r["status"] == "skipped"]
-    if skipped:
-        lines.append(f"\n{len(skipped)} case(s) skipped (reasons in report.md)")
-    return "\n".join(lines)
-
-
 def register(app: typer.Typer) -> None:
     app.command("evaluate")(evaluate)
     app.command("mtf")(mtf)
-    app.command("bench")(bench)

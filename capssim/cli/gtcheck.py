@@ -7,6 +7,9 @@ from typing import Optional
 
 import typer
 
+from capssim.errors import InputError
+from capssim.imageio import atomic_write_json, read_gt_scene, write_tiff
+
 
 def gt_check(
     gt: Path = typer.Argument(..., help="Ground truth: folder of 0/45/90/135.png, or a 12-channel TIFF."),
@@ -19,10 +22,9 @@ def gt_check(
                                       "the 0 deg one (usable as simulate --gt)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing --json / --write-aligned files."),
 ) -> None:
-    """Measure the inter-image offsets, Stokes residual and clipping of a ground truth (eval.gt_check)."""
-    from capssim.errors import InputError
+    """Measure the inter-image offsets, Stokes residual and clipping of a ground truth (capssim.eval.gt_check)."""
+    # start-up time: the check, the registry and the simulation pull torch
     from capssim.eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE, aligned_ground_truth, check_ground_truth
-    from capssim.imageio import atomic_write_json, read_gt_scene, write_tiff
     from capssim.reconstruct.registry import resolve_device
     from capssim.simulate import prepare_ground_truth
 

@@ -1,5 +1,4 @@
-"""``capssim reconstruct`` (run reconstruction methods on a capture) and
-``capssim reconstruct-benchmark`` (speed and memory of ``caps`` per stage)."""
+"""``capssim reconstruct``: run reconstruction methods on a capture (their speed: ``capssim bench reconstruct``)."""
 
 from __future__ import annotations
 
@@ -8,11 +7,11 @@ from typing import List, Optional
 
 import typer
 
+from capssim.errors import InputError
+
 
 def parse_options(pairs: List[str]) -> dict:
     """``KEY=VALUE`` strings -> dict (values stay strings; each method converts its own)."""
-    from capssim.errors import InputError
-
     options = {}
     for pair in pairs or []:
         if "=" not in pair:
@@ -27,6 +26,7 @@ def parse_options(pairs: List[str]) -> dict:
 
 def expand_methods(names: List[str], capture_path: Path) -> list[str]:
     """Resolve ``all`` (every method the capture has input for) and check each name."""
+    # start-up time: the capture format and the registry pull torch
     from capssim.capture import read_meta
     from capssim.reconstruct.registry import available_methods, get_method
 
@@ -68,7 +68,7 @@ def reconstruct(
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from capssim.reconstruct.registry import available_methods, get_method, run_method
+    from capssim.reconstruct.registry import available_methods, get_method, run_method  # start-up time
 
     console = Console(stderr=True)
     if list_methods:
@@ -112,31 +112,5 @@ def reconstruct(
             typer.echo(f"{name:24s}  {wall:10.2f}")
 
 
-def reconstruct_benchmark(
-    sizes: List[int] = typer.Option([256, 512, 1024], "--size", help="HR output size (repeatable)."),
-    devices: List[str] = typer.Option(["cpu", "cuda"], "--device",
-                                      help="Devices to time (cuda is skipped when absent)."),
-    iterations: int = typer.Option(25, "--iterations"),
-    repeats: int = typer.Option(1, "--repeats", help="Runs per size and device; the table shows the fastest."),
-    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth scene (default: ../shared/data/gt/qiu-kettle "
-                                                           "if present, else a synthetic scene)."),
-    estimated_warps: bool = typer.Option(False, "--estimated-warps",
-                                         help="Time registration too (needs reconstruct.registration)."),
-    as_json: Optional[Path] = typer.Option(None, "--json", help="Also write all measurements to this file."),
-) -> None:
-    """Wall time and peak memory per stage of 'caps' at the paper's defaults (prints tables)."""
-    from capssim.reconstruct.benchmark import format_tables, run_benchmark
-
-    results = run_benchmark(sizes=sizes, devices=devices, iterations=iterations, repeats=repeats, gt=gt,
-                            true_warps=not estimated_warps, log=lambda msg: typer.echo(msg, err=True))
-    typer.echo(format_tables(results))
-    if as_json is not None:
-        from capssim.imageio import atomic_write_json
-
-        atomic_write_json(as_json, results)
-        typer.echo(f"wrote {as_json}")
-
-
 def register(app: typer.Typer) -> None:
     app.command("reconstruct")(reconstruct)
-    app.command("reconstruct-benchmark")(reconstruct_benchmark)

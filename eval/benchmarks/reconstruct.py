@@ -1,7 +1,6 @@
 """Speed benchmark of ``caps``: wall time and peak memory per stage, per HR size and device.
 
-Run ``capssim reconstruct-benchmark`` (or ``python -m reconstruct.benchmark``). For each HR
-size a capture is simulated (the paper's protocol, Gaussian noise 0.01) from
+Run ``capssim bench reconstruct``. For each HR size a capture is simulated (the paper's protocol, Gaussian noise 0.01) from
 ``../shared/data/gt/qiu-kettle`` when present, else from a synthetic scene; then ``caps``
 runs at the paper's defaults in a fresh subprocess per (size, device, repeat), so the peak
 memory of one run is not inflated by another. Peak memory is the process RSS (CPU,
@@ -15,6 +14,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -26,8 +26,18 @@ from typing import Callable, Iterator
 
 import numpy as np
 import torch
+from scipy.ndimage import gaussian_filter
 
-from capssim.reconstruct.registry import StageTimer
+from capssim.capture import read_capture, write_capture
+from capssim.eval.benchmarks.provenance import shared_data_dir
+from capssim.imageio import read_gt_scene
+from capssim.polarization import twelve_from_stokes
+from capssim.reconstruct.registry import RunContext, StageTimer, get_method, resolve_device
+from capssim.sensor import make_sensor
+from capssim.simulate import prepare_ground_truth, simulate_capture
+
+#: the worker's module, run in a fresh subprocess per timed run
+WORKER_MODULE = "capssim.eval.benchmarks.reconstruct"
 
 STAGE_ORDER = ("rearrange", "registration", "operator", "cagf", "init", "nlstr_setup", "nlstr_block_matching",
                "nlstr_dictionaries_cores", "data_term", "admm_update")
@@ -38,8 +48,6 @@ def _rss_bytes() -> int:
         with open("/proc/self/statm") as fh:
             return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError):
-        import resource
-
         return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
@@ -93,13 +101,8 @@ class MemoryStageTimer(StageTimer):
 
 def make_capture(size: int, directory: Path, gt: Path | None = None, *, sigma: float = 0.01, seed: int = 0) -> Path:
     """Simulate a ``size x size`` HR capture into ``directory`` and return its path."""
-    from capssim.capture import write_capture
-    from capssim.imageio import read_gt_scene
-    from capssim.sensor import make_sensor
-    from capssim.simulate import prepare_ground_truth, simulate_capture
-
     if gt is None:
-        shared = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "gt" / "qiu-kettle"
+        shared = shared_data_dir() / "gt" / "qiu-kettle"
         gt = shared if shared.is_dir() else None
     if gt is not None:
         image, source = read_gt_scene(gt)
@@ -119,10 +122,6 @@ def make_capture(size: int, directory: Path, gt: Path | None = None, *, sigma: f
 
 
 def _synthetic_scene(size: int, seed: int) -> np.ndarray:
-    from scipy.ndimage import gaussian_filter
-
-    from capssim.polarization import twelve_from_stokes
-
     rng = np.random.default_rng(seed)
     s0 = np.stack([0.2 + 0.6 * gaussian_filter(rng.random((size, size)), 3) / 0.6 for _ in range(3)]).clip(0, 1)
     d = 0.5 * gaussian_filter(rng.random((size, size)), 8) / 0.5
@@ -130,11 +129,11 @@ def _synthetic_scene(size: int, seed: int) -> np.ndarray:
     return twelve_from_stokes(np.stack([s0, s0 * d * np.cos(2 * a), s0 * d * np.sin(2 * a)])).astype(np.float32)
 
 
-def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, method: str = "caps") -> dict:
+def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, method: str = "caps",
+           threads: int | None = None) -> dict:
     """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`)."""
-    from capssim.capture import read_capture
-    from capssim.reconstruct.registry import RunContext, get_method, resolve_device
-
+    if threads is not None:
+        torch.set_num_threads(threads)
     dev = resolve_device(device)
     capture = read_capture(capture_path, load_gt=False)
     timer = MemoryStageTimer(dev)
@@ -159,9 +158,12 @@ def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, m
 
 
 def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations: int = 25, repeats: int = 1,
-                  gt: Path | None = None, true_warps: bool = True,
+                  gt: Path | None = None, true_warps: bool = True, threads: int | None = None,
                   log: Callable[[str], None] = lambda msg: None) -> list[dict]:
-    """Time ``caps`` for each size and device; returns the fastest run of each."""
+    """Time ``caps`` for each size and device; returns the fastest run of each.
+
+    ``threads``: torch CPU threads of each run (None: torch's choice).
+    """
     results = []
     devs = [d for d in devices if d != "cuda" or torch.cuda.is_available()]
     with tempfile.TemporaryDirectory(prefix="capssim-bench-") as tmp:
@@ -171,8 +173,9 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
                 runs = []
                 for r in range(repeats):
                     log(f"caps {size}x{size} on {dev}, run {r + 1}/{repeats} ...")
-                    cmd = [sys.executable, "-m", "capssim.reconstruct.benchmark", "--worker", str(path), "--device", dev,
+                    cmd = [sys.executable, "-m", WORKER_MODULE, "--worker", str(path), "--device", dev,
                            "--iterations", str(iterations)] + ([] if true_warps else ["--estimated-warps"])
+                    cmd += [] if threads is None else ["--threads", str(threads)]
                     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
                     if proc.returncode != 0:
                         raise RuntimeError(f"benchmark worker failed:\n{proc.stderr[-2000:]}")
@@ -215,23 +218,19 @@ def format_tables(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--worker", type=Path, help="internal: run one timed reconstruction of this capture")
+def _worker_main(argv=None) -> None:
+    """``python -m capssim.eval.benchmarks.reconstruct --worker CAPTURE ...``: one timed run, its JSON on stdout."""
+    parser = argparse.ArgumentParser(prog=f"python -m {WORKER_MODULE}",
+                                     description="internal worker of 'capssim bench reconstruct'")
+    parser.add_argument("--worker", type=Path, required=True, help="run one timed reconstruction of this capture")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--iterations", type=int, default=25)
     parser.add_argument("--estimated-warps", action="store_true")
-    parser.add_argument("--size", type=int, action="append")
-    parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=None)
     args = parser.parse_args(argv)
-    if args.worker is not None:
-        print(json.dumps(worker(args.worker, args.device, args.iterations, not args.estimated_warps)))
-        return
-    results = run_benchmark(sizes=args.size or (256, 512, 1024), devices=(args.device,), iterations=args.iterations,
-                            repeats=args.repeats, true_warps=not args.estimated_warps,
-                            log=lambda m: print(m, file=sys.stderr))
-    print(format_tables(results))
+    print(json.dumps(worker(args.worker, args.device, args.iterations, not args.estimated_warps,
+                            threads=args.threads)))
 
 
 if __name__ == "__main__":
-    main()
+    _worker_main()

@@ -1,6 +1,6 @@
 """Throughput benchmark of dataset generation: samples/hour for 1, 2, ... local workers.
 
-    python -m capssim.dataset.benchmark examples/dataset-bench.yaml --workers 1,2
+    capssim bench dataset examples/dataset-bench-gt.yaml --workers 1,2
 
 For each worker count it generates the config's dataset into a fresh temporary folder (on a
 local Dask cluster, or in this process for 0) and prints one row: the steady rate (samples
@@ -12,30 +12,29 @@ the load average before the run (other processes on the machine skew the numbers
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import shutil
 import tempfile
 import time
+from datetime import datetime
 from pathlib import Path
+
+from capssim.dataset.config import load_config
+from capssim.dataset.generate import generate_dataset
+from capssim.dataset.manifest import MANIFEST, read_manifest
 
 
 def _steady_rate(records: list[dict]) -> float | None:
     """Samples per hour between the first and the last finished sample."""
-    from datetime import datetime
-
     times = sorted(datetime.fromisoformat(r["finished_at"]).timestamp() for r in records)
     if len(times) < 2 or times[-1] <= times[0]:
         return None
     return 3600.0 * (len(times) - 1) / (times[-1] - times[0])
 
 
-def run(config_path: str, worker_counts: list[int], *, keep: str | None = None) -> list[dict]:
-    from capssim.dataset.config import load_config
-    from capssim.dataset.generate import generate_dataset
-    from capssim.dataset.manifest import MANIFEST, read_manifest
-
+def run_dataset_benchmark(config_path: str | Path, worker_counts: list[int], *,
+                          keep: str | Path | None = None) -> list[dict]:
+    """One row per worker count (0: in this process); ``keep``: move each generated dataset into this folder."""
     cfg = load_config(config_path)
     rows = []
     for workers in worker_counts:
@@ -61,6 +60,7 @@ def run(config_path: str, worker_counts: list[int], *, keep: str | None = None) 
 
 
 def format_table(rows: list[dict]) -> str:
+    """Markdown table of :func:`run_dataset_benchmark`'s rows."""
     stage_keys = sorted({k for r in rows for k in r["stages_mean_s"] if k != "total_s"})
     head = ["workers", "samples", "steady/h", "overall/h", "wall s", *[k.removesuffix("_s") + " s" for k in stage_keys],
             "total s", "MB/sample", "load before/after"]
@@ -73,24 +73,3 @@ def format_table(rows: list[dict]) -> str:
                  f"{r['load_before']:.1f}/{r['load_after']:.1f}"]
         lines.append(" | ".join(cells))
     return "\n".join("| " + line + " |" for line in lines)
-
-
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("config")
-    parser.add_argument("--workers", default="1,2", help="comma-separated worker counts (0: in this process)")
-    parser.add_argument("--json", help="also write the rows to this JSON file")
-    parser.add_argument("--keep", help="move the generated datasets into this folder")
-    args = parser.parse_args(argv)
-    import logging
-
-    logging.basicConfig(level=logging.WARNING)
-    rows = run(args.config, [int(w) for w in args.workers.split(",")], keep=args.keep)
-    print(f"cores: {os.cpu_count()}, config: {args.config}")
-    print(format_table(rows))
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2))
-
-
-if __name__ == "__main__":
-    main()

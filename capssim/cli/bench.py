@@ -1,0 +1,351 @@
+"""``capssim bench SUBJECT``: every benchmark of capssim behind one command-line shape.
+
+Subjects (``capssim.eval.benchmarks``): ``suite`` (scenes x methods x noise levels, resume,
+regression baselines, report and results page), ``reconstruct`` (time and memory per stage of
+``caps``), ``registration`` (warp error and time per capture), ``dofp`` (the DoFP baselines on
+the published protocol), ``render`` (the rendering choices) and ``dataset`` (generation
+throughput). Options that mean the same thing have the same name in every subject: ``--device``,
+``--repeats``, ``--threads``, ``--size``, ``--scenes`` and ``--methods`` (comma-separated),
+``--json`` (also write the measurements to this file).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from typer.core import TyperGroup
+
+from capssim.cli.evaluate import format_table, format_value
+from capssim.errors import InputError
+from capssim.imageio import atomic_write_json
+
+MOVED = {"reconstruct-benchmark": "capssim bench reconstruct", "render-bench": "capssim bench render"}
+
+
+class _BenchGroup(TyperGroup):
+    """The ``bench`` group; the former ``capssim bench --suite NAME`` is a clear error naming the new shape."""
+
+    def parse_args(self, ctx, args: list[str]) -> list[str]:
+        if args and args[0].split("=", 1)[0] == "--suite":
+            typer.echo("error: 'capssim bench --suite NAME' is now 'capssim bench suite NAME' "
+                       "(same options otherwise; see 'capssim bench suite --help').", err=True)
+            raise typer.Exit(2)
+        return super().parse_args(ctx, args)
+
+
+bench_app = typer.Typer(name="bench", cls=_BenchGroup, no_args_is_help=True, rich_markup_mode=None,
+                        help="Benchmarks: capssim bench SUBJECT [options] with SUBJECT in suite, reconstruct, "
+                             "registration, dofp, render, dataset.")
+
+DeviceOption = typer.Option("cpu", "--device", help="cpu | cuda | auto.")
+RepeatsOption = typer.Option(1, "--repeats", help="Runs of each measurement; the tables show the fastest.")
+ThreadsOption = typer.Option(None, "--threads", help="torch CPU threads (default: torch's choice).")
+JsonOption = typer.Option(None, "--json", help="Also write the measurements to this JSON file.")
+
+
+def _names(csv: Optional[str]) -> list[str] | None:
+    return [t.strip() for t in csv.split(",") if t.strip()] if csv else None
+
+
+def _set_threads(threads: Optional[int]) -> None:
+    if threads is not None:
+        import torch  # start-up time: torch loads only when a benchmark runs
+
+        torch.set_num_threads(threads)
+
+
+def _write_json(path: Optional[Path], obj) -> None:
+    if path is not None:
+        atomic_write_json(path, obj)
+        typer.echo(f"wrote {path}")
+
+
+# -- suite ---------------------------------------------------------------------------------------
+def _progress_events(progress, task):
+    """The suite runner's ``events`` callback drawing on a rich progress bar."""
+
+    def on_event(kind: str, **info):
+        if kind == "start":
+            progress.update(task, total=info["total"])
+        elif kind == "case":
+            progress.update(task, case=info["label"])
+        elif kind == "done":
+            progress.advance(task)
+        elif kind in ("skip", "note"):
+            progress.console.print(f"[yellow]{info['message']}")
+        elif kind == "error":
+            progress.console.print(f"[red]{info['message']}")
+
+    return on_event
+
+
+@bench_app.command("suite")
+def suite(
+    name: str = typer.Argument(..., help="Suite name (eval/suites/NAME.yaml: quick, ablation, paper, full) "
+                                         "or a YAML path."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
+    check: Optional[Path] = typer.Option(None, "--check", help="Baseline JSON: exit 1 if a metric fell beyond tolerance."),
+    update_baseline: Optional[Path] = typer.Option(None, "--update-baseline", help="Write this run's metrics as the baseline."),
+    results_page: Optional[Path] = typer.Option(None, "--results-page",
+                                                help="(Re)write this Markdown results page, e.g. docs/results/quick.md."),
+    methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated subset of the suite's methods."),
+    scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated subset of the suite's scenes."),
+    device: str = DeviceOption,
+    threads: Optional[int] = ThreadsOption,
+    cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/cache)."),
+    fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
+    no_plots: bool = typer.Option(False, "--no-plots", help="Skip the plots (report and results only)."),
+) -> None:
+    """Run a benchmark suite: scenes x methods x noise levels (x seeds); results.jsonl, report.md, plots."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    # start-up time: the runner pulls torch, the renderer and every method
+    from capssim.eval.benchmarks.baseline import check_against_baseline, write_baseline
+    from capssim.eval.benchmarks.suite import load_suite, run_suite
+    from capssim.eval.report import write_report, write_results_page
+
+    spec = load_suite(name)
+    _set_threads(threads)
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TextColumn("{task.fields[case]}"), console=Console(stderr=True), transient=False) as progress:
+        task = progress.add_task(f"bench {spec['name']}", total=None, case="")
+        run = run_suite(spec, output, methods=_names(methods), scenes=_names(scenes), device=device, cache_dir=cache,
+                        fresh=fresh, events=_progress_events(progress, task))
+    verdict = check_against_baseline(run, check) if check is not None else None
+    report = write_report(run, output, verdict=verdict, plots=not no_plots)
+    typer.echo(render_bench_summary(run))
+    typer.echo(f"results: {run.results_path}")
+    typer.echo(f"report:  {report}")
+    if results_page is not None:
+        typer.echo(f"results page: {write_results_page(run, results_page, verdict=verdict)}")
+    if update_baseline is not None:
+        n = write_baseline(run, update_baseline)
+        typer.echo(f"wrote baseline {update_baseline} ({n} cases)")
+    if verdict is not None:
+        typer.echo(verdict.text())
+        if not verdict.passed:
+            raise typer.Exit(1)
+    if run.n_errors:
+        typer.echo(f"{run.n_errors} case(s) failed; see {run.results_path}", err=True)
+        raise typer.Exit(1)
+
+
+def _mean_metric(records: list[dict], key: str) -> float | None:
+    values = [r["metrics"][key] for r in records if r["metrics"].get(key) is not None]
+    return sum(values) / len(values) if values else None
+
+
+def render_bench_summary(run) -> str:
+    """One compact table per scene / noise level (the full tables are in report.md)."""
+    from capssim.eval.report import group_records
+
+    lines = []
+    methods = [m["label"] for m in run.spec["methods"]]
+    for (scene, noise), recs in sorted(group_records(run.records).items()):
+        rows = []
+        for m in methods:
+            rs = [r for r in recs if r["method"] == m]
+            if not rs:
+                continue
+            t = sum(r["wall_time_s"] for r in rs) / len(rs)
+            rows.append([m, format_value(_mean_metric(rs, "psnr_mean")), format_value(_mean_metric(rs, "ssim_mean"), 4),
+                         format_value(_mean_metric(rs, "dolp_psnr")), format_value(_mean_metric(rs, "aop_rmse_deg")),
+                         format_value(_mean_metric(rs, "mtf_magnification_hv")), format_value(t, 2)])
+        lines += ["", f"{scene} / {noise}:",
+                  format_table(["method", "PSNR", "SSIM", "DoLP", "AoP-RMSE", "SR-mag", "time-s"], rows)]
+    skipped = [r for r in run.records if r["status"] == "skipped"]
+    if skipped:
+        lines.append(f"\n{len(skipped)} case(s) skipped (reasons in report.md)")
+    return "\n".join(lines)
+
+
+# -- reconstruct ---------------------------------------------------------------------------------
+@bench_app.command("reconstruct")
+def reconstruct(
+    sizes: List[int] = typer.Option([256, 512, 1024], "--size", help="HR output size (repeatable)."),
+    devices: List[str] = typer.Option(["cpu", "cuda"], "--device",
+                                      help="Devices to time (repeatable; cuda is skipped when absent)."),
+    iterations: int = typer.Option(25, "--iterations", help="ADMM iterations (paper: 25)."),
+    repeats: int = RepeatsOption,
+    threads: Optional[int] = ThreadsOption,
+    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth scene (default: ../shared/data/gt/qiu-kettle "
+                                                           "if present, else a synthetic scene)."),
+    estimated_warps: bool = typer.Option(False, "--estimated-warps", help="Time the registration too."),
+    as_json: Optional[Path] = JsonOption,
+) -> None:
+    """Wall time and peak memory per stage of 'caps' at the paper's defaults, each run in a fresh process."""
+    from capssim.eval.benchmarks.reconstruct import format_tables, run_benchmark
+
+    results = run_benchmark(sizes=sizes, devices=devices, iterations=iterations, repeats=repeats, gt=gt,
+                            true_warps=not estimated_warps, threads=threads, log=lambda msg: typer.echo(msg, err=True))
+    typer.echo(format_tables(results))
+    _write_json(as_json, results)
+
+
+# -- registration --------------------------------------------------------------------------------
+@bench_app.command("registration")
+def registration(
+    captures: List[Path] = typer.Argument(..., help="Capture folders with true homographies (simulated or rendered)."),
+    mode: str = typer.Option("local-correlation", "--mode", help="Registration mode (capssim reconstruct "
+                                                                 "--registration names them)."),
+    stokes_weight: Optional[float] = typer.Option(None, "--stokes-weight",
+                                                  help="Weight of the Stokes-consistency term (default: the mode's)."),
+    content_alignment: Optional[Path] = typer.Option(
+        None, "--content-alignment", help="capssim gt-check --json record of the captures' ground truth: also report "
+                                          "the error against the content warps."),
+    device: str = DeviceOption,
+    threads: Optional[int] = ThreadsOption,
+    as_json: Optional[Path] = JsonOption,
+) -> None:
+    """Registration error against the true warps (HR px) and time per capture."""
+    from capssim.eval.benchmarks.registration import format_registration_bench, run_registration_bench
+
+    _set_threads(threads)
+    result = run_registration_bench([str(c) for c in captures], mode=mode, content_alignment=content_alignment,
+                                    stokes_weight=stokes_weight, device=device)
+    typer.echo(format_registration_bench(result))
+    _write_json(as_json, result)
+
+
+# -- dofp ----------------------------------------------------------------------------------------
+@bench_app.command("dofp")
+def dofp(
+    scenes: str = typer.Option("qiu-kettle,qiu-cellphonecases", "--scenes", help="Comma-separated scene folders."),
+    methods: str = typer.Option("dofp-bilinear,dofp-eari", "--methods", help="Comma-separated DoFP methods."),
+    gt_root: Optional[Path] = typer.Option(None, "--gt-root", help="Folder holding the scene folders "
+                                                                   "(default: ../shared/data/gt)."),
+    layout: str = typer.Option("sony", "--layout", help="DoFP 2x2 polarizer cell."),
+    psf_sigma: float = typer.Option(0.0, "--psf-sigma", help="Gaussian PSF std, HR px (0: none, as published)."),
+    border: Optional[int] = typer.Option(None, "--border", help="Border crop of the metrics (default: Tokyo Tech's 15)."),
+    device: str = DeviceOption,
+    repeats: int = RepeatsOption,
+    threads: Optional[int] = ThreadsOption,
+    eari_variants: bool = typer.Option(False, "--eari-variants", help="Score dofp-eari under its numerical variants."),
+    as_json: Optional[Path] = JsonOption,
+) -> None:
+    """The DoFP demosaicking baselines on the published protocol (noise-free, Tokyo Tech / EARI scores)."""
+    import torch  # start-up time
+
+    from capssim.eval.benchmarks.dofp import format_table as dofp_table
+    from capssim.eval.benchmarks.dofp import run_dofp_benchmark
+    from capssim.eval.metrics import CONVENTIONS
+
+    _set_threads(threads)
+    rows = run_dofp_benchmark(_names(scenes), _names(methods), gt_root=gt_root, layout=layout, psf_sigma=psf_sigma,
+                              border=border, device=device, repeats=repeats, eari_variants=eari_variants)
+    crop = CONVENTIONS["tokyotech"].border if border is None else border
+    typer.echo(f"DoFP demosaicking, noise-free, layout {layout}, PSF sigma {psf_sigma} HR px, border crop {crop} px "
+               f"(MATLAB indexing); PSNR in dB (peak 1), AoP RMSE in degrees; "
+               f"time: min of {repeats} run(s) on {device}, {torch.get_num_threads()} CPU thread(s)")
+    typer.echo(dofp_table(rows))
+    _write_json(as_json, rows)
+
+
+# -- render --------------------------------------------------------------------------------------
+def _scene_cost_lines(rows: list[dict]) -> list[str]:
+    keys = sorted({k for r in rows for k in r if k.startswith("saved:")})
+    header = f"{'scene':<18} {'variant':<28} {'path':<13} {'spp':>5} {'render s':>9} {'wall s':>7}"
+    lines = [header + "".join(f" {k[6:]:>22}" for k in keys)]
+    for r in rows:
+        line = (f"{r['scene']:<18} {r['variant']:<28} {r['path']:<13} {r['spp']:>5} {r['render_s']:>9.1f} "
+                f"{r['wall_s']:>7.1f}")
+        for k in keys:
+            v = r.get(k)
+            saved = "-" if v is None or v[0] is None else f"{v[0]:+.1f}" + (" m" if "measured" in v[1] else " e")
+            line += f" {saved:>22}"
+        lines.append(line)
+    lines.append("saved seconds: m = measured by rendering the alternative (compile excluded), e = estimated")
+    return lines
+
+
+@bench_app.command("render")
+def render(
+    scenes: str = typer.Option("siemens-star,aop-wheel,colorchecker,textured,materials,window-reflection,"
+                               "water-glare,polarization-star,dolp-ramp", "--scenes",
+                               help="Comma-separated scenes for the cost table."),
+    size: int = typer.Option(128, "--size", help="HR size."),
+    spp: Optional[int] = typer.Option(None, "--spp", help="Fixed spp per HR pixel (default: --target-noise)."),
+    target_noise: Optional[float] = typer.Option(None, "--target-noise", help="Monte-Carlo target (default 0.004)."),
+    measure: bool = typer.Option(False, "--measure-savings", help="Measure each choice's saving (slow)."),
+    warp_scene: Optional[str] = typer.Option(None, "--warp-accuracy",
+                                             help="Planar scene: raw error of the planar warp vs real renders."),
+    warp_spp: int = typer.Option(256, "--warp-spp", help="spp per HR pixel for --warp-accuracy."),
+    sampler_scene: Optional[str] = typer.Option(None, "--samplers",
+                                                help="Scene: RMS error of independent vs multijitter sampling."),
+    threads: Optional[int] = ThreadsOption,
+    as_json: Optional[Path] = JsonOption,
+) -> None:
+    """Tables behind the rendering choices: cost per scene, planar-warp accuracy, sampler gain."""
+    from capssim.eval.benchmarks import render as bench  # start-up time: Mitsuba's set-up and the scenes
+
+    _set_threads(threads)
+    measured: dict[str, list] = {}
+    names = _names(scenes) or []
+    if names:
+        typer.echo(f"render cost, {size} px HR ({'--spp ' + str(spp) if spp else 'target noise'}), "
+                   "time in render_capture")
+        measured["scene_costs"] = bench.scene_costs(names, size=size, spp=spp, target_noise=target_noise,
+                                                    measure=measure)
+        typer.echo("\n".join(_scene_cost_lines(measured["scene_costs"])))
+    if warp_scene:
+        typer.echo(f"\nplanar warp accuracy, {warp_scene}, {size} px, {warp_spp} spp, no PSF: raw frames of apertures "
+                   "1-3 against real per-aperture renders")
+        typer.echo(f"{'method':<42} {'rms':>9} {'rel. to mean':>13} {'MC noise':>9} {'s':>6}")
+        measured["warp_accuracy"] = bench.warp_accuracy(warp_scene, size=size, spp=warp_spp)
+        for r in measured["warp_accuracy"]:
+            noise = "-" if r["mc_noise_rms"] is None else f"{r['mc_noise_rms']:.5f}"
+            secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
+            typer.echo(f"{r['method']:<42} {r['rms']:>9.5f} {r['relative']:>12.2%} {noise:>9} {secs:>6}")
+    if sampler_scene:
+        typer.echo(f"\nsampler, {sampler_scene} reference view, {size} px: RMS error against a 1024 spp render")
+        typer.echo(f"{'sampler':<12} {'spp':>5} {'rms error':>10}")
+        measured["sampler_gain"] = bench.sampler_gain(sampler_scene, size=size)
+        for r in measured["sampler_gain"]:
+            typer.echo(f"{r['sampler']:<12} {r['spp']:>5} {r['rms_error']:>10.5f}")
+    _write_json(as_json, measured)
+
+
+# -- dataset -------------------------------------------------------------------------------------
+@bench_app.command("dataset")
+def dataset(
+    config: Path = typer.Argument(..., help="Dataset config YAML (e.g. examples/dataset-bench-gt.yaml)."),
+    workers: str = typer.Option("1,2", "--workers", help="Comma-separated worker counts (0: in this process)."),
+    keep: Optional[Path] = typer.Option(None, "--keep", help="Move the generated datasets into this folder."),
+    threads: Optional[int] = ThreadsOption,
+    as_json: Optional[Path] = JsonOption,
+) -> None:
+    """Dataset generation throughput (samples per hour) for each number of local workers."""
+    from capssim.eval.benchmarks.dataset import format_table as dataset_table
+    from capssim.eval.benchmarks.dataset import run_dataset_benchmark
+
+    try:
+        counts = [int(w) for w in _names(workers) or []]
+    except ValueError:
+        raise InputError("--workers", workers, "comma-separated worker counts, e.g. 1,2") from None
+    _set_threads(threads)
+    rows = run_dataset_benchmark(config, counts, keep=keep)
+    typer.echo(f"cores: {os.cpu_count()}, config: {config}")
+    typer.echo(dataset_table(rows))
+    _write_json(as_json, rows)
+
+
+# -- the former commands -------------------------------------------------------------------------
+def _moved_command(old: str, new: str):
+    def moved(ctx: typer.Context) -> None:
+        typer.echo(f"error: 'capssim {old}' is now '{new}' (see '{new} --help').", err=True)
+        raise typer.Exit(2)
+
+    moved.__doc__ = f"Moved: use '{new}'."
+    return moved
+
+
+def register(app: typer.Typer) -> None:
+    app.add_typer(bench_app, name="bench")
+    for old, new in MOVED.items():
+        app.command(old, hidden=True, context_settings={"ignore_unknown_options": True, "allow_extra_args": True})(
+            _moved_command(old, new))
+

@@ -1,0 +1,227 @@
+"""The captures of a benchmark suite: built once per (scene, noise, seed) and cached by content hash.
+
+A suite scene's ``source`` says where its ground truth comes from: ``render`` (a noise-free
+:func:`capssim.render.render_capture`, cached under ``CACHE/renders/<sha256>``; the sensor noise
+is applied afterwards by :func:`apply_sensor`, so each noise level reuses one render),
+``synthetic`` (:mod:`capssim.eval.synthetic`), ``shared-gt`` (a ground truth under
+``../shared/data``) or ``gt`` (any ground-truth folder or 12-channel TIFF); the last three are
+simulated by :func:`capssim.simulate.simulate_capture`. Captures are cached under
+``CACHE/captures/<sha256>``; the hash covers the scene spec, the source data's bytes, the noise,
+the seed and a fingerprint of capssim's capture code. All noise is drawn from the random streams
+of :func:`capssim.measurement.seed_streams` (paper section 5.2).
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
+from capssim.capture import Capture, read_capture, read_meta, write_capture
+from capssim.errors import CapssimError
+from capssim.eval.benchmarks.provenance import REPO_ROOT, code_fingerprint, content_hash, shared_data_dir
+from capssim.eval.synthetic import synthetic_scene
+from capssim.imageio import atomic_write_json, read_gt_scene
+from capssim.measurement import CameraArrayMeasurement
+from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
+from capssim.render import list_scenes, render_capture
+from capssim.sensor import make_sensor
+from capssim.simulate import prepare_ground_truth, simulate_capture
+
+log = logging.getLogger(__name__)
+
+#: the source files whose change invalidates a cached render
+RENDER_CODE = ("capssim/render", "scenes", "capssim/operators", "capssim/simulate.py", "capssim/capture.py")
+
+
+class Unavailable(Exception):
+    """A scene's data or renderer is missing: the case is skipped, not failed."""
+
+
+def _sensor(noise: dict):
+    extra = {k: v for k, v in noise.items() if k not in ("name", "model", "sigma", "preset")}
+    return make_sensor(noise["model"], sigma=noise.get("sigma"), preset=noise.get("preset"), **extra)
+
+
+def _file_digest(path: Path) -> str:
+    h = hashlib.sha256()
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    for f in files:
+        h.update(f.name.encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _resolve_gt_path(scene: dict) -> Path:
+    if scene["source"] == "shared-gt":
+        root = shared_data_dir()
+        path = root / scene["path"]
+        if not path.exists():
+            raise Unavailable(f"shared data {path} not found (set CAPSSIM_SHARED_DATA or place ../shared/data "
+                              "next to the repository)")
+        return path
+    path = Path(scene["path"]).expanduser()
+    if not path.is_absolute():
+        path = REPO_ROOT / path
+    if not path.exists():
+        raise Unavailable(f"ground truth {path} not found")
+    return path
+
+
+def _rendered_scene_names() -> list[str]:
+    try:
+        return list(list_scenes())
+    except Exception as exc:  # a renderer that cannot even list its scenes is unavailable
+        raise Unavailable(f"rendering unavailable: list_scenes failed ({exc})") from None
+
+
+def apply_sensor(clean: Capture, sensor, seed: int) -> Capture:
+    """Noise a noise-free capture with the CAPS and DoFP streams of ``seed`` (as :func:`simulate_capture`)."""
+    measurement = CameraArrayMeasurement(sensor, seed=seed)
+    meta = copy.deepcopy(clean.meta)
+    meta["sensor"] = sensor.to_meta()
+    meta["seed"] = seed
+    meta.setdefault("bench", {})["noise_applied_by"] = ("capssim.eval.benchmarks.captures.apply_sensor "
+                                                        "(after a noise-free render)")
+    caps = measurement.sense_caps(np.asarray(clean.caps_raw, dtype=np.float64))
+    dofp = measurement.sense_dofp(np.asarray(clean.dofp_raw, dtype=np.float64)) if clean.dofp_raw is not None else None
+    return Capture(meta=meta, caps_raw=caps, dofp_raw=dofp, gt=clean.gt)
+
+
+@dataclass
+class CaptureEntry:
+    key: str
+    path: Path
+    scene_name: str
+    info: dict
+
+
+class CaptureFactory:
+    """Builds (or finds in the cache) the capture folder of a (scene, noise, seed)."""
+
+    def __init__(self, cache_dir: Path, events: Callable[..., None]):
+        self.cache_dir = Path(cache_dir)
+        self.events = events
+        self.capture_code = code_fingerprint("capssim")
+        self._digests: dict[str, str] = {}
+
+    def _scene_identity(self, scene: dict, seed: int) -> dict:
+        ident = {k: v for k, v in scene.items() if k not in ("fallback", "description")}
+        ident["capture_code"] = self.capture_code
+        if scene["source"] in ("shared-gt", "gt"):
+            path = _resolve_gt_path(scene)
+            if str(path) not in self._digests:
+                self._digests[str(path)] = _file_digest(path)
+            ident["data_sha"] = self._digests[str(path)]
+        ident["seed"] = seed
+        return ident
+
+    def get(self, scene: dict, noise: dict, seed: int) -> CaptureEntry:
+        ident = self._scene_identity(scene, seed)
+        key = content_hash({"scene": ident, "noise": noise})[:20]
+        path = self.cache_dir / "captures" / key
+        info_path = path / "bench-capture.json"
+        if (path / "meta.json").is_file() and info_path.is_file():
+            try:
+                read_meta(path)
+                info = json.loads(info_path.read_text())
+                info["cached"] = True
+                return CaptureEntry(key, path, scene["name"], info)
+            except (CapssimError, json.JSONDecodeError):
+                log.warning("cached capture %s is corrupt; rebuilding", path)
+        t0 = time.perf_counter()
+        capture, info = self._build(scene, noise, seed)
+        info["build_time_s"] = time.perf_counter() - t0
+        write_capture(path, capture, overwrite=path.exists())
+        atomic_write_json(info_path, info)
+        info["cached"] = False
+        return CaptureEntry(key, path, scene["name"], info)
+
+    def _build(self, scene: dict, noise: dict, seed: int):
+        sensor = _sensor(noise)
+        psf = PSF.gaussian(float(scene.get("psf_sigma", DEFAULT_SIGMA_HR_PX)))
+        src = scene["source"]
+        info: dict[str, Any] = {"scene": scene["name"], "source": src, "noise": noise, "seed": seed}
+        if src == "render":
+            clean, render_info = self._render(scene, seed)
+            info.update(render_info)
+            return apply_sensor(clean, sensor, seed), info
+        if src == "synthetic":
+            gt, scene_meta = synthetic_scene(scene.get("generator", "texture"), size=int(scene.get("size", 128)),
+                                             seed=int(scene.get("scene_seed", seed)), cycles=int(scene.get("cycles", 36)))
+            source = {"type": "synthetic", **{k: v for k, v in scene_meta.items() if k != "star"}}
+        else:
+            gt, source = read_gt_scene(_resolve_gt_path(scene))
+            scene_meta = {}
+            gt, crop_info = prepare_ground_truth(gt, crop=scene.get("crop"))
+            source.update(crop_info)
+        extra = {"scene": {"name": scene["name"], **scene_meta}}
+        capture = simulate_capture(gt, sensor, seed=seed, psf=psf, source=source, extra_meta=extra)
+        return capture, info
+
+    def _render(self, scene: dict, seed: int):
+        """Noise-free render, cached by content hash (scene spec, seed, render code)."""
+        name = scene.get("scene", scene["name"])
+        known = _rendered_scene_names()
+        if known and name not in known:
+            raise Unavailable(f"scene {name!r} is not one of the renderer's scenes ({', '.join(map(str, known))})")
+        params = {"scene": name, "size": int(scene.get("size", 256)), "spp": scene.get("spp"), "seed": seed,
+                  "variant": scene.get("variant", "auto"), "scene_params": scene.get("scene_params")}
+        key = content_hash({"render": params, "code": code_fingerprint(*RENDER_CODE)})[:20]
+        path = self.cache_dir / "renders" / key
+        if (path / "meta.json").is_file():
+            try:
+                clean = read_capture(path, require_gt=True)
+                return clean, {"render": params, "render_cached": True, "render_variant": _variant_of(clean)}
+            except CapssimError:
+                log.warning("cached render %s is corrupt; re-rendering", path)
+        self.events("note", message=f"rendering {name} at {params['size']} px (cached afterwards)")
+        t0 = time.perf_counter()
+        extra = {"scene_params": scene["scene_params"]} if scene.get("scene_params") else {}
+        try:
+            clean = render_capture(name, size=params["size"], spp=params["spp"], seed=seed,
+                                     sensor=make_sensor("none"), variant=params["variant"], record_timing=True,
+                                     **extra)
+        except ImportError as exc:
+            raise Unavailable(f"rendering unavailable ({exc})") from None
+        elapsed = time.perf_counter() - t0
+        if clean.gt is None:
+            raise CapssimError(f"render of {name!r} returned no ground truth")
+        write_capture(path, clean, overwrite=path.exists())
+        return clean, {"render": params, "render_cached": False, "render_time_s": elapsed,
+                       "render_variant": _variant_of(clean)}
+
+
+def expand_render_scenes(scenes: list[dict], emit: Callable[..., None]) -> list[dict]:
+    """Replace a ``{source: render, scene: "*"}`` entry by one entry per scene the renderer lists."""
+    out = []
+    for sc in scenes:
+        if sc["source"] != "render" or sc.get("scene") != "*":
+            out.append(sc)
+            continue
+        try:
+            names = _rendered_scene_names()
+        except Unavailable as exc:
+            emit("note", message=f"{sc['name']}: {exc}")
+            names = []
+        if not names:
+            out.append(dict(sc, scene="(all rendered scenes)"))
+            continue
+        prefix = sc.get("prefix", "")
+        for name in names:
+            out.append(dict(sc, name=f"{prefix}{name}", scene=name))
+    return out
+
+
+def _variant_of(capture) -> str | None:
+    """The Mitsuba variant a render used (recorded by capssim.render in meta["render"])."""
+    variant = (capture.meta.get("render") or {}).get("variant")
+    return variant.get("variant") if isinstance(variant, dict) else variant
