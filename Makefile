@@ -5,7 +5,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= runs/quick
 
-.PHONY: setup demo test test-all bench-check results-page bench-recon clean
+.PHONY: setup demo test test-all lint docs bench-check results-page bench-recon clean
 
 setup:
 	bash scripts/setup.sh
@@ -29,5 +29,13 @@ test: setup
 test-all: setup
 	$(PY) -m pytest -q -m "slow or not slow"
 
+# ruff: pyflakes and import sorting (pyproject.toml [tool.ruff])
+lint: setup
+	$(VENV)/bin/ruff check .
+
+# the documentation site, built strictly into site/ (a broken link or reference fails)
+docs: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" bash scripts/build-docs.sh
+
 clean:
-	rm -rf runs .pytest_cache
+	rm -rf runs site .pytest_cache

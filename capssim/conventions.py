@@ -1,4 +1,4 @@
-"""The fixed conventions every part of capssim agrees on (see README "Conventions").
+"""The fixed conventions every part of capssim agrees on (docs: guides/captures.md, "Conventions").
 
 * 12-channel order: ``c = 3*p + k`` with p over polarizer angles (0, 45, 90, 135) deg
   and k over colours (R, G, B). Arrays are ``(12, H, W)``.

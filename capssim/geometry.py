@@ -72,8 +72,7 @@ class ArrayGeometry:
 
     def __post_init__(self):
         h = _check_stack(self.aperture_homographies, N_APERTURES, "aperture_homographies")
-        h.setflags(write=False)
-        object.__setattr__(self, "aperture_homographies", h)
+        object.__setattr__(self, "aperture_homographies", h.copy())  # its own copy: a value, never aliased
         object.__setattr__(self, "hr_shape", tuple(int(v) for v in self.hr_shape))
 
     @classmethod

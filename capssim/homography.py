@@ -86,5 +86,3 @@ def registration_error_hr_px(estimated, true, hr_shape: tuple[int, int], *, step
         errs.append(4.0 * float(np.mean(np.hypot(d[:, 0], d[:, 1]))))
     return np.asarray(errs)
 
-
-from capssim.geometry import lr_homographies, raw_matrix, sub_image_matrix  # noqa: E402,F401  TRANSITIONAL-REEXPORT

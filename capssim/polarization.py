@@ -1,6 +1,6 @@
 """Stokes parameters, DoLP and AoP (paper eq. 1-3), for numpy arrays and torch tensors.
 
-Conventions (README "Conventions"):
+Conventions (docs: guides/captures.md, "Conventions"):
 
 * ``S0 = (I0 + I45 + I90 + I135) / 2``, ``S1 = I0 - I90``, ``S2 = I45 - I135``.
 * ``I(a) = (S0 + S1 cos 2a + S2 sin 2a) / 2`` (Malus's law for an ideal analyzer).

@@ -23,7 +23,7 @@ import numpy as np
 
 from capssim.errors import InputError, UnknownNameError
 
-#: EMVA 1288 style presets. Values are typical data-sheet figures (README "Sensor presets");
+#: EMVA 1288 style presets. Values are typical data-sheet figures (docs: guides/simulation.md, "Sensor models");
 #: the PYTHON1300 full well and read noise are unconfirmed, keep them as parameters.
 SENSOR_PRESETS: dict[str, dict] = {
     "python1300": {

@@ -14,7 +14,7 @@ error is the data's.
 image:
 
 * **alignment** of the 45/90/135 deg images to the 0 deg one (similarity model, the
-  registration engine of :mod:`reconstruct.registration_core` at full resolution, pixels
+  registration engine of :mod:`capssim.reconstruct.registration_core` at full resolution, pixels
   clipped in any image left out): shift at the image centre (px, ``x`` = column), rotation
   (deg), scale (parts per million) and the mean displacement over the frame (px). The same
   is repeated on the weakly polarized pixels only (block DoLP < ``dolp_max``) as a
@@ -53,7 +53,8 @@ import torch.nn.functional as F
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
 from capssim.homography import rotation_and_scale
-from capssim.reconstruct.registration_core import register_stack, spline_coefficients, spline_sample
+from capssim.reconstruct.registration_core import register_stack
+from capssim.reconstruct.registration_warp import spline_coefficients, spline_sample
 
 log = logging.getLogger(__name__)
 

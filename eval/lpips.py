@@ -51,7 +51,7 @@ class LPIPS(nn.Module):
         files = sorted(path.glob("*.pth")) + sorted(path.glob("*.pt")) if path.is_dir() else [path]
         if not files or not all(f.is_file() for f in files):
             raise InputError("lpips-weights", str(path), "a .pth file or a folder of .pth files",
-                             "capssim never downloads weights; see README 'Metrics' (LPIPS).")
+                             "capssim never downloads weights; see docs: guides/scoring.md, 'Metrics' (LPIPS).")
         state: dict[str, torch.Tensor] = {}
         for f in files:
             try:

@@ -1,6 +1,6 @@
 """Full-reference metrics of a 12-channel estimate against its ground truth.
 
-One entry point, :func:`score`, under three conventions (README "Metrics"):
+One entry point, :func:`score`, under three conventions (docs: guides/scoring.md, "Metrics"):
 
 ``capssim`` (default)
     * border crop of 8 HR pixels on every side (simulated apertures 1-3 replicate the
@@ -90,7 +90,7 @@ CONVENTIONS: dict[str, Convention] = {
 }
 
 #: Every scalar metric :func:`flatten` produces: (direction, unit, definition). ``+1`` means
-#: higher is better, ``-1`` lower is better. The README metric table is generated from it.
+#: higher is better, ``-1`` lower is better. The metric table of the docs (guides/scoring.md) is generated from it.
 METRIC_SPECS: dict[str, tuple[int, str, str]] = {
     "psnr_mean": (+1, "dB", "mean over the 12 channels of PSNR(channel), data_range 1"),
     "ssim_mean": (+1, "", "mean over the 12 channels of SSIM(channel), data_range 1"),
@@ -236,7 +236,7 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
     with_ssim
         Skip the SSIMs (faster) when False.
     lpips
-        An :class:`eval.lpips.LPIPS` model (user-supplied weights) or None.
+        An :class:`capssim.eval.lpips.LPIPS` model (user-supplied weights) or None.
 
     Returns
     -------
@@ -360,5 +360,5 @@ def flatten(result: dict[str, Any], *, prefix: str = "") -> dict[str, float | No
 
 
 def convention_table() -> list[dict]:
-    """The conventions as rows (for the README and ``capssim evaluate --help``)."""
+    """The conventions as rows (for the docs and ``capssim evaluate --help``)."""
     return [asdict(c) for c in CONVENTIONS.values()]

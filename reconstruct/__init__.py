@@ -1,7 +1,7 @@
 """Reconstruction methods of capssim: the paper's CAPS algorithm, its ablations and baselines.
 
 Use :func:`reconstruct` (the dispatcher) or :func:`run_method` (reads and writes a capture
-folder). Methods register themselves in :mod:`reconstruct.registry`.
+folder). Methods register themselves in :mod:`capssim.reconstruct.registry`.
 """
 
 if __name__ != "capssim.reconstruct":

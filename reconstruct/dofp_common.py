@@ -1,6 +1,6 @@
 """Shared helpers of the DoFP colour-polarization demosaicking baselines.
 
-Geometry of the mosaic (README "Conventions", :func:`capssim.conventions.dofp_channel_map`):
+Geometry of the mosaic (docs: guides/captures.md, "Conventions", :func:`capssim.conventions.dofp_channel_map`):
 the mosaic is ``(H, W)`` at the HR pitch; pixel ``(r, c)`` (row, col) sits behind the polarizer
 ``layout[r % 2][c % 2]`` and the colour filter ``RGGB[(r // 2) % 2][(c // 2) % 2]`` (quad Bayer,
 4x4 period). Hence:
@@ -26,7 +26,6 @@ import torch
 
 from capssim.conventions import BAYER_RGGB, POLARIZER_ANGLES_DEG, dofp_layout
 from capssim.errors import InputError
-from capssim.reconstruct.filters import box_sum, sliding_window_sum  # noqa: F401  TRANSITIONAL-REEXPORT
 
 log = logging.getLogger(__name__)
 
@@ -130,51 +129,6 @@ def bayer_masks(height: int, width: int, *, device=None, dtype=torch.float32) ->
     cols = torch.arange(width, device=device)[None, :] % 2
     colour = torch.as_tensor(BAYER_RGGB, device=device)[rows, cols]
     return torch.stack([(colour == k) for k in range(3)]).to(dtype)
-
-
-def reject_unknown_options(leftover: dict, known: Sequence[str]) -> None:
-    """Raise :class:`~capssim.errors.UnknownNameError` when ``leftover`` holds an option not in ``known``."""
-    from capssim.errors import UnknownNameError
-
-    for key in leftover:
-        raise UnknownNameError("option", str(key), list(known) or ["(this method takes no options)"])
-
-
-def run_dofp_method(capture, context, demosaic, defaults: dict):
-    """The registered-method body shared by the residual-interpolation DoFP methods.
-
-    Reads the options ``precision`` (``float32`` | ``float64``) and the float parameters named
-    in ``defaults`` from ``context.options``, demosaicks ``capture.dofp_float()`` with
-    ``demosaic(mosaic, *, layout, dtype, timer, **params)`` on ``context.device`` and returns
-    the :class:`~reconstruct.registry.MethodOutput` with the parameters used.
-    """
-    from capssim.reconstruct.registry import MethodOutput
-
-    opts = dict(context.options)
-    precision = opts.pop("precision", "float32")
-    if precision not in ("float32", "float64"):
-        raise InputError("precision", precision, "float32 or float64")
-    params = {}
-    for key, default in defaults.items():
-        raw = opts.pop(key, default)
-        try:
-            params[key] = float(raw)
-        except (TypeError, ValueError):
-            raise InputError(key, raw, "a number", f"Pass e.g. -O {key}={default}.") from None
-        if not np.isfinite(params[key]):
-            raise InputError(key, raw, "a finite number", f"Pass e.g. -O {key}={default}.")
-    reject_unknown_options(opts, ["precision", *defaults])
-    with context.timer.stage("load"):
-        mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
-        n_saturated = int(capture.dofp_saturated().sum())
-    image = demosaic(mosaic, layout=capture.dofp_layout, dtype=getattr(torch, precision), timer=context.timer,
-                     **params)
-    with context.timer.stage("to_host"):
-        image = image.to("cpu", torch.float32).numpy()
-    return MethodOutput(image=image, params={"layout": [list(r) for r in capture.dofp_layout], "precision": precision,
-                                             **params},
-                        extra={"n_saturated_pixels": n_saturated,
-                               "saturation_handling": "none (interpolation uses saturated samples as they are)"})
 
 
 def clip_ceiling(mosaic: torch.Tensor) -> float:

@@ -47,7 +47,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.reconstruct.dofp_common import sliding_window_sum
+from capssim.reconstruct.filters import sliding_window_sum
 
 log = logging.getLogger(__name__)
 
@@ -252,7 +252,7 @@ class NonlocalSparseTensor:
 
         Planes: height mode ``(i, i+d)`` for ``i + d < b`` (b(b+1)/2), width mode
         likewise, channel mode ``(c, c')`` for ``c <= c'``. Box sums use
-        (exact pairwise sums, see :func:`reconstruct.dofp_common.sliding_window_sum`).
+        (exact pairwise sums, see :func:`capssim.reconstruct.filters.sliding_window_sum`).
         """
         c, hr, w = zr.shape
         b = self.params.block

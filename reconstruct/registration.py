@@ -101,12 +101,6 @@ class RegistrationResult:
     diagnostics: dict = field(default_factory=dict)
 
 
-def registration_mode_arguments(name: str) -> dict:  # TRANSITIONAL: callers move to registration_parameters(name)
-    """``{"parameters": registration_parameters(name)}``: keyword arguments of :func:`estimate_lr_homographies`
-    for a :data:`REGISTRATION_MODES` name (``UnknownNameError`` lists them)."""
-    return {"parameters": registration_parameters(name)}
-
-
 # -- inputs ---------------------------------------------------------------------------------------------
 def _as_tensor(x, name: str, device) -> torch.Tensor:
     if isinstance(x, torch.Tensor):

@@ -27,6 +27,7 @@ import torch
 
 from capssim.capture import Capture, read_capture, write_reconstruction
 from capssim.errors import CaptureFormatError, InputError, UnknownNameError
+from capssim.reconstruct import methods as method_modules
 from capssim.reconstruct.registration_parameters import registration_parameters
 
 log = logging.getLogger(__name__)
@@ -116,11 +117,9 @@ def _load_methods() -> None:
     global _LOADED
     if _LOADED:
         return
-    import capssim.reconstruct.methods as pkg
-
-    for mod in pkgutil.iter_modules(pkg.__path__):
+    for mod in pkgutil.iter_modules(method_modules.__path__):
         if not mod.name.startswith("_"):
-            importlib.import_module(f"{pkg.__name__}.{mod.name}")
+            importlib.import_module(f"{method_modules.__name__}.{mod.name}")
     _LOADED = True
 
 

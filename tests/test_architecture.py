@@ -75,7 +75,9 @@ def _imports(path: Path) -> list[tuple[str, bool, int]]:
         if isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
         elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
-            names = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+            # ``from package import submodule`` depends on the submodule; other names on the module itself
+            names = [f"{node.module}.{alias.name}" if f"{node.module}.{alias.name}" in MODULES else node.module
+                     for alias in node.names]
         else:
             continue
         for name in names:

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.dofp_common import sliding_window_sum
+from capssim.reconstruct.filters import sliding_window_sum
 from capssim.reconstruct.interfaces import no_stage
 from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, reference_positions, shrink_core
 from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior

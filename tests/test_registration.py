@@ -28,7 +28,7 @@ from capssim.simulate import PoseRanges, simulate_capture
 def textured_scene(size=128, *, seed=0, dolp=0.0, sigma=1.5):
     """Band-limited random texture (aliased on the raw grid), correlated colours as in natural
     scenes; uniform DoLP/AoP (no polarization texture). Independent random textures per colour,
-    or polarization texture, bias the registration (README "Registration")."""
+    or polarization texture, bias the registration (docs: notes/registration.md)."""
     rng = np.random.default_rng(seed)
     grey = gaussian_filter(rng.random((size, size)), sigma)
     tint = gaussian_filter(rng.random((3, size, size)), (0, 8, 8))

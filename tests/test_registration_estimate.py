@@ -108,7 +108,7 @@ def test_large_misregistration_is_finite_or_flagged():
 
 @pytest.mark.xfail(strict=True, reason="known open bias (~0.1 HR px) from R, G, B textures that are independent of "
                    "each other: the binomial luminance leaks their colour edges, the demosaicking's "
-                   "smooth-colour-difference assumption fails; see README 'Registration'")
+                   "smooth-colour-difference assumption fails; see docs: notes/registration.md")
 def test_recovers_known_translations_independent_colour_texture():
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
@@ -231,7 +231,7 @@ def _photoelastic(size, seed):
 @pytest.mark.parametrize("seed", [1, 2])
 def test_photoelastic_texture_is_registered_by_the_stokes_rescue(seed, monkeypatch):
     """Two or three analyzer images match the 0 deg image poorly; the local correlation alone
-    lands pixels off, the Stokes-consistency rescue brings them back (README 'Registration')."""
+    lands pixels off, the Stokes-consistency rescue brings them back (docs: notes/registration.md)."""
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
     images, sat = _capture(_photoelastic(size, seed), h)

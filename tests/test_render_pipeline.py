@@ -87,7 +87,7 @@ def test_raw_frames_agree_with_the_shared_observation_model():
     diff = model - cap.caps_raw
     assert np.abs(diff[0]).max() < 1e-5  # the reference aperture: identity warp
     # apertures 1-3: the model's bilinear warp on the HR grid smooths detail that the (4x finer) render
-    # keeps; measured 3% RMS of the mean here, 4% on siemens-star (README "Rendering")
+    # keeps; measured 3% RMS of the mean here, 4% on siemens-star (docs: guides/rendering.md)
     inner = diff[1:, 2:-2, 2:-2]
     assert np.sqrt(np.mean(inner ** 2)) < 0.05 * cap.caps_raw.mean()
     dofp = dofp_raw_operator((48, 48), cap.psf_kernel(), layout=cap.dofp_layout)(gt).numpy()

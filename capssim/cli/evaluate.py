@@ -43,7 +43,7 @@ def format_table(headers: list[str], rows: list[list], *, align_first_left: bool
 def evaluate(
     capture: Path = typer.Argument(..., help="Capture folder with gt.tiff and recon/*.tiff."),
     convention: str = typer.Option("capssim", "--convention",
-                                   help="Metric definitions: capssim | tokyotech | qiu (README 'Metrics')."),
+                                   help="Metric definitions: capssim | tokyotech | qiu (docs: guides/scoring.md, 'Metrics')."),
     methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated reconstructions to score (default: all)."),
     min_s0: Optional[float] = typer.Option(None, "--min-s0", help="AoP mask / DoLP guard: GT S0 above this (S0 in [0,2])."),
     min_dolp: Optional[float] = typer.Option(None, "--min-dolp", help="AoP mask: GT DoLP above this."),

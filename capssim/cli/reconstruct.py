@@ -58,8 +58,8 @@ def reconstruct(
                                           "(default; of the binomial and the demosaicked luminance, keeps the one whose "
                                           "registered images are more Stokes-consistent) | binomial-luminance | "
                                           "ri-luminance (one of the two only: faster) | stokes-subspace (Stokes-consistent data "
-                                          "whose polarization texture biases the default); see README "
-                                          "'Registration'."),
+                                          "whose polarization texture biases the default); see the docs, "
+                                          "guides/reconstruction.md."),
     option: List[str] = typer.Option([], "--option", "-O", help="Method option KEY=VALUE (repeatable)."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),

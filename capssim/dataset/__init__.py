@@ -7,7 +7,7 @@
 * :mod:`capssim.dataset.verify`: :func:`verify_dataset` checks every sample against the manifest.
 * :mod:`capssim.dataset.torch`: :class:`CaptureDataset`, a PyTorch ``Dataset`` with aligned crops.
 
-The CLI is ``capssim dataset CONFIG -o OUT`` (README "Datasets").
+The CLI is ``capssim dataset CONFIG -o OUT`` (docs: guides/datasets.md).
 """
 
 from capssim.dataset.config import DatasetConfig, load_config, parse_config

@@ -1,6 +1,6 @@
 """The dataset config (YAML): reading, validation, and the parameters of each sample.
 
-Format (README "Datasets"; ``examples/dataset-small.yaml``)::
+Format (docs: guides/datasets.md; ``examples/dataset-small.yaml``)::
 
     name: small                  # optional; default: the file name
     seed: 7                      # master seed (integer >= 0)

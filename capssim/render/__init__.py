@@ -1,4 +1,4 @@
-"""Physically based rendering of CAPS captures with Mitsuba 3 (README "Rendering").
+"""Physically based rendering of CAPS captures with Mitsuba 3 (docs: guides/rendering.md).
 
 ``render_capture(scene, ...)`` renders a registered scene through the four apertures and the
 DoFP camera and returns a :class:`~capssim.capture.Capture` of kind ``rendered``;

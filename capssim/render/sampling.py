@@ -1,4 +1,4 @@
-"""How many Monte-Carlo samples the reference view needs, and its render (README "Rendering").
+"""How many Monte-Carlo samples the reference view needs, and its render (docs: guides/rendering.md).
 
 With a target noise instead of a fixed spp, two pairs of small pilot renders (``s0`` and
 ``4 s0`` samples per render pixel) measure the Monte-Carlo RMS error of the 12-channel ground

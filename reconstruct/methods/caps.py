@@ -5,21 +5,21 @@ tensor for color polarization super-resolution imaging", Optics Express 32(2), 2
 
 Pipeline (each step its own module):
 
-1. rearrangement of the 4 RGGB frames into 16 observations (``reconstruct.rearrange``, 3.1);
-2. registration: the stored homographies (``--true-warps``) or ``reconstruct.registration``;
-3. CAGF confidence between all channel pairs (``reconstruct.cagf``, eq. 12-14);
-4. initialization fusing all 16 observations on the HR grid (``reconstruct.init_fusion``);
-5. ADMM (``reconstruct.admm``, eq. 20-30) with the confidence-guided data term
-   (``reconstruct.data_term``, eq. 15-16, 25-26) and the NLSTR prior
-   (``reconstruct.nlstr_prior`` with ``reconstruct.nlstr``, 3.3).
+1. rearrangement of the 4 RGGB frames into 16 observations (``capssim.reconstruct.rearrange``, 3.1);
+2. registration: the stored homographies (``--true-warps``) or ``capssim.reconstruct.registration``;
+3. CAGF confidence between all channel pairs (``capssim.reconstruct.cagf``, eq. 12-14);
+4. initialization fusing all 16 observations on the HR grid (``capssim.reconstruct.init_fusion``);
+5. ADMM (``capssim.reconstruct.admm``, eq. 20-30) with the confidence-guided data term
+   (``capssim.reconstruct.data_term``, eq. 15-16, 25-26) and the NLSTR prior
+   (``capssim.reconstruct.nlstr_prior`` with ``capssim.reconstruct.nlstr``, 3.3).
 
 Ablations (section 5.2), the same code with one switch each:
 
 * ``caps-no-cagf``: the data term uses only the observations of the same channel;
 * ``caps-no-nlstr``: data term only (steepest descent of eq. 16 from the same initialization,
-  ``reconstruct.descent``).
+  ``capssim.reconstruct.descent``).
 
-``caps-iccp`` (the cascade) lives in :mod:`reconstruct.methods.caps_iccp`.
+``caps-iccp`` (the cascade) lives in :mod:`capssim.reconstruct.methods.caps_iccp`.
 
 The sampling operator ``M`` is the shared observation model
 ``capssim.operators.lr_sampling_operator`` with the capture's PSF (the paper uses an

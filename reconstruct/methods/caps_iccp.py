@@ -8,7 +8,7 @@ employed the joint constraints of (2) and (3)" with ``c1 = 0.001``, ``c2 = 0.01`
    (Morimatsu et al., EARI), i.e. its colour stage, the residual interpolation of Kiku et al.
    (:func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`, the settings of ``dofp-eari``);
    ``-O bayer_method=menon2007`` (or ``malvar2004``, ``bilinear``) swaps it
-   (:func:`reconstruct.methods.caps_naive.demosaic_apertures`);
+   (:func:`capssim.reconstruct.methods.caps_naive.demosaic_apertures`);
 2. for each colour k, the 4 demosaicked frames (one per polarizer angle, raw resolution
    ``H x W``) are the observations of a 4-channel SR problem (polarizer angles of colour k)
    with the observation model ``IntegrateDecimate_2(Blur_psf(Warp_{H_n}(x_p)))``, i.e. the

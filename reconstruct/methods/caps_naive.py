@@ -29,7 +29,7 @@ Saturated pixels are used as they are (no masking): this is the naive pipeline.
 Options (``-O KEY=VALUE``): ``bayer_method``, ``clip``. Options of ``caps`` (e.g. ``iterations``
 from ``capssim reconstruct -m all --iterations N``) are ignored with a warning; others are errors.
 
-:func:`caps_sisr` in :mod:`reconstruct.methods.caps_sisr` replaces step 3's upsampling by a
+:func:`caps_sisr` in :mod:`capssim.reconstruct.methods.caps_sisr` replaces step 3's upsampling by a
 user-supplied x2 single-image SR model and reuses steps 1-2 from here.
 """
 

@@ -5,7 +5,7 @@ confidence and nonlocal sparse tensor for color polarization super-resolution im
 Optics Express 32(2), 2364 (2024), section 5.2 (EDSR / SwinIR / HAT applied after
 demosaicking). No model or weights ship with capssim and none are downloaded.
 
-1. Demosaicking and registration as ``caps-naive`` (:mod:`reconstruct.methods.caps_naive`).
+1. Demosaicking and registration as ``caps-naive`` (:mod:`capssim.reconstruct.methods.caps_naive`).
 2. x2 upsampling of each demosaicked aperture frame ``(3, H, W) -> (3, 2H, 2W)`` (the
    aperture-HR grid: ``F.interpolate`` x2 with ``align_corners=False`` puts output pixel
    ``j`` at raw coordinate ``j / 2 - 1/4``, which is :func:`capssim.homography.raw_matrix`):

@@ -35,6 +35,7 @@ from capssim.reconstruct.dofp_common import (
     split_submosaics,
     stack_12,
 )
+from capssim.reconstruct.dofp_method import reject_unknown_options
 from capssim.reconstruct.filters import normalized_interpolation
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
@@ -74,7 +75,7 @@ def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device 
     ``mosaic``: float numpy array or tensor on [0, 1], even sides >= 12. A numpy input gives a
     float32 numpy result, a tensor input a tensor on the same (or the given) device. ``layout``:
     the 2x2 polarizer cell (``'sony'``, ``'0-45-135-90'`` or ``[[a, b], [c, d]]`` degrees).
-    ``timer``: optional :class:`reconstruct.registry.StageTimer` to record the two stages.
+    ``timer``: optional :class:`capssim.reconstruct.registry.StageTimer` to record the two stages.
     """
     from contextlib import nullcontext
 
@@ -92,7 +93,6 @@ def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device 
                  reference=REFERENCE)
 def dofp_bilinear(capture: Capture, *, context: RunContext) -> MethodOutput:
     """Demosaick ``capture.dofp_float()`` with :func:`demosaic_dofp_bilinear`; layout from meta.json (no options)."""
-    from capssim.reconstruct.dofp_common import reject_unknown_options
 
     reject_unknown_options(context.options, [])
     with context.timer.stage("load"):

@@ -51,17 +51,16 @@ from capssim.reconstruct.dofp_common import (
     check_mosaic,
     clip_ceiling,
     merge_submosaics,
-    run_dofp_method,
     split_submosaics,
     stack_12,
 )
+from capssim.reconstruct.dofp_method import run_dofp_method
 from capssim.reconstruct.filters import correlate
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
-from capssim.reconstruct.residual_interpolation import (  # noqa: F401  ri_bayer_demosaic_frames: TRANSITIONAL-REEXPORT
+from capssim.reconstruct.residual_interpolation import (
     RI_BAYER_DEFAULTS,
     polarization_residual_interpolation,
     ri_bayer_demosaic,
-    ri_bayer_demosaic_frames,
 )
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "

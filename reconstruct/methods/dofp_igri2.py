@@ -5,7 +5,7 @@ demosaicking based on intensity-guided residual interpolation", IEEE Sensors Jou
 2021 (IGRI2 is its two-step variant). Implemented from the paper's description; the authors'
 MATLAB code (research-only) was only read to settle details.
 
-IGRI2 replaces EARI's edge-aware guide (step 3 of :mod:`reconstruct.methods.dofp_eari`) by an
+IGRI2 replaces EARI's edge-aware guide (step 3 of :mod:`capssim.reconstruct.methods.dofp_eari`) by an
 intensity guide built from two residual-interpolation passes. It relies on the orthogonal pairs
 sitting on the diagonals of the 2x2 cell (true for both standard layouts): every pixel of the
 quincunx ``(y + x)`` even carries one of an orthogonal pair (e.g. 90/0), the other quincunx the
@@ -26,7 +26,7 @@ For each colour plane ``P`` of the RGB polarization mosaic (after EARI's colour 
 4. Guide = mean of the four full images (an intensity estimate); final residual interpolation
    of each angle's own lattice under it, exactly as EARI step 4.
 
-Numerical choices as in :mod:`reconstruct.methods.dofp_eari` (eps, weight floor, clipping,
+Numerical choices as in :mod:`capssim.reconstruct.methods.dofp_eari` (eps, weight floor, clipping,
 mirror padding). Outside the rotated quincunx (the corners of the rotated grid) the values are
 zero, as in the reference; this only affects pixels near the image border.
 """
@@ -46,10 +46,10 @@ from capssim.reconstruct.dofp_common import (
     check_mosaic,
     clip_ceiling,
     merge_submosaics,
-    run_dofp_method,
     split_submosaics,
     stack_12,
 )
+from capssim.reconstruct.dofp_method import run_dofp_method
 from capssim.reconstruct.methods.dofp_eari import DEFAULTS
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 from capssim.reconstruct.residual_interpolation import polarization_residual_interpolation, ri_bayer_demosaic, ri_green
@@ -149,7 +149,7 @@ def demosaic_dofp_igri2(mosaic, *, layout="sony", device: str | torch.device | N
                         bayer_sigma: float = DEFAULTS["bayer_sigma"], dtype: torch.dtype | None = None, timer=None):
     """IGRI2 demosaicking of a DoFP colour-polarization mosaic ``(H, W)`` -> ``(12, H, W)`` (``c = 3p + k``).
 
-    Same interface and colour stage as :func:`reconstruct.methods.dofp_eari.demosaic_dofp_eari`;
+    Same interface and colour stage as :func:`capssim.reconstruct.methods.dofp_eari.demosaic_dofp_eari`;
     the layout must have orthogonal angles on its diagonals.
     """
     stage = timer.stage if timer is not None else (lambda name: nullcontext())
