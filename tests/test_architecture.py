@@ -193,3 +193,21 @@ def test_modules_and_functions_stay_small():
                     too_long.append(f"{path.relative_to(REPO)}:{node.lineno} {node.name}: {length} lines "
                                     f"(at most {MAX_FUNCTION_LINES})")
     assert not too_long, "split these:\n" + "\n".join(too_long)
+
+
+def test_installed_distribution_has_one_top_level_name():
+    from importlib import metadata
+
+    dists = list(metadata.distributions(name="capssim"))
+    if not dists:
+        pytest.skip("capssim is not installed (pip install -e .)")
+    finders = 0
+    for dist in dists:
+        assert (dist.read_text("top_level.txt") or "capssim").split() == ["capssim"]
+        for file in dist.files or []:  # an editable install maps only capssim.* names to the folders
+            if file.name.startswith("__editable__") and file.name.endswith("finder.py"):
+                finders += 1
+                mapping = ast.literal_eval(next(line.split("=", 1)[1] for line in file.read_text().splitlines()
+                                                if line.startswith("MAPPING")))
+                assert sorted(mapping) == sorted(ROOTS)
+    assert finders <= 1
