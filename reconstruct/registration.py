@@ -4,9 +4,9 @@ Estimates, from the 16 Bayer sub-images alone, the homographies ``H_m`` (HR refe
 pixel -> sub-image m pixel, ``(x=col, y=row)``) that the reconstruction needs. The Bayer
 sub-pixel offsets are known, so only the three aperture warps ``H_1..H_3`` (HR reference
 -> aperture-HR) are estimated, against the 0 deg aperture; then ``H_{4n+q} = S_q @ H_n``
-(see :mod:`capssim.homography`).
+(:func:`capssim.geometry.lr_homographies`).
 
-Method (it replaces the paper's feature clustering, Crab-HFP, which the issue allows); its
+Method (it replaces the paper's feature clustering, Crab-HFP); its
 options are a :class:`~capssim.reconstruct.registration_parameters.RegistrationParameters`:
 
 1. **Registration image per aperture** (``luminance``, :mod:`~capssim.reconstruct.registration_images`):
@@ -33,7 +33,7 @@ camera array has (rotation, scale) falls back to the identity; a poor final matc
 ``unreliable``.
 
 Raw coordinates of aperture n relate to its aperture-HR coordinates by
-:func:`capssim.homography.raw_matrix`: ``H_n = R^-1 G_n R`` for the estimated raw-to-raw
+:func:`capssim.geometry.raw_matrix`: ``H_n = R^-1 G_n R`` for the estimated raw-to-raw
 matrix ``G_n``. Measurements of the choices above: ``docs/notes/registration-internals.md``.
 """
 

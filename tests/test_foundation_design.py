@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-import ast
 import math
-from pathlib import Path
 
 import pytest
 
 from capssim.design import DesignInputs, system_design
 from capssim.errors import InputError
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 def test_prototype_numbers():
@@ -36,34 +32,3 @@ def test_bad_inputs():
         system_design(DesignInputs(apertures=2.5))
 
 
-def _imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text())
-    names = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            names.update(a.name.split(".")[0] for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split(".")[0])
-    return names
-
-
-def _top_level_imports(path: Path) -> set[str]:
-    names = set()
-    for node in ast.parse(path.read_text()).body:
-        if isinstance(node, ast.Import):
-            names.update(a.name.split(".")[0] for a in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split(".")[0])
-    return names
-
-
-def test_import_direction():
-    for path in (REPO / "capssim").rglob("*.py"):
-        if "cli" in path.relative_to(REPO / "capssim").parts:
-            bad = _top_level_imports(path) & {"reconstruct", "eval"}
-            assert not bad, f"{path} imports {bad} at module level; import inside the command function"
-            continue
-        bad = _imports(path) & {"reconstruct", "eval"}
-        assert not bad, f"{path} imports {bad}; capssim must not import reconstruct or eval"
-    for path in (REPO / "reconstruct").rglob("*.py"):
-        assert "eval" not in _imports(path), f"{path} imports eval"

@@ -9,10 +9,11 @@ CAPS raw frames (eq. 9), for the 12-channel HR image ``x`` of shape ``(12, 2H, 2
 
 Low-resolution image m = 4n + q (eq. 11, ``M_m``), for its channel's HR image::
 
-    y_m = Decimate_2^{(oy_q, ox_q)}( IntegrateDecimate_2( Blur_psf( Warp_{S_q^-1 H_m}(x_c(m)) ) ) )  -> (h, w)
+    y_m = Decimate_2^{(oy_q, ox_q)}( IntegrateDecimate_2( Blur_psf( Warp_{H_n}(x_c(m)) ) ) )  -> (h, w)
 
-with ``h = H/2``; ``BayerSplit(raw)`` equals the 16 ``y_m`` exactly when
-``H_m = S_q @ H_n`` (a test pins this).
+with ``h = H/2`` and ``n = m // 4``: its pixels land where the sub-image homography
+``H_m = S_q @ H_n`` of :class:`capssim.geometry.ArrayGeometry` says, so ``BayerSplit(raw)``
+equals the 16 ``y_m`` exactly (a test pins this).
 
 DoFP raw frame (same total pixel count ``4HW``, pixel pitch = HR pitch)::
 

@@ -167,25 +167,29 @@ def _coerce(name: str, raw, kind):
 
 
 # -- shared steps ---------------------------------------------------------------------------------
+def channel_mean_psnr(image: torch.Tensor, gt: torch.Tensor) -> float:
+    """Mean over the 12 channels of the PSNR (dB, data range 1, ``image`` clipped to [0, 1]).
+
+    A diagnostic the methods record on the device while they run (``init_psnr_db``, ``psnr_db``,
+    ``track_psnr``); scores are :func:`capssim.eval.metrics.score`'s.
+    """
+    mse = (image.clamp(0, 1) - gt).square().mean(dim=(-2, -1)).clamp(min=1e-20)
+    return float((-10 * torch.log10(mse)).mean())
+
+
 def psnr_observer(capture, device):
-    """Per-iteration mean PSNR of the 12 channels (data range 1), when ground truth is loaded."""
+    """Per-iteration :func:`channel_mean_psnr`, when ground truth is loaded."""
     if capture.gt is None:
         return None
     gt = torch.as_tensor(capture.gt, dtype=torch.float32, device=device)
-
-    def observe(i, x):
-        mse = (x.clamp(0, 1) - gt).square().mean(dim=(-2, -1)).clamp(min=1e-20)
-        return {"psnr_db": float((-10 * torch.log10(mse)).mean())}
-
-    return observe
+    return lambda i, x: {"psnr_db": channel_mean_psnr(x, gt)}
 
 
 def mean_psnr(capture, image: torch.Tensor) -> float | None:
+    """:func:`channel_mean_psnr` of ``image`` against the capture's ground truth (None without one)."""
     if capture.gt is None:
         return None
-    gt = torch.as_tensor(capture.gt, dtype=torch.float32, device=image.device)
-    mse = (image.clamp(0, 1) - gt).square().mean(dim=(-2, -1)).clamp(min=1e-20)
-    return float((-10 * torch.log10(mse)).mean())
+    return channel_mean_psnr(image, torch.as_tensor(capture.gt, dtype=torch.float32, device=image.device))
 
 
 def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: bool = True) -> MethodOutput:

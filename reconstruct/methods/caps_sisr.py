@@ -8,7 +8,7 @@ demosaicking). No model or weights ship with capssim and none are downloaded.
 1. Demosaicking and registration as ``caps-naive`` (:mod:`capssim.reconstruct.methods.caps_naive`).
 2. x2 upsampling of each demosaicked aperture frame ``(3, H, W) -> (3, 2H, 2W)`` (the
    aperture-HR grid: ``F.interpolate`` x2 with ``align_corners=False`` puts output pixel
-   ``j`` at raw coordinate ``j / 2 - 1/4``, which is :func:`capssim.homography.raw_matrix`):
+   ``j`` at raw coordinate ``j / 2 - 1/4``, which is :func:`capssim.geometry.raw_matrix`):
 
    * ``model=PATH.pt``: a TorchScript module (``torch.jit.save``), run on the method's device;
    * ``model=PATH.onnx``: an ONNX model run by ``onnxruntime`` (optional dependency:
@@ -17,7 +17,7 @@ demosaicking). No model or weights ship with capssim and none are downloaded.
 
    The model receives float32 ``(N, C, H, W)`` and must return ``(N, C, 2H, 2W)``:
    ``model_channels=1`` (default) feeds the 12 colour-polarization channels as a batch of
-   12 single-channel images (per channel, as the issue asks), ``model_channels=3`` the 4
+   12 single-channel images (per channel), ``model_channels=3`` the 4
    apertures as RGB images (the usual input of EDSR/SwinIR/HAT). ``model_scale`` multiplies
    the input and divides the output (e.g. 255 for models trained on 0..255).
 3. Registration of the upsampled frames onto the reference grid: one bicubic warp by
