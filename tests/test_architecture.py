@@ -21,7 +21,7 @@ ROOTS = {"capssim": "capssim", "capssim.reconstruct": "reconstruct", "capssim.ev
 
 PHYSICS = ("capssim", "capssim.errors", "capssim.conventions", "capssim.homography", "capssim.geometry",
            "capssim.psf", "capssim.measurement", "capssim.imageio", "capssim.sensor", "capssim.capture",
-           "capssim.polarization", "capssim.design", "capssim.visualize", "capssim.operators")
+           "capssim.polarization", "capssim.design", "capssim.visualize", "capssim.operators", "capssim.resources")
 #: (floor name, module prefixes), lowest floor first
 FLOORS = (
     ("physics", PHYSICS),
