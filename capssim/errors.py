@@ -40,3 +40,17 @@ class UnknownNameError(CapssimError, KeyError):
 
     def __str__(self) -> str:  # KeyError would otherwise quote the message
         return self.args[0]
+
+
+class ResourceError(InputError):
+    """An option asks for more memory (or time) than the machine has or than a documented sane range.
+
+    The message names the option, the estimate, the limit and how to change either.
+    """
+
+    def __init__(self, option: str, received: object, message: str):
+        CapssimError.__init__(self, f"{option}: {message}")
+        self.argument = option
+        self.received = received
+        self.valid = message
+        self.fix = None

@@ -37,18 +37,42 @@ def rotation_and_scale(h) -> tuple[float, float]:
             float(math.sqrt(abs(np.linalg.det(a)))))
 
 
+#: upper limits of the random pose ranges: rotation (degrees), relative scale error (exclusive)
+POSE_LIMITS = {"rotation_max_deg": 45.0, "scale_max": 0.5}
+
+
+def check_pose_ranges(hr_shape: tuple[int, int], *, shift_max_px: float, rotation_max_deg: float,
+                      scale_max: float) -> None:
+    """Refuse (:class:`~capssim.errors.InputError`) pose ranges outside the valid ones.
+
+    ``shift_max_px`` in [0, min(H, W) / 2] HR pixels, ``rotation_max_deg`` in [0, 45],
+    ``scale_max`` in [0, 0.5).
+    """
+    half = min(int(v) for v in hr_shape) / 2.0
+    checks = (("shift_max_px", shift_max_px, 0 <= shift_max_px <= half,
+               f"a number in [0, {half:g}] HR pixels (half the image's smaller side: the apertures must overlap)"),
+              ("rotation_max_deg", rotation_max_deg, 0 <= rotation_max_deg <= POSE_LIMITS["rotation_max_deg"],
+               "a number of degrees in [0, 45]"),
+              ("scale_max", scale_max, 0 <= scale_max < POSE_LIMITS["scale_max"],
+               "a relative scale error in [0, 0.5) (the scale 1 +- scale_max must stay positive)"))
+    for arg, value, ok, valid in checks:
+        if not (ok and math.isfinite(value)):
+            raise InputError(arg, value, valid)
+
+
 def random_aperture_homographies(rng: np.random.Generator, hr_shape: tuple[int, int], *,
                                  shift_max_px: float = 2.0, rotation_max_deg: float = 0.5,
                                  scale_max: float = 0.005) -> tuple[np.ndarray, list[dict]]:
     """Random similarity per aperture (uniform ranges), the reference aperture 0 = identity.
 
     ``shift_max_px`` is in HR pixels; rotation and scale act about the image centre.
-    Returns ``(4, 3, 3)`` HR reference -> aperture-HR, and the drawn parameters.
+    Valid ranges (:data:`POSE_LIMITS`): shift at most half the image's smaller side (the
+    apertures must overlap), rotation at most 45 degrees, scale error below 0.5 (the scale
+    ``1 +- scale_max`` stays positive). Returns ``(4, 3, 3)`` HR reference -> aperture-HR,
+    and the drawn parameters.
     """
-    for arg, v in (("shift_max_px", shift_max_px), ("rotation_max_deg", rotation_max_deg), ("scale_max", scale_max)):
-        if not (v >= 0 and math.isfinite(v)):
-            raise InputError(arg, v, "a finite number >= 0")
     h, w = hr_shape
+    check_pose_ranges((h, w), shift_max_px=shift_max_px, rotation_max_deg=rotation_max_deg, scale_max=scale_max)
     center = ((w - 1) / 2.0, (h - 1) / 2.0)
     mats, params = [np.eye(3)], [{"shift_xy_px": [0.0, 0.0], "rotation_deg": 0.0, "scale": 1.0}]
     for _ in range(1, N_APERTURES):

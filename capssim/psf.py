@@ -4,6 +4,8 @@ A :class:`PSF` is what ``meta.json["psf"]`` stores (:meth:`PSF.to_spec` / :meth:
 and what the observation model convolves with (:meth:`PSF.kernel`, the ``Blur_psf`` of the
 paper's eq. 9). The paper's synthetic protocol (section 5.2) blurs with an isotropic Gaussian;
 capssim's default is :data:`DEFAULT_PSF`, a Gaussian of std :data:`DEFAULT_SIGMA_HR_PX` HR pixels.
+:meth:`PSF.check_extent` refuses a kernel wider than the image, or one whose blur would not fit
+in memory (:mod:`capssim.resources`), before the kernel is built.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import numpy as np
 from scipy.special import erf, j1
 
 from capssim.errors import InputError
+from capssim.resources import check_memory, check_range
 
 #: default Gaussian PSF std, in HR pixels (half a raw pixel)
 DEFAULT_SIGMA_HR_PX = 0.5
@@ -22,13 +25,33 @@ DEFAULT_SIGMA_HR_PX = 0.5
 PSF_TYPES = ("none", "gaussian", "airy", "kernel")
 
 
-def gaussian_psf_kernel(sigma_px: float, *, truncate: float = 3.5) -> np.ndarray:
-    """Pixel-integrated isotropic Gaussian PSF of std ``sigma_px`` (pixels), odd square, sums to 1."""
+#: Gaussian kernels are truncated at this many standard deviations
+GAUSSIAN_TRUNCATE = 3.5
+#: Airy kernels cover this many dark rings, sampled this many times per pixel and axis
+AIRY_RINGS, AIRY_SUPERSAMPLE = 3, 9
+
+
+def gaussian_kernel_radius(sigma_px: float, *, truncate: float = GAUSSIAN_TRUNCATE) -> int:
+    """Half-width (pixels) of :func:`gaussian_psf_kernel`: 0 for ``sigma_px < 1e-6``, else ``ceil(truncate sigma)``."""
     if not (sigma_px >= 0 and math.isfinite(sigma_px)):
         raise InputError("sigma_px", sigma_px, "a finite number >= 0 (pixels)")
-    if sigma_px < 1e-6:
+    return 0 if sigma_px < 1e-6 else max(1, int(math.ceil(truncate * sigma_px)))
+
+
+def airy_kernel_radius(f_number: float, wavelength_nm: float, pixel_um: float, *, rings: int = AIRY_RINGS) -> int:
+    """Half-width (pixels) of :func:`airy_psf_kernel`: ``(rings + 0.22) lambda N / pixel``, at least 1."""
+    for arg, value in (("f_number", f_number), ("wavelength_nm", wavelength_nm), ("pixel_um", pixel_um)):
+        if not (value > 0 and math.isfinite(value)):
+            raise InputError(arg, value, "a finite positive number")
+    lam_n_um = wavelength_nm * 1e-3 * f_number
+    return max(1, int(math.ceil((rings + 0.22) * lam_n_um / pixel_um)))
+
+
+def gaussian_psf_kernel(sigma_px: float, *, truncate: float = GAUSSIAN_TRUNCATE) -> np.ndarray:
+    """Pixel-integrated isotropic Gaussian PSF of std ``sigma_px`` (pixels), odd square, sums to 1."""
+    radius = gaussian_kernel_radius(sigma_px, truncate=truncate)
+    if radius == 0:
         return np.ones((1, 1))
-    radius = max(1, int(math.ceil(truncate * sigma_px)))
     edges = np.arange(-radius, radius + 2) - 0.5
     cdf = 0.5 * (1 + erf(edges / (math.sqrt(2) * sigma_px)))
     taps = np.diff(cdf)
@@ -37,18 +60,14 @@ def gaussian_psf_kernel(sigma_px: float, *, truncate: float = 3.5) -> np.ndarray
 
 
 def airy_psf_kernel(f_number: float, wavelength_nm: float, pixel_um: float, *,
-                    rings: int = 3, supersample: int = 9) -> np.ndarray:
+                    rings: int = AIRY_RINGS, supersample: int = AIRY_SUPERSAMPLE) -> np.ndarray:
     """Diffraction-limited Airy PSF ``[2 J1(v)/v]^2``, ``v = pi r / (lambda N)``, pixel-integrated.
 
     ``pixel_um`` is the pitch of the grid it is applied on. The kernel covers ``rings``
     dark rings (first zero at ``1.22 lambda N``) and is normalised to sum 1.
     """
-    for arg, value in (("f_number", f_number), ("wavelength_nm", wavelength_nm), ("pixel_um", pixel_um)):
-        if not (value > 0 and math.isfinite(value)):
-            raise InputError(arg, value, "a finite positive number")
+    radius = airy_kernel_radius(f_number, wavelength_nm, pixel_um, rings=rings)
     lam_n_um = wavelength_nm * 1e-3 * f_number
-    radius_um = (rings + 0.22) * lam_n_um
-    radius = max(1, int(math.ceil(radius_um / pixel_um)))
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     grid = np.arange(-radius, radius + 1)
     fine = (grid[:, None] + offsets[None, :]).ravel() * pixel_um
@@ -149,6 +168,44 @@ class PSF:
                 raise InputError("psf.hr_pixel_um", None, "the HR pixel pitch in micrometres for an Airy PSF")
             return airy_psf_kernel(self.f_number, self.wavelength_nm, float(pitch))
         return np.asarray(self.taps, dtype=np.float64)
+
+    def kernel_radius(self, *, hr_pixel_um: float | None = None) -> int:
+        """Half-width of :meth:`kernel` in HR pixels, computed without building it."""
+        if self.type == "none":
+            return 0
+        if self.type == "gaussian":
+            return gaussian_kernel_radius(self.sigma_hr_px)
+        if self.type == "airy":
+            pitch = self.hr_pixel_um if self.hr_pixel_um is not None else hr_pixel_um
+            if pitch is None:
+                raise InputError("psf.hr_pixel_um", None, "the HR pixel pitch in micrometres for an Airy PSF")
+            return airy_kernel_radius(self.f_number, self.wavelength_nm, float(pitch))
+        return max(len(self.taps), len(self.taps[0])) // 2
+
+    def check_extent(self, hr_shape: tuple[int, int], *, option: str = "psf", hr_pixel_um: float | None = None,
+                     memory: bool = True) -> None:
+        """Refuse a PSF whose kernel is wider than the image or whose blur would not fit in memory.
+
+        Sane range: kernel side ``2 r + 1`` at most ``min(H, W)`` of ``hr_shape``. Memory: the
+        kernel itself (an Airy kernel is built on a grid :data:`AIRY_SUPERSAMPLE` times finer)
+        and the convolution's unfolded patches, ``k^2 (H + 2r) (W + 2r)`` float64 (one image
+        plane at a time); ``memory=False`` checks the range alone. Raises
+        :class:`~capssim.errors.ResourceError` naming ``option``.
+        """
+        radius = self.kernel_radius(hr_pixel_um=hr_pixel_um)
+        side = 2 * radius + 1
+        h, w = (int(v) for v in hr_shape)
+        what = f"the {self.type} PSF's kernel ({side}x{side} HR pixels)"
+        fix = f"Use a smaller {'PSF (--psf-sigma, --f-number)' if option == 'psf' else option}"
+        if radius:
+            check_range(option, side, high=min(h, w), what=f"the {self.type} PSF's kernel side (HR pixels)",
+                        reason=f"the smaller side of the {h}x{w} image", fix=fix + " or a larger image.")
+        if not memory:
+            return
+        build = (side * AIRY_SUPERSAMPLE) ** 2 * 8 * 6 if self.type == "airy" else side * side * 8
+        convolve = side * side * (h + 2 * radius) * (w + 2 * radius) * 8 if radius else 0
+        check_memory(option, build + convolve, what=f"blurring a {h}x{w} image with {what}",
+                     fix=fix + " or a smaller image.")
 
 
 #: the PSF of a capture whose caller names none: Gaussian, :data:`DEFAULT_SIGMA_HR_PX` HR pixels

@@ -42,8 +42,14 @@ class PoseRanges:
     scale_max: float = 0.005
 
 
-def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None) -> tuple[np.ndarray, dict]:
+def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None,
+                         allow_overexposure: bool = False) -> tuple[np.ndarray, dict]:
     """Check a ``(12, H, W)`` ground truth and crop it to a size the camera model accepts.
+
+    Values must be finite and on [0, 1] (full scale); others are refused, not clipped, so a
+    mis-scaled ground truth never gives a silently different capture. With
+    ``allow_overexposure`` values above 1 (a scene brighter than full scale, which saturates
+    the sensor) are kept, with a warning; negative values are always refused.
 
     ``crop`` takes a centred ``crop x crop`` window (must be a multiple of 4). Without it, a
     size that is not a multiple of 4 is trimmed (centred) to the largest multiple of 4,
@@ -56,6 +62,13 @@ def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None) -> tuple[np
         raise InputError("gt", f"dtype {gt.dtype}", "a float array on [0, 1]")
     if not np.all(np.isfinite(gt)):
         raise InputError("gt", f"{int(np.sum(~np.isfinite(gt)))} NaN/inf values", "finite values")
+    low, high = float(gt.min()), float(gt.max())
+    if low < 0.0 or (high > 1.0 and not allow_overexposure):
+        raise InputError("gt", f"values in [{low:.6g}, {high:.6g}]", "intensities on [0, 1] (1 = full scale)",
+                         "Rescale the ground truth (divide by its peak) or clip it to [0, 1] before simulating.")
+    if high > 1.0:
+        log.warning("ground truth above full scale (max %.4g) in %.2f %% of its values: the sensor saturates there, "
+                    "and scores on [0, 1] do not describe it", high, 100.0 * float(np.mean(gt > 1.0)))
     h, w = gt.shape[1:]
     info: dict = {"source_height": h, "source_width": w}
     if crop is not None:
@@ -87,13 +100,16 @@ def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF 
     The measurement is :class:`~capssim.measurement.CameraArrayMeasurement` (``y = sensor(A x)``,
     paper eq. 9): reproducible under ``seed``, whose three independent streams
     (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS noise and the DoFP noise.
-    Returns a :class:`~capssim.capture.Capture` (not yet written).
+    ``gt`` on [0, 1]; values above full scale are kept with a warning (they saturate the
+    sensor), negative ones refused (:func:`prepare_ground_truth`). Returns a
+    :class:`~capssim.capture.Capture` (not yet written).
     """
     t0 = time.perf_counter()
-    gt, _ = prepare_ground_truth(gt)
+    gt, _ = prepare_ground_truth(gt, allow_overexposure=True)
     hr_shape = gt.shape[1:]
     measurement = CameraArrayMeasurement(sensor, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio,
                                          seed=seed)
+    measurement.psf.check_extent(hr_shape, option="psf")
     if aperture_homographies is None:
         aperture_homographies, pose_params = random_aperture_homographies(
             measurement.pose_rng, hr_shape, shift_max_px=pose_ranges.shift_max_px,

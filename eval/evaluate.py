@@ -209,5 +209,5 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
         result["mtf_error"] = scorer.mtf_error
         log.warning("MTF of %s not measured: %s", path, scorer.mtf_error)
     if write:
-        atomic_write_json(path / "metrics.json", result)
+        atomic_write_json(path / "metrics.json", M.json_safe(result))
     return result

@@ -41,7 +41,9 @@ Well-defined results on hard inputs (each pinned by a test):
 * AoP undefined everywhere (no ground-truth pixel passes the mask, e.g. DoLP = 0 or an
   all-dark scene): the AoP metrics are ``None`` and ``notes`` says why;
 * NaN/inf in either image, mismatched shapes, integer dtypes, images too small for the
-  border crop and SSIM window: :class:`~capssim.errors.InputError`.
+  border crop and SSIM window, thresholds out of range (:func:`check_thresholds`):
+  :class:`~capssim.errors.InputError`;
+* results written as JSON go through :func:`json_safe`: a NaN is written as ``null``.
 
 PSNR and SSIM come from ``skimage.metrics`` with an explicit ``data_range``; SSIM uses the
 Wang et al. (2004) settings: Gaussian window sigma 1.5 (11 x 11), K1 = 0.01, K2 = 0.03,
@@ -216,6 +218,37 @@ def _stokes_scaled(stokes: np.ndarray, scale: str) -> tuple[np.ndarray, np.ndarr
 
 
 # -- the entry point ------------------------------------------------------------------------
+def check_thresholds(*, min_s0: float | None = None, min_dolp: float | None = None) -> None:
+    """Refuse AoP-mask thresholds outside their ranges: ``min_s0`` in [0, 2] (S0 scale), ``min_dolp`` in [0, 1]."""
+    for name, value, high in (("min_s0", min_s0, 2.0), ("min_dolp", min_dolp, 1.0)):
+        if value is None:
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not (math.isfinite(value) and 0.0 <= value <= high):
+            raise InputError(name, value, f"a finite number in [0, {high:g}], or nothing for the convention's default")
+
+
+def json_safe(obj: Any) -> Any:
+    """``obj`` with every NaN or infinite float replaced by ``None`` (JSON ``null``), numpy scalars as Python ones.
+
+    Standard JSON has no NaN; ``json.dumps(json_safe(obj), allow_nan=False)`` always succeeds
+    for results of :func:`score`.
+    """
+    if isinstance(obj, dict):
+        return {key: json_safe(value) for key, value in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(value) for value in obj]
+    if isinstance(obj, np.ndarray):
+        return json_safe(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
 def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0: float | None = None,
           min_dolp: float | None = None, border: int | None = None, with_ssim: bool = True,
           lpips=None) -> dict[str, Any]:
@@ -252,6 +285,7 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
     if b < 0:
         raise InputError("border", b, "a non-negative number of pixels")
     _check_size(gt, conv, b)
+    check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
     s0_guard = conv.min_s0 if min_s0 is None else float(min_s0)
     dolp_min = conv.min_dolp if min_dolp is None else float(min_dolp)
     notes: list[str] = []

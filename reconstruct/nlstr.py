@@ -30,11 +30,10 @@ For each reference block:
 4. **Aggregation** (eq. 29): ``X = (sum_k R_k^T 1)^-1 sum_k R_k^T (C x1 Phi_h x2 Phi_w
    x3 Phi_c)``, by ``index_add`` into the image.
 
-Memory is bounded by processing reference rows in strips (each with the rows its
-search window needs), sized by ``strip_mb``. On CUDA the same code runs unchanged.
-
-The block-matching schedule across ADMM iterations belongs to the prior,
-:class:`capssim.reconstruct.nlstr_prior.NLSTRPrior`.
+Memory is bounded by processing reference rows in strips sized by ``strip_mb``; the
+working set is estimated and checked (:mod:`capssim.resources`) before anything is
+allocated. On CUDA the same code runs unchanged. The block-matching schedule across ADMM
+iterations belongs to :class:`capssim.reconstruct.nlstr_prior.NLSTRPrior`.
 """
 
 from __future__ import annotations
@@ -48,6 +47,7 @@ import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.reconstruct.filters import sliding_window_sum
+from capssim.resources import check_memory, check_range
 
 log = logging.getLogger(__name__)
 
@@ -72,13 +72,16 @@ class NLSTRParameters:
         return int(self.strip_mb * 2**20)
 
     def validate(self) -> None:
+        for name in ("block", "stride", "search_radius"):
+            if isinstance(getattr(self, name), bool) or not isinstance(getattr(self, name), int):
+                raise InputError(name, repr(getattr(self, name)), "an integer")
         if self.block < 2:
             raise InputError("block", self.block, "an integer >= 2 (block side in HR pixels)")
         if not 1 <= self.stride <= self.block:
             raise InputError("stride", self.stride, f"an integer in [1, block={self.block}]")
         if self.search_radius < 0:
             raise InputError("search_radius", self.search_radius, "an integer >= 0")
-        for name in ("c1", "c2", "weight_bandwidth"):
+        for name in ("c1", "c2", "weight_bandwidth", "strip_mb"):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise InputError(name, v, "a finite positive number")
@@ -124,8 +127,7 @@ class _Strip:
 
 
 def _triu(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
-    iu = torch.triu_indices(n, n, device=device)
-    return iu[0], iu[1]
+    return tuple(torch.triu_indices(n, n, device=device))
 
 
 class NonlocalSparseTensor:
@@ -138,6 +140,9 @@ class NonlocalSparseTensor:
         b = params.block
         if h < b or w < b:
             raise InputError("image", f"{h}x{w}", f"at least one {b}x{b} block", "Use a smaller block size.")
+        check_range("search_radius", params.search_radius, high=max(h, w), what="the block-matching search radius",
+                    reason=f"the larger side of the {h}x{w} image: farther offsets hold no block",
+                    fix=f"Use -O search_radius={min(params.search_radius, max(h, w))} or less (default 7).")
         self.params = params
         self.shape = (c, h, w)
         self.device = torch.device(device)
@@ -145,6 +150,8 @@ class NonlocalSparseTensor:
         self.ref_y = reference_positions(h, b, params.stride).to(self.device)
         self.ref_x = reference_positions(w, b, params.stride).to(self.device)
         self.n_ref = int(self.ref_y.numel() * self.ref_x.numel())
+        self.strips = self._plan_strips()
+        self.check_resources(n_similar=1)
         # in-block pixel offsets (b*b,) in the flattened H*W image
         ii, jj = torch.meshgrid(torch.arange(b, device=self.device), torch.arange(b, device=self.device), indexing="ij")
         self.block_offsets = (ii * w + jj).reshape(-1)
@@ -154,7 +161,6 @@ class NonlocalSparseTensor:
         idx = (ref_flat[:, None] + self.block_offsets[None, :]).reshape(-1)
         count.index_add_(0, idx, torch.ones(idx.numel(), dtype=dtype, device=self.device))
         self.inv_count = (1.0 / count).reshape(h, w)
-        self.strips = self._plan_strips()
         self._tri_b = _triu(b, self.device)
         self._tri_c = _triu(c, self.device)
 
@@ -179,6 +185,31 @@ class NonlocalSparseTensor:
             strips.append(_Strip(rows, max(0, ya - r), min(h - b, yb + r)))
         return strips
 
+    def working_set_bytes(self, n_similar: int) -> int:
+        """Peak bytes of one NLSTR step with ``n_similar`` blocks per group, about: the padded image,
+        the matches ``(K, P)``, and per strip of ``n`` reference rows (``m`` image rows) the larger of
+        the offset maps ``(m, (2R+1)^2, W)`` (x4) with the candidate tables ``(n Nx, (2R+1)^2)``, and
+        the Gram maps ``(m-b+1, W-b+1, planes)`` (x3) with the groups' blocks ``(n Nx, b, b, C)`` (x10)."""
+        c, h, w = self.shape
+        b, s, r = self.params.block, self.params.stride, self.params.search_radius
+        item, n_off = torch.tensor([], dtype=self.dtype).element_size(), (2 * r + 1) ** 2
+        p, nx = max(1, min(int(n_similar), n_off)), int(self.ref_x.numel())
+        rows = max(int(st.ref_rows.numel()) for st in self.strips)
+        match_rows = (rows - 1) * s + b
+        match = match_rows * n_off * w * item * 4 + rows * nx * n_off * (2 * item + 17)
+        gram_rows = min(h, match_rows + 2 * r) - b + 1
+        gram = gram_rows * (w - b + 1) * self._map_planes() * item * 3 + rows * nx * b * b * c * item * 10
+        persistent = c * (h + 2 * r) * (w + 2 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
+        return int(persistent + 4 * h * w * c * item + max(match, gram))
+
+    def check_resources(self, *, n_similar: int) -> None:
+        """Refuse (:class:`~capssim.errors.ResourceError`) a step whose working set is past the memory limit."""
+        prm, (_, h, w) = self.params, self.shape
+        check_memory("search_radius", self.working_set_bytes(n_similar), what=(
+            f"NLSTR on a {h}x{w} image (block {prm.block}, stride {prm.stride}, search_radius {prm.search_radius}, "
+            f"n_similar {n_similar})"), fix="Use a smaller -O search_radius (default 7), n_similar or block, or a "
+                                            "larger stride.")
+
     def _strip_refs(self, strip: _Strip) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Reference coordinates of a strip and their global group indices."""
         nx = self.ref_x.numel()
@@ -195,6 +226,7 @@ class NonlocalSparseTensor:
     def match(self, z: torch.Tensor, n_similar: int) -> BlockMatches:
         """The ``n_similar`` most similar blocks of every reference block (reference first)."""
         self._check(z)
+        self.check_resources(n_similar=n_similar)
         c, h, w = self.shape
         b, r = self.params.block, self.params.search_radius
         n_off = (2 * r + 1) ** 2

@@ -10,10 +10,12 @@ Gaussian (the paper's isotropic Gaussian kernel; useful for real captures).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from capssim.capture import Capture
-from capssim.errors import CapssimError
+from capssim.errors import CapssimError, InputError
 from capssim.geometry import ArrayGeometry
 from capssim.homography import registration_error_hr_px
 from capssim.psf import PSF
@@ -26,17 +28,31 @@ def truth_known(capture: Capture) -> bool:
     return capture.meta.get("kind") in ("simulated", "rendered")
 
 
+#: the ``psf_sigma`` option's value that means "the capture's own PSF" (the default)
+CAPTURE_PSF_SIGMA = -1.0
+
+
 def method_psf(capture: Capture, psf_sigma: float) -> tuple[np.ndarray, dict]:
     """The sampling kernel on the HR grid ``(k, k)`` and its record.
 
-    ``psf_sigma`` (HR pixels) ``>= 0`` names a Gaussian; ``< 0`` takes the capture's PSF.
+    ``psf_sigma`` (HR pixels): a finite number ``>= 0`` names a Gaussian; exactly
+    :data:`CAPTURE_PSF_SIGMA` (-1) takes the capture's PSF; anything else is refused. A kernel
+    wider than the image, or too large to convolve, is refused before it is built.
     """
-    if psf_sigma >= 0:
-        return PSF.gaussian(psf_sigma).kernel(), {"type": "gaussian", "sigma_hr_px": psf_sigma,
-                                                   "source": "option psf_sigma"}
-    spec = dict(capture.meta.get("psf") or {"type": "none"})
-    spec["source"] = "capture meta.json"
-    return capture.psf_kernel(), spec
+    valid = "-1 (the capture's PSF, the default) or a finite number >= 0 (Gaussian std, HR pixels; 0 = no blur)"
+    if isinstance(psf_sigma, bool) or not isinstance(psf_sigma, (int, float, np.floating, np.integer)):
+        raise InputError("psf_sigma", repr(psf_sigma), valid)
+    if psf_sigma == CAPTURE_PSF_SIGMA:
+        psf = capture.psf
+        spec = dict(capture.meta.get("psf") or {"type": "none"})
+        spec["source"] = "capture meta.json"
+        psf.check_extent(capture.hr_shape, option="meta.json psf")
+        return capture.psf_kernel(), spec
+    if not (math.isfinite(psf_sigma) and psf_sigma >= 0):
+        raise InputError("psf_sigma", psf_sigma, valid)
+    psf = PSF.gaussian(psf_sigma)
+    psf.check_extent(capture.hr_shape, option="psf_sigma")
+    return psf.kernel(), {"type": "gaussian", "sigma_hr_px": psf_sigma, "source": "option psf_sigma"}
 
 
 def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Optional
@@ -97,6 +98,9 @@ def demosaic(
 
     if method not in DOFP_METHODS:
         raise UnknownNameError("DoFP method", method, list(DOFP_METHODS))
+    if not (math.isfinite(dolp_max) and 0.0 < dolp_max <= 1.0):
+        raise InputError("--dolp-max", dolp_max, "a DoLP in (0, 1] (shown fully saturated in the AoP preview)",
+                         "Try --dolp-max 0.5.")
     cell = dofp_layout(layout)
     check_output_free(output, overwrite=overwrite)
 

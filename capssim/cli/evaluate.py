@@ -54,8 +54,11 @@ def evaluate(
     as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON instead of tables."),
 ) -> None:
     """Score every reconstruction of a capture against its ground truth; write CAPTURE/metrics.json."""
-    from capssim.eval.evaluate import evaluate_capture  # start-up time: the scoring pulls torch and skimage
+    # start-up time: the scoring pulls torch and skimage
+    from capssim.eval.evaluate import evaluate_capture
+    from capssim.eval.metrics import check_thresholds, json_safe
 
+    check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
     lpips = None
     if lpips_weights is not None:
         from capssim.eval.lpips import LPIPS
@@ -65,7 +68,7 @@ def evaluate(
     result = evaluate_capture(capture, convention=convention, methods=wanted, min_s0=min_s0, min_dolp=min_dolp,
                               border=border, lpips=lpips, with_mtf=not no_mtf)
     if as_json:
-        typer.echo(json.dumps(result, indent=2, default=float))
+        typer.echo(json.dumps(json_safe(result), indent=2, allow_nan=False))
     else:
         typer.echo(render_evaluation(result, lpips_used=lpips is not None))
         typer.echo(f"wrote {Path(capture) / 'metrics.json'}")
@@ -171,7 +174,8 @@ def mtf(
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
 ) -> None:
     """MTF of a sinusoidal Siemens star per segment direction, limit resolution and SR magnification."""
-    from capssim.eval.mtf import measure_star  # start-up time
+    from capssim.eval.metrics import json_safe  # start-up time
+    from capssim.eval.mtf import measure_star
 
     imgs, names = _read_star_image(image)
     is_twelve = len(names) == 12
@@ -196,7 +200,8 @@ def mtf(
     res = measure_star(imgs, cycles, names=names, center_rowcol=centre, radius=radius, reference_modulation=modulation,
                        reference_pitch=pitch, threshold=threshold, residual_limit=residual_limit).results
     if as_json:
-        typer.echo(json.dumps({"image": str(image), "channels": {k: v.to_dict() for k, v in res.items()}}, indent=2))
+        typer.echo(json.dumps(json_safe({"image": str(image), "channels": {k: v.to_dict() for k, v in res.items()}}),
+                              indent=2, allow_nan=False))
         return
     head = res["mean"] if "mean" in res else res[names[0]]
     lines = [f"image: {image} ({len(names)} channel{'s' if len(names) > 1 else ''}: {', '.join(names)})",

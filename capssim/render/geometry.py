@@ -164,13 +164,19 @@ class RigTolerances:
     def __post_init__(self):
         for name in ("baseline_m", "tilt_max_deg", "roll_max_deg", "focal_scale_max"):
             v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise InputError(f"geometry.{name}", v, "a finite number >= 0")
+            if isinstance(v, bool) or not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise InputError(f"geometry.{name}", repr(v), "a finite number >= 0")
+        if not isinstance(self.converge, (bool, np.bool_)):
+            raise InputError("geometry.converge", repr(self.converge), "true or false",
+                             "Write --geometry converge=true (or false).")
         if self.focal_scale_max >= 0.5 or self.tilt_max_deg > 10 or self.roll_max_deg > 45:
             raise InputError("geometry", asdict(self), "small errors (focal scale < 0.5, tilt <= 10, roll <= 45 deg)")
 
     @classmethod
     def from_params(cls, params: dict | None) -> "RigTolerances":
+        """The tolerances of a ``geometry_params`` mapping (missing keys: defaults), each value type-checked."""
+        if params is not None and not isinstance(params, dict):
+            raise InputError("geometry_params", type(params).__name__, "a mapping of geometry parameters")
         params = dict(params or {})
         known = {f for f in cls.__dataclass_fields__}
         unknown = sorted(set(params) - known)

@@ -12,6 +12,7 @@ from capssim.errors import InputError
 from capssim.psf import PSF, as_psf
 from capssim.render.geometry import RigTolerances
 from capssim.render.spectral import DEFAULT_CAMERA
+from capssim.resources import check_memory
 from capssim.sensor import NoNoiseSensor, Sensor, noise_sigma_estimate
 
 #: smallest HR ground-truth size (pixels)
@@ -25,6 +26,13 @@ DEFAULT_MAX_SPP = 1024
 #: planar warp: the reference is rendered 4x finer than the ground truth up to this size, 2x above
 #: (to bound memory); docs/notes/rendering-internals.md gives the accuracy of each factor
 OVERSAMPLE_4_MAX_SIZE = 512
+#: bytes held per reference-render pixel: the Stokes sums and squares (21 float64) and the
+#: pooled pilot and main renders' means (up to 5 x 9 float64), rounded up
+RENDER_BYTES_PER_PIXEL = 512
+#: bytes held per HR ground-truth pixel by the camera model (about 8 float64 copies of 12 channels)
+HR_BYTES_PER_PIXEL = 768
+#: margin (HR pixels) the aperture warps add around the PSF's in the memory estimate
+WARP_MARGIN_ESTIMATE = 4
 
 
 @dataclass(frozen=True)
@@ -94,8 +102,29 @@ class RenderSettings:
             raise InputError("target_noise", self.target_noise, "a positive number (RMS std on [0, 1] full scale)")
         if self.extinction_ratio is not None and not self.extinction_ratio >= 1.0:
             raise InputError("extinction_ratio", self.extinction_ratio, "a number >= 1, or None for ideal polarizers")
+        if not (isinstance(self.max_spp, (int, np.integer)) and not isinstance(self.max_spp, bool)
+                and 1 <= self.max_spp <= 1 << 16):
+            raise InputError("max_spp", self.max_spp, "an integer in [1, 65536] (samples per HR pixel)")
         render_seed = self.seed if self.render_seed is None else int(self.render_seed)
-        return replace(self, size=size, sensor=sensor, psf=psf, oversample=oversample, render_seed=render_seed)
+        checked = replace(self, size=size, sensor=sensor, psf=psf, oversample=oversample, render_seed=render_seed)
+        psf.check_extent((size, size), option="psf", memory=False)
+        check_memory("size", checked.memory_estimate_bytes(), what=f"a {size}x{size} render",
+                     fix="Use a smaller --size.")
+        psf.check_extent((size, size), option="psf")
+        return checked
+
+    def memory_estimate_bytes(self) -> int:
+        """Bytes a render of these (checked) settings holds at its peak, about.
+
+        The reference render covers ``size + 2 margin`` HR pixels (margin: the PSF's radius
+        and the warps' :data:`WARP_MARGIN_ESTIMATE`), ``oversample`` times finer on the planar
+        path, at :data:`RENDER_BYTES_PER_PIXEL`; the camera model adds
+        :data:`HR_BYTES_PER_PIXEL` per ground-truth pixel.
+        """
+        margin = self.psf.kernel_radius() + WARP_MARGIN_ESTIMATE
+        fine = 1 if self.planar == "off" else self.oversample
+        render_side = (self.size + 2 * margin) * fine
+        return render_side * render_side * RENDER_BYTES_PER_PIXEL + self.size * self.size * HR_BYTES_PER_PIXEL
 
     def target(self) -> float:
         """The Monte-Carlo target: ``target_noise``, or the default for this sensor (checked settings)."""

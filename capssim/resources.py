@@ -1,0 +1,89 @@
+"""A resource guard: options that scale memory are checked against an estimate before allocating.
+
+An estimate (bytes) is compared with a limit: ``CAPSSIM_MEMORY_LIMIT_GB`` when set (GiB; ``inf``
+turns the guard off), otherwise :data:`MEMORY_FRACTION` of the memory the machine has available
+now (``MemAvailable`` in ``/proc/meminfo``). Past the limit a
+:class:`~capssim.errors.ResourceError` names the option, the estimate, the limit and how to
+change either (docs: guides/limits.md).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+from capssim.errors import InputError, ResourceError
+
+#: environment variable that sets the memory limit explicitly, in GiB (``inf``: no limit)
+MEMORY_LIMIT_ENV = "CAPSSIM_MEMORY_LIMIT_GB"
+#: share of the available memory one command may plan to use
+MEMORY_FRACTION = 0.8
+
+
+def available_memory_bytes() -> int | None:
+    """Memory available to a new allocation now, in bytes (``None`` if the platform does not say)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def memory_limit() -> tuple[float, str]:
+    """The memory limit in bytes (``inf``: none) and where it comes from, for messages."""
+    raw = os.environ.get(MEMORY_LIMIT_ENV)
+    if raw is not None and raw.strip():
+        try:
+            gib = float(raw)
+        except ValueError:
+            gib = float("nan")
+        if not gib > 0:
+            raise InputError(MEMORY_LIMIT_ENV, repr(raw), "a positive number of GiB, or inf for no limit")
+        return gib * 2**30, f"{MEMORY_LIMIT_ENV}={raw.strip()}"
+    available = available_memory_bytes()
+    if available is None:
+        return math.inf, "no limit (available memory unknown)"
+    return MEMORY_FRACTION * available, (f"{MEMORY_FRACTION:.0%} of the {format_bytes(available)} available; "
+                                          f"set {MEMORY_LIMIT_ENV} to change it")
+
+
+def format_bytes(n: float) -> str:
+    """``n`` bytes in a short human form (``'1.5 GiB'``)."""
+    if not math.isfinite(n):
+        return "unbounded"
+    for unit, size in (("TiB", 2**40), ("GiB", 2**30), ("MiB", 2**20), ("KiB", 2**10)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{int(n)} B"
+
+
+def check_memory(option: str, estimate_bytes: float, *, what: str, fix: str) -> None:
+    """Refuse (:class:`~capssim.errors.ResourceError`) an ``option`` whose ``what`` needs more than the limit.
+
+    ``estimate_bytes``: the planned working set; ``fix``: which option to change, and how.
+    """
+    limit, source = memory_limit()
+    if estimate_bytes > limit:
+        raise ResourceError(option, estimate_bytes,
+                            f"{what} needs about {format_bytes(estimate_bytes)}, more than the memory limit "
+                            f"{format_bytes(limit)} ({source}). {fix}")
+
+
+def check_range(option: str, value: float, *, high: float, what: str, reason: str, fix: str) -> None:
+    """Refuse an ``option`` past its documented sane range ``value <= high`` (time or memory would explode).
+
+    ``what``: the quantity ``value`` measures; ``reason``: what ``high`` is.
+    """
+    if value > high:
+        raise ResourceError(option, value, f"{what} is {value:g}, past the sane range: at most {high:g} "
+                                           f"({reason}). {fix}")
+
+
+__all__ = ["MEMORY_FRACTION", "MEMORY_LIMIT_ENV", "available_memory_bytes", "check_memory", "check_range",
+           "format_bytes", "memory_limit"]
