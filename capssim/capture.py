@@ -39,7 +39,7 @@ from capssim.conventions import (
     dofp_layout_name,
     split_bayer,
 )
-from capssim.errors import CaptureFormatError, InputError
+from capssim.errors import CaptureFormatError, InputError, UnknownNameError
 from capssim.geometry import ArrayGeometry
 from capssim.imageio import atomic_directory, atomic_write_json, read_tiff, write_tiff
 from capssim.psf import PSF
@@ -126,40 +126,109 @@ def _require(meta: dict, key: str, where: str = "meta.json"):
     return meta[key]
 
 
+def _found(value) -> str:
+    """What a ``meta.json`` field holds, for a message: its JSON type and a short excerpt."""
+    kind = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}.get(
+        type(value), "a number")
+    text = json.dumps(value, default=str)
+    return f"{kind} {text[:60] + '...' if len(text) > 60 else text}"
+
+
+def _expect(value, ok: bool, where: str, valid: str):
+    if not ok:
+        raise CaptureFormatError(f"{where}: got {_found(value)}; expected {valid}. "
+                                 "See README 'Capture folder format'.")
+    return value
+
+
+def _matrices(value, shape: tuple, where: str) -> np.ndarray:
+    """``value`` as a finite float64 array of ``shape``, or a :class:`CaptureFormatError`."""
+    valid = f"{' x '.join(map(str, shape))} finite numbers (nested lists)"
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        array = None
+    _expect(value, array is not None and array.shape == shape and bool(np.all(np.isfinite(array))), where, valid)
+    return array
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _validate_types(meta) -> None:
+    """The JSON types of the fields every reader relies on (values are checked after)."""
+    geo = _expect(_require(meta, "geometry"), isinstance(meta["geometry"], dict), "meta.json geometry",
+                  "an object with hr_height, hr_width, raw_height, raw_width")
+    for key in ("hr_height", "hr_width", "raw_height", "raw_width"):
+        value = _require(geo, key, "meta.json geometry")
+        _expect(value, _is_int(value) and value > 0, f"meta.json geometry.{key}", "a positive integer (pixels)")
+    lr = _require(meta, "lr_images")
+    _expect(lr, isinstance(lr, list) and all(isinstance(e, dict) for e in lr), "meta.json lr_images",
+            f"a list of {N_LR_IMAGES} objects")
+    sensor = _require(meta, "sensor")
+    _expect(sensor, isinstance(sensor, dict) and isinstance(sensor.get("model"), str), "meta.json sensor",
+            "an object with a string 'model' (none, gaussian or poisson-gaussian)")
+    files = _require(meta, "files")
+    _expect(files, isinstance(files, dict) and all(v is None or (isinstance(v, str) and v) for v in files.values()),
+            "meta.json files", "an object of file names, e.g. {\"caps_raw\": \"caps_raw.tiff\"}")
+    _expect(files.get("caps_raw"), isinstance(files.get("caps_raw"), str), "meta.json files.caps_raw",
+            "the file name of the raw frames, e.g. \"caps_raw.tiff\"")
+    for key, ok, valid in (("psf", lambda v: v is None or isinstance(v, dict), "null or a PSF object"),
+                           ("extinction_ratio", lambda v: v is None or (isinstance(v, (int, float))
+                            and not isinstance(v, bool) and v >= 1), "null or a number >= 1"),
+                           ("seed", lambda v: v is None or (_is_int(v) and v >= 0), "null or an integer >= 0"),
+                           ("source", lambda v: isinstance(v, dict), "an object")):
+        if key in meta:
+            _expect(meta[key], ok(meta[key]), f"meta.json {key}", valid)
+
+
+def _validate_sensor(sensor: dict) -> None:
+    try:
+        sensor_from_meta(sensor)
+    except (InputError, UnknownNameError) as exc:
+        raise CaptureFormatError(f"meta.json sensor: {exc} See README 'Capture folder format'.") from None
+    except (TypeError, ValueError) as exc:  # unknown keys, values of the wrong type
+        raise CaptureFormatError(f"meta.json sensor: got {_found(sensor)} ({exc}); expected the fields of "
+                                 f"model {sensor['model']!r}. See README 'Capture folder format'.") from None
+
+
 def validate_meta(meta: dict) -> None:
-    """Raise :class:`CaptureFormatError` naming the first problem in a ``meta.json`` dict."""
+    """Raise :class:`CaptureFormatError` naming the first problem in a ``meta.json`` dict:
+    the field, what it holds and what is valid."""
+    _expect(meta, isinstance(meta, dict), "meta.json", "a JSON object")
     if meta.get("schema") != SCHEMA:
         raise CaptureFormatError(f"meta.json: schema is {meta.get('schema')!r}; expected {SCHEMA!r}.")
     version = meta.get("schema_version")
     if version != SCHEMA_VERSION:
         raise CaptureFormatError(f"meta.json: schema_version {version!r} is not supported; expected {SCHEMA_VERSION}.")
-    geo = _require(meta, "geometry")
-    for key in ("hr_height", "hr_width", "raw_height", "raw_width"):
-        _require(geo, key, "meta.json geometry")
+    _validate_types(meta)
+    geo = meta["geometry"]
     if geo["hr_height"] != 2 * geo["raw_height"] or geo["hr_width"] != 2 * geo["raw_width"]:
         raise CaptureFormatError("meta.json geometry: hr size must be twice the raw size.")
     if geo["raw_height"] % 2 or geo["raw_width"] % 2:
         raise CaptureFormatError("meta.json geometry: raw height and width must be even (RGGB cells).")
-    hn = np.asarray(_require(meta, "aperture_homographies"), dtype=np.float64)
-    if hn.shape != (N_APERTURES, 3, 3) or not np.all(np.isfinite(hn)):
-        raise CaptureFormatError(f"meta.json: aperture_homographies must be 4 finite 3x3 matrices; got shape {hn.shape}.")
-    lr = _require(meta, "lr_images")
+    _matrices(_require(meta, "aperture_homographies"), (N_APERTURES, 3, 3), "meta.json aperture_homographies")
+    lr = meta["lr_images"]
     if len(lr) != N_LR_IMAGES:
         raise CaptureFormatError(f"meta.json: lr_images must list 16 images; got {len(lr)}.")
     for m, entry in enumerate(lr):
-        h = np.asarray(_require(entry, "homography", f"meta.json lr_images[{m}]"), dtype=np.float64)
-        if h.shape != (3, 3) or not np.all(np.isfinite(h)):
-            raise CaptureFormatError(f"meta.json lr_images[{m}].homography must be a finite 3x3 matrix.")
+        _matrices(_require(entry, "homography", f"meta.json lr_images[{m}]"), (3, 3),
+                  f"meta.json lr_images[{m}].homography")
         if entry.get("channel", LR_IMAGE_CHANNELS[m]) != LR_IMAGE_CHANNELS[m]:
             raise CaptureFormatError(f"meta.json lr_images[{m}].channel is {entry.get('channel')}; "
                                      f"the convention m = 4n + q gives {LR_IMAGE_CHANNELS[m]}.")
     ArrayGeometry.from_meta(meta)
-    _require(meta, "sensor")
-    _require(meta, "files")
+    _validate_sensor(meta["sensor"])
     try:
         dofp_layout(meta.get("dofp_layout", "sony"))
     except InputError as exc:
         raise CaptureFormatError(f"meta.json dofp_layout: {exc}") from exc
+    try:
+        PSF.from_spec(meta.get("psf"))
+    except (InputError, TypeError, ValueError) as exc:
+        raise CaptureFormatError(f"meta.json psf: got {_found(meta.get('psf'))} ({exc}); expected a PSF object "
+                                 "such as {\"type\": \"gaussian\", \"sigma_hr_px\": 0.5}.") from None
 
 
 @dataclass

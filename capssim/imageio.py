@@ -7,10 +7,12 @@ target and are renamed into place; folders are built under a temporary name and 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
 import os
 import shutil
+import socket
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -26,33 +28,130 @@ GT_IMAGE_SUFFIXES = (".png", ".tif", ".tiff")
 
 
 # -- atomic writing -------------------------------------------------------------------------
+#: temporary names are ``.NAME.tmp-HOST-PID-XXXX`` (HOST: a short hash of the host name), so a later
+#: run can tell a dead writer's leftover (same host, PID no longer running) from a live writer's
+_HOST_TAG = hashlib.blake2b(socket.gethostname().encode(), digest_size=3).hexdigest()
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
     return mask
 
 
+def _tmp_prefix(path: Path) -> str:
+    return f".{path.name}.tmp-{_HOST_TAG}-{os.getpid()}-"
+
+
+def _pid_running(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporary files and folders a killed writer of ``path`` left next to it.
+
+    Only ``.NAME.tmp-HOST-PID-XXXX`` and ``.NAME.old-PID`` siblings of this host whose PID is
+    no longer running are removed, so a concurrent writer's temporaries are never touched.
+    Returns what was removed.
+    """
+    path = Path(path)
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError:
+        return removed
+    tmp_head, old_head = f".{path.name}.tmp-{_HOST_TAG}-", f".{path.name}.old-"
+    for entry in entries:
+        if entry.name.startswith(tmp_head):
+            pid_text = entry.name[len(tmp_head):].split("-", 1)[0]
+        elif entry.name.startswith(old_head):
+            pid_text = entry.name[len(old_head):]
+        else:
+            continue
+        if not pid_text.isdigit() or int(pid_text) == os.getpid() or _pid_running(int(pid_text)):
+            continue
+        target = Path(entry.path)
+        if entry.is_dir(follow_symlinks=False):
+            shutil.rmtree(target, ignore_errors=True)
+        else:
+            target.unlink(missing_ok=True)
+        removed.append(target)
+        log.info("removed %s (left by a writer that no longer runs)", target)
+    return removed
+
+
 def _tmp_sibling(path: Path) -> Path:
-    fd, name = tempfile.mkstemp(prefix=f".{path.name}.tmp-", dir=path.parent)
+    remove_stale_temporaries(path)
+    try:
+        fd, name = tempfile.mkstemp(prefix=_tmp_prefix(path), dir=path.parent)
+    except OSError as exc:
+        raise InputError("output file", f"{str(path)!r} ({exc.strerror or exc})", "a path in a folder you can write to",
+                         "Choose another path.") from None
     os.close(fd)
     os.chmod(name, 0o666 & ~_umask())
     return Path(name)
 
 
-def check_output_free(path: str | os.PathLike, *, overwrite: bool = False, argument: str = "output") -> Path:
-    """Fail early (before any work) if ``path`` exists and ``overwrite`` is not set."""
+def check_writable_location(path: str | os.PathLike, *, argument: str = "-o/--output") -> Path:
+    """Fail early (before any work) if ``path`` cannot be created: a parent is a file, or the
+    nearest existing folder refuses a new entry (read-only, a system folder such as ``/sys``).
+
+    Creates nothing that stays: the nearest existing folder is probed with a temporary folder.
+    """
+    path = Path(path)
+    probe_dir = None
+    for folder in (path.absolute(), *path.absolute().parents):
+        if folder.exists():
+            if not folder.is_dir():
+                raise InputError(argument, f"{str(path)!r}, under the existing file {str(folder)!r}",
+                                 "a path whose parents are folders", "Choose another path.")
+            probe_dir = folder
+            break
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".capssim-probe-", dir=probe_dir))
+    except OSError as exc:
+        raise InputError(argument, f"{str(path)!r}, where {str(probe_dir)!r} refuses new files "
+                         f"({exc.strerror or exc})", "a path in a folder you can write to",
+                         "Choose another path.") from None
+    return path
+
+
+def check_output_free(path: str | os.PathLike, *, overwrite: bool = False, argument: str = "-o/--output") -> Path:
+    """Fail early (before any work) if ``path`` exists and ``overwrite`` is not set, or cannot be written."""
     path = Path(path)
     if path.exists() and not overwrite:
         raise InputError(argument, f"existing path {str(path)!r}", "a path that does not exist yet",
                          "Choose another -o/--output, or pass --overwrite to replace it.")
     if path.exists() and not path.is_dir():
         raise InputError(argument, f"existing file {str(path)!r}", "a folder path")
-    return path
+    return check_writable_location(path, argument=argument)
+
+
+def check_output_file(path: str | os.PathLike, *, argument: str) -> Path:
+    """Fail early (before any work) if the file ``path`` cannot be written (a folder, or an unwritable place)."""
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(argument, f"existing folder {str(path)!r}", "a file path", "Choose a file name.")
+    return check_writable_location(path.parent, argument=argument)
+
+
+def _make_parent(path: Path, argument: str) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(argument, f"{str(path)!r} ({exc.strerror or exc})", "a path in a folder you can write to",
+                         "Choose another path.") from None
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path, "output file")
     tmp = _tmp_sibling(path)
     try:
         with open(tmp, "wb") as fh:
@@ -92,7 +191,7 @@ def write_tiff(path: str | os.PathLike, array: np.ndarray) -> None:
     import tifffile
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    _make_parent(path, "output file")
     tmp = _tmp_sibling(path)
     try:
         tifffile.imwrite(tmp, np.ascontiguousarray(array), compression="zlib", photometric="minisblack",
@@ -123,11 +222,13 @@ def atomic_directory(path: str | os.PathLike, *, overwrite: bool = False) -> Ite
     """Build a folder under a temporary name; rename it to ``path`` only if the block succeeds.
 
     An existing ``path`` is an error unless ``overwrite``; then it is replaced only after
-    the new folder is complete.
+    the new folder is complete. Temporaries a killed earlier writer of ``path`` left are removed
+    (:func:`remove_stale_temporaries`).
     """
     path = check_output_free(path, overwrite=overwrite)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    _make_parent(path, "-o/--output")
+    remove_stale_temporaries(path)
+    tmp = Path(tempfile.mkdtemp(prefix=_tmp_prefix(path), dir=path.parent))
     os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp

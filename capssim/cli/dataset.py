@@ -12,6 +12,7 @@ import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
 from capssim.errors import InputError
+from capssim.imageio import check_writable_location
 
 
 def _fmt_duration(seconds: float | None) -> str:
@@ -65,15 +66,21 @@ def dataset(
     if workers is not None and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
 
+    if output is not None:
+        check_writable_location(output, argument="-o/--output")
     from capssim.dataset.config import load_config  # pulls torch, Dask and the scene library (start-up time)
+    from capssim.dataset.sample import check_sample  # pulls torch and the renderer (start-up time)
 
     cfg = load_config(config)
     if dry_run:
         typer.echo(f"config {config}: {cfg.samples} samples, {len(cfg.sources)} sources, seed {cfg.seed}, "
                    f"fingerprint {cfg.fingerprint()[:12]}")
-        for index in range(min(cfg.samples, 5)):
+        for index in range(cfg.samples):
             spec = cfg.sample_spec(index)
-            typer.echo(f"{spec['name']}: seed {spec['seed']} {json.dumps(spec['params'], sort_keys=True)}")
+            check_sample(spec)
+            if index < 5:
+                typer.echo(f"{spec['name']}: seed {spec['seed']} {json.dumps(spec['params'], sort_keys=True)}")
+        typer.echo(f"all {cfg.samples} samples' parameters checked")
         return
     if output is None:
         raise InputError("-o/--output", "nothing", "the dataset folder to create or finish", "Add -o OUT.")

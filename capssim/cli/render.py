@@ -21,7 +21,7 @@ from capssim.cli._options import (
     sensor_from_options,
 )
 from capssim.errors import InputError
-from capssim.imageio import check_output_free, write_png
+from capssim.imageio import check_output_file, check_output_free, write_png
 from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 
 
@@ -100,6 +100,8 @@ def render(
 
     t0 = time.perf_counter()
     check_output_free(output, overwrite=overwrite)
+    if preview is not None:
+        check_output_file(preview, argument="--preview")
     sens = sensor_from_options(noise, sigma, sensor)
     psf_value = _psf(psf, psf_sigma, f_number, wavelength_nm, pixel_um)
     tasks: dict = {}

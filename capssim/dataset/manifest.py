@@ -156,6 +156,7 @@ def write_dataset_json(out, config) -> dict:
     if existing is not None and existing.get("sample_name_width", config.name_width) != config.name_width:
         raise InputError("samples", config.samples, f"a count whose sample names keep {existing['sample_name_width']} digits",
                          "Generate the larger dataset into a new folder.")
+    _refuse_shrinking(out, config.samples)
     info = {"schema": DATASET_SCHEMA, "schema_version": DATASET_SCHEMA_VERSION, "name": config.name,
             "fingerprint": fingerprint, "samples": config.samples, "sample_name_width": config.name_width,
             "master_seed": config.seed, "config": config.raw, "config_file": config.config_file,
@@ -163,6 +164,25 @@ def write_dataset_json(out, config) -> dict:
     if existing != info:
         atomic_write_json(out / DATASET_JSON, info)
     return info
+
+
+def _refuse_shrinking(out: Path, samples: int) -> None:
+    """Refuse a ``samples`` count below a finished sample's index.
+
+    ``dataset.json``, the manifest, ``samples/`` and the loader must agree on the samples, and
+    finished samples may have cost hours of rendering: a lower count is refused rather than
+    deleting them. A count that only drops unfinished samples is accepted.
+    """
+    beyond = sorted(i for i in read_manifest(out / MANIFEST).records if i >= samples)
+    if beyond:
+        raise InputError("samples", samples, f"at least {beyond[-1] + 1}: samples {_show_indices(beyond)} of "
+                         f"{str(out)!r} are already finished",
+                         f"Set samples: {beyond[-1] + 1} or more, generate the smaller dataset into a new folder, "
+                         "or load a subset with CaptureDataset(..., indices=...).")
+
+
+def _show_indices(indices: list[int]) -> str:
+    return ", ".join(map(str, indices[:5])) + (f" ... ({len(indices)} in all)" if len(indices) > 5 else "")
 
 
 def is_sample_name(name: str) -> bool:

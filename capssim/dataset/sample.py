@@ -29,6 +29,7 @@ from capssim.errors import InputError
 from capssim.imageio import read_gt_scene
 from capssim.psf import PSF
 from capssim.render import render_capture
+from capssim.render.pipeline import check_render
 from capssim.simulate import PoseRanges, simulate_capture
 
 log = logging.getLogger(__name__)
@@ -72,6 +73,14 @@ def _read_gt_cached(path: str):
     return gt, info
 
 
+def _check_crop_size(source: dict, h: int, w: int) -> None:
+    size = source.get("size")
+    if size is not None and size > min(h, w):
+        raise InputError(f"size of source {source.get('name')!r}", size,
+                         f"at most the ground-truth size {h}x{w} of {source.get('path')}",
+                         "Lower size, or use size: null for the whole image.")
+
+
 def crop_ground_truth(full: np.ndarray, source: dict) -> tuple[np.ndarray, dict]:
     """Crop (centred or at the drawn position) and augment a GT image for a sample.
 
@@ -83,10 +92,7 @@ def crop_ground_truth(full: np.ndarray, source: dict) -> tuple[np.ndarray, dict]
     size = source.get("size")
     info: dict = {"source_height": int(h), "source_width": int(w)}
     if size is not None:
-        if size > min(h, w):
-            raise InputError(f"size of source {source.get('name')!r}", size,
-                             f"at most the ground-truth size {h}x{w} of {source.get('path')}",
-                             "Lower size, or use size: null for the whole image.")
+        _check_crop_size(source, h, w)
         if source.get("crop_position", "center") == "random":
             u, v = source["crop_uv"]
             top = min(int(math.floor(u * (h - size + 1))), h - size)
@@ -158,20 +164,49 @@ def build_capture(spec: dict):
         timing["simulate_s"] = time.perf_counter() - t
     else:
         _apply_render_threads()
-        optics = {}
-        if params.get("psf_sigma_hr_px") is not None:
-            optics["psf"] = PSF.gaussian(params["psf_sigma_hr_px"])
-        if params.get("extinction_ratio") is not None:
-            optics["extinction_ratio"] = params["extinction_ratio"]
         t = time.perf_counter()
-        capture = render_capture(src["scene"], size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]),
-                                 sensor=sensor, variant=src["variant"], dofp_layout=params["dofp_layout"],
-                                 scene_params=src["scene_params"] or None,
-                                 geometry_params=src["geometry_params"] or None,
-                                 target_noise=src["target_noise"], record_timing=False, **optics)
+        capture = render_capture(src["scene"], **_render_options(spec, sensor))
         timing["render_s"] = time.perf_counter() - t
         capture.meta["dataset"] = dataset_meta
     return capture, timing
+
+
+def _render_options(spec: dict, sensor) -> dict:
+    """The keyword options of :func:`~capssim.render.render_capture` for a rendered-scene sample."""
+    params = spec["params"]
+    src = params["source"]
+    optics = {}
+    if params.get("psf_sigma_hr_px") is not None:
+        optics["psf"] = PSF.gaussian(params["psf_sigma_hr_px"])
+    if params.get("extinction_ratio") is not None:
+        optics["extinction_ratio"] = params["extinction_ratio"]
+    return dict(size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]), sensor=sensor,
+                variant=src["variant"], dofp_layout=params["dofp_layout"], scene_params=src["scene_params"] or None,
+                geometry_params=src["geometry_params"] or None, target_noise=src["target_noise"],
+                record_timing=False, **optics)
+
+
+@functools.lru_cache(maxsize=None)
+def _gt_shape(path: str) -> tuple[int, int]:
+    return tuple(_read_gt_cached(path)[0].shape[1:])
+
+
+def check_sample(spec: dict) -> None:
+    """Check sample ``spec`` as completely as making it would, without rendering or simulating.
+
+    Raises the :class:`~capssim.errors.InputError` that :func:`generate_sample` would raise
+    for it (a crop larger than the ground truth, scene parameters the scene refuses, a render
+    larger than the machine holds, ...). ``capssim dataset --dry-run`` calls it for every sample.
+    """
+    params = spec["params"]
+    src = params["source"]
+    sensor = make_sample_sensor(params["sensor"])
+    if src["type"] == "gt":
+        _check_crop_size(src, *_gt_shape(spec["resolved"]["gt_path"]))
+        PoseRanges(**params["pose"])
+        PSF.gaussian(params["psf_sigma_hr_px"])
+    else:
+        check_render(src["scene"], **_render_options(spec, sensor))
 
 
 def render_seed(seed: int) -> int:

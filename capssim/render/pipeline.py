@@ -170,6 +170,19 @@ def _render_apertures(loaded: _Loaded, path: RenderPath, spp: int, settings: Ren
     return views
 
 
+def check_render(scene: str, *, settings: RenderSettings | None = None, **options) -> tuple[dict, RenderSettings]:
+    """Check everything :func:`render_capture` would check before any rendering, and render nothing.
+
+    Returns the scene's parameters (defaults updated, coerced to their types) and the checked
+    :class:`~capssim.render.settings.RenderSettings`; raises :class:`~capssim.errors.InputError`
+    (or :class:`~capssim.errors.UnknownNameError`) naming the first bad option. A dry run
+    (``capssim dataset --dry-run``) calls it for every drawn sample.
+    """
+    settings = replace(settings or RenderSettings(), **options)
+    params = get_scene(scene).params(settings.scene_params)
+    return params, settings.checked()
+
+
 def render_capture(scene: str, *, settings: RenderSettings | None = None, **options) -> Capture:
     """Render library scene ``scene`` through the CAPS array and the DoFP camera.
 
@@ -181,11 +194,9 @@ def render_capture(scene: str, *, settings: RenderSettings | None = None, **opti
     Returns a :class:`~capssim.capture.Capture` of kind ``rendered`` (not yet written).
     """
     t_start = time.perf_counter()
-    settings = replace(settings or RenderSettings(), **options)
     sc = get_scene(scene)
     info = sc.info
-    params = sc.params(settings.scene_params)
-    settings = settings.checked()
+    params, settings = check_render(scene, settings=settings, **options)
     timer, say = _Timer(), _Progress(settings.progress)
 
     t0 = time.perf_counter()
@@ -284,4 +295,4 @@ def _render_meta(loaded: _Loaded, path: RenderPath, plan: SamplePlan, reference:
     return render_meta
 
 
-__all__ = ["PLANAR_PARALLAX_TOL_PX", "RenderSettings", "render_capture", "trace_hits"]
+__all__ = ["PLANAR_PARALLAX_TOL_PX", "RenderSettings", "check_render", "render_capture", "trace_hits"]

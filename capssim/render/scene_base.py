@@ -40,6 +40,35 @@ import numpy as np
 
 from capssim.errors import InputError
 
+_TRUE_WORDS, _FALSE_WORDS = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def _coerce_param(argument: str, value, default):
+    """``value`` as the type of the scene's ``default`` (bool, int, finite float), or an :class:`InputError`."""
+    if isinstance(default, bool):
+        if isinstance(value, bool):
+            return value
+        word = str(value).strip().lower()
+        if word in _TRUE_WORDS + _FALSE_WORDS and not isinstance(value, (dict, list)):
+            return word in _TRUE_WORDS
+        raise InputError(argument, repr(value), "a boolean (true/false, yes/no, on/off, 1/0)")
+    if isinstance(default, (int, float)):
+        kind = "an integer" if isinstance(default, int) else "a finite number"
+        bad = InputError(argument, repr(value), kind, f"For example {argument.split('.')[-1]}={default}.")
+        if isinstance(value, (bool, dict, list)) or value is None:
+            raise bad
+        if isinstance(default, int) and isinstance(value, (int, str)) and str(value).strip().lstrip("+-").isdigit():
+            return int(value)  # exact, also past float precision
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            raise bad from None
+        if not math.isfinite(number) or (isinstance(default, int) and number != int(number)):
+            raise bad
+        return int(number) if isinstance(default, int) else number
+    return value
+
+
 
 @dataclass(frozen=True)
 class SceneInfo:
@@ -81,22 +110,13 @@ class Scene:
     info: SceneInfo
 
     def params(self, overrides: dict | None) -> dict:
-        """Defaults updated with ``overrides``; unknown keys are an error."""
+        """Defaults updated with ``overrides``; unknown keys and values of the wrong type are an error."""
         params = dict(self.info.defaults)
         for key, value in (overrides or {}).items():
             if key not in params:
                 raise InputError("scene_params", key,
                                  f"a parameter of scene {self.info.name!r}: {sorted(params) or 'none'}")
-            default = params[key]
-            if isinstance(default, bool):
-                value = value if isinstance(value, bool) else str(value).lower() in ("1", "true", "yes", "on")
-            elif isinstance(default, int) and not isinstance(default, bool):
-                value = int(value)
-            elif isinstance(default, float):
-                value = float(value)
-                if not math.isfinite(value):
-                    raise InputError(f"scene_params.{key}", value, "a finite number")
-            params[key] = value
+            params[key] = _coerce_param(f"scene_params.{key}", value, params[key])
         self.check_params(params)
         return params
 
