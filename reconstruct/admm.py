@@ -40,6 +40,7 @@ from capssim.reconstruct.interfaces import (
     check_finite,
     check_initial_estimate,
     close_entry,
+    divergence_bound,
     no_stage,
     relative_change,
 )
@@ -108,6 +109,7 @@ def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParam
     timed = stage or no_stage
     prior.begin()
     x = init.clone()
+    bound = divergence_bound(init)
     lag = torch.zeros_like(x)
     history: list[dict] = []
     mu_prev = None
@@ -127,7 +129,7 @@ def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParam
             energy_before = f_old + 0.5 * mu * float((z - xs).square().sum())
             x_new = x - params.dt * (mu * (z - xs) - direction)
             change = relative_change(x_new, x)
-        check_finite(x_new, iteration=i + 1, dt=params.dt, solver="ADMM")
+        check_finite(x_new, iteration=i + 1, dt=params.dt, solver="ADMM", bound=bound)
         with timed("data_term"):
             f_new = data.value(x_new)
         with timed("admm_update"):

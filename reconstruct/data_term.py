@@ -23,10 +23,16 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
 from capssim.reconstruct.rearrange import Observations
+
+#: sampling density, relative to a fully observed channel's mean, under which an HR pixel counts as unobserved
+UNOBSERVED_DENSITY = 1e-2
+#: half-width (HR pixels) of the window over which the sampling density is averaged: a 4-pixel sampling period
+UNOBSERVED_REACH = 2
 
 
 def field_of_view_mask(homographies, obs_shape: tuple[int, int], hr_shape: tuple[int, int], *,
@@ -88,6 +94,28 @@ class ConfidenceDataTerm:
     def image_shape(self) -> tuple[int, int, int]:
         return (self.n_channels, *self.hr_shape)
 
+    def coverage(self, weights: torch.Tensor | None = None) -> torch.Tensor:
+        """``(C, H, W)`` sampling density ``sum_{m: c(m)=j} M_m^T w_m`` (the data weights by default)."""
+        w = self.obs.weights if weights is None else weights
+        bp = self.operator.adjoint(w)
+        return torch.zeros(self.image_shape, dtype=bp.dtype, device=bp.device).index_add_(0, self.obs.channel_of, bp)
+
+    def unobserved_mask(self, *, min_relative_density: float = UNOBSERVED_DENSITY,
+                        reach: int = UNOBSERVED_REACH) -> np.ndarray:
+        """``(C, H, W)`` bool: HR pixels with no usable observation.
+
+        The weighted sampling density :meth:`coverage`, averaged over the ``(2 reach + 1)^2``
+        window around each pixel (one sampling period of a Bayer sub-image: without a PSF a
+        sample touches only its own footprint), is compared with its channel's mean density
+        with every weight 1 (all observations in view and unsaturated); below
+        ``min_relative_density`` times that, saturated or out-of-view samples (weight 0) leave
+        only the data term's zero there, and the output is the prior's or the initialization's.
+        """
+        window = dict(kernel_size=2 * reach + 1, stride=1, padding=reach, count_include_pad=False)
+        usable = F.avg_pool2d(self.coverage()[None], **window)[0]
+        full = self.coverage(torch.ones_like(self.obs.weights)).mean(dim=(-2, -1), keepdim=True)
+        return (usable < min_relative_density * full.clamp(min=1e-12)).cpu().numpy()
+
     def residual(self, x: torch.Tensor) -> torch.Tensor:
         """``w_m (y_m - M_m x_{c(m)})`` ``(N, h, w)``."""
         return self._weighted_y - self.obs.weights * self.operator.forward(x.index_select(0, self.obs.channel_of))
@@ -112,4 +140,4 @@ class ConfidenceDataTerm:
         return torch.einsum("jchw,jhw->chw", self.confidence, b), value
 
 
-__all__ = ["ConfidenceDataTerm", "field_of_view_mask"]
+__all__ = ["UNOBSERVED_DENSITY", "UNOBSERVED_REACH", "ConfidenceDataTerm", "field_of_view_mask"]

@@ -20,6 +20,7 @@ from capssim.reconstruct.interfaces import (
     check_finite,
     check_initial_estimate,
     close_entry,
+    divergence_bound,
     no_stage,
     relative_change,
 )
@@ -41,6 +42,7 @@ def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParamet
     check_initial_estimate(data, init)
     timed = stage or no_stage
     x = init.clone()
+    bound = divergence_bound(init)
     history: list[dict] = []
     for i in range(params.iterations):
         entry: dict = {"iteration": i + 1, "mu": mu_schedule(i, params)}
@@ -49,7 +51,7 @@ def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParamet
         with timed("admm_update"):
             x_new = x + params.dt * direction
             change = relative_change(x_new, x)
-        check_finite(x_new, iteration=i + 1, dt=params.dt, solver="steepest descent")
+        check_finite(x_new, iteration=i + 1, dt=params.dt, solver="steepest descent", bound=bound)
         with timed("data_term"):
             f_new = data.value(x_new)
         entry.update({"data": f_new, "change": change, "energy_before": f_old, "energy_after": f_new,

@@ -18,6 +18,7 @@ The module also holds the checks and the record keeping both solvers share.
 from __future__ import annotations
 
 import logging
+import math
 from contextlib import AbstractContextManager, nullcontext
 from typing import Callable, Protocol
 
@@ -94,11 +95,38 @@ def check_initial_estimate(data: DataFidelity, init: torch.Tensor) -> None:
         raise InputError("init", "non-finite values", "a finite initial estimate")
 
 
-def check_finite(x: torch.Tensor, *, iteration: int, dt: float, solver: str) -> None:
-    """``FloatingPointError`` if iteration ``iteration`` (1-based) produced non-finite values."""
-    if not bool(torch.isfinite(x).all()):
-        raise FloatingPointError(f"{solver} diverged at iteration {iteration} (non-finite values); "
-                                 f"reduce dt (now {dt}) or check the observations")
+#: an iterate whose largest magnitude exceeds this many times ``max(1, max|init|)`` has diverged
+#: (images are on [0, 1] of full scale; a converging solver overshoots by far less)
+DIVERGENCE_FACTOR = 10.0
+
+
+class DivergenceError(InputError, FloatingPointError):
+    """A solver's iterates left the bounded range (or became non-finite): an option is outside its stable range
+    (a :class:`~capssim.errors.InputError`, and a ``FloatingPointError`` as before).
+
+    ``argument`` names the option to change (``dt`` unless the caller knows better).
+    """
+
+    def __init__(self, argument: str, received: object, *, solver: str, iteration: int, peak: float, bound: float,
+                 fix: str):
+        self.solver, self.iteration, self.peak, self.bound = solver, iteration, peak, bound
+        super().__init__(argument, received, f"a value under which {solver} converges ({solver} diverged at "
+                         f"iteration {iteration}: the image reached |I| = {peak:.3g}, over the bound {bound:.3g})",
+                         fix)
+
+
+def divergence_bound(init: torch.Tensor) -> float:
+    """The magnitude past which an iterate counts as diverged: ``DIVERGENCE_FACTOR * max(1, max|init|)``."""
+    return DIVERGENCE_FACTOR * max(1.0, float(init.abs().max()))
+
+
+def check_finite(x: torch.Tensor, *, iteration: int, dt: float, solver: str, bound: float = math.inf) -> None:
+    """:class:`DivergenceError` if iteration ``iteration`` (1-based) produced non-finite values or ``|x| > bound``."""
+    peak = float(x.abs().max()) if x.numel() else 0.0
+    if not peak <= bound:  # also true for NaN
+        raise DivergenceError("dt", dt, solver=solver, iteration=iteration, peak=peak, bound=bound,
+                              fix="Reduce dt (the paper's default is 1.0), or return the options changed "
+                                  "from their defaults to them, or check the observations.")
 
 
 def relative_change(new: torch.Tensor, old: torch.Tensor) -> float:
@@ -118,5 +146,5 @@ def close_entry(entry: dict, image: torch.Tensor, *, history: list[dict], iterat
         progress(step, iterations, f"objective {entry['objective']:.4g}")
 
 
-__all__ = ["DataFidelity", "Observer", "Prior", "Progress", "StageFactory", "check_finite",
-           "check_initial_estimate", "close_entry", "no_stage", "relative_change"]
+__all__ = ["DIVERGENCE_FACTOR", "DataFidelity", "DivergenceError", "Observer", "Prior", "Progress", "StageFactory", "check_finite",
+           "check_initial_estimate", "close_entry", "divergence_bound", "no_stage", "relative_change"]

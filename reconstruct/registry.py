@@ -71,12 +71,18 @@ class RunContext:
 
 @dataclass
 class MethodOutput:
-    """A method's result: ``image`` ``(12, 2H, 2W)`` float32 and what it records."""
+    """A method's result: ``image`` ``(12, 2H, 2W)`` float32 and what it records.
+
+    ``unobserved`` ``(12, 2H, 2W)`` bool marks the pixels without a usable observation
+    (saturated or out of view), or is ``None`` when the method cannot tell; a function returning
+    that array is evaluated after the method's wall time is taken (it is a report, not the method).
+    """
 
     image: np.ndarray
     params: dict = field(default_factory=dict)
     history: list[dict] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
+    unobserved: np.ndarray | Callable[[], np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -157,6 +163,56 @@ def resolve_device(device: str | torch.device = "cpu") -> torch.device:
     raise InputError("device", device, "one of cpu, cuda, auto")
 
 
+#: fraction of a channel's pixels without a usable observation above which reconstruct warns
+UNOBSERVED_WARN_FRACTION = 0.01
+
+
+def unobserved_record(method: str, mask: np.ndarray | None) -> dict | None:
+    """``{"fraction": [12], "channels": [...]}`` of the pixels ``mask`` marks unobserved, and a WARNING
+    naming the channels whose fraction exceeds :data:`UNOBSERVED_WARN_FRACTION` (their output there
+    is no measurement but the prior's or the initialization's fill, e.g. zeros)."""
+    if mask is None:
+        return None
+    fraction = [float(f) for f in np.asarray(mask, dtype=bool).reshape(mask.shape[0], -1).mean(axis=1)]
+    channels = [c for c, f in enumerate(fraction) if f > UNOBSERVED_WARN_FRACTION]
+    if channels:
+        listed = ", ".join(f"{c} ({100 * fraction[c]:.0f} %)" for c in channels)
+        log.warning("%s: channels %s have pixels with no usable observation (saturated or out of view); the "
+                    "output there is not measured (see 'unobserved' in the record)", method, listed)
+    return {"fraction": fraction, "channels": channels, "warn_fraction": UNOBSERVED_WARN_FRACTION}
+
+
+def finite_or_null(value, *, path: str = "record", found: list[str] | None = None):
+    """``value`` with every non-finite float replaced by ``None`` (JSON null), recursively; the paths
+    of the replaced entries are appended to ``found``."""
+    if isinstance(value, dict):
+        return {k: finite_or_null(v, path=f"{path}.{k}", found=found) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(v, path=f"{path}[{i}]", found=found) for i, v in enumerate(value)]
+    if isinstance(value, (float, np.floating)) and not np.isfinite(value):
+        if found is not None:
+            found.append(path)
+        return None
+    return value
+
+
+def check_horizon(capture: Capture) -> None:
+    """:class:`CaptureFormatError` if a stored aperture homography's horizon crosses the HR grid.
+
+    The denominator ``h31 x + h32 y + h33`` is affine, so its sign over the grid is that of its
+    four corners; where it changes sign the warp maps part of the image behind the camera.
+    """
+    hh, ww = capture.hr_shape
+    corners = np.array([[0, 0, 1], [ww - 1, 0, 1], [0, hh - 1, 1], [ww - 1, hh - 1, 1]], dtype=np.float64)
+    for n, hom in enumerate(capture.aperture_homographies()):
+        den = corners @ hom[2]
+        if not (np.all(den > 0) or np.all(den < 0)):
+            raise CaptureFormatError(
+                f"meta.json aperture_homographies[{n}]: its horizon (h31 x + h32 y + h33 = 0) crosses the "
+                f"{hh}x{ww} HR grid (denominator {den.min():.3g} .. {den.max():.3g} at the corners), so part of the "
+                "image would map behind the camera. Check the calibration, or reconstruct without --true-warps.")
+
+
 def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
                 registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None, **options) -> tuple[MethodOutput, dict]:
     """Run ``method`` on ``capture``; return its output and the record written to ``NAME.json``."""
@@ -164,6 +220,8 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     dev = resolve_device(device)
     if spec.input_kind == "caps" and not true_warps:
         registration_parameters(registration)  # UnknownNameError lists the modes
+    if spec.input_kind == "caps" and true_warps:
+        check_horizon(capture)
     if spec.input_kind == "dofp" and capture.dofp_raw is None:
         raise CaptureFormatError(f"method {method!r} needs dofp_raw.tiff, which this capture lacks.")
     timer = StageTimer(dev)
@@ -194,6 +252,15 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         "history": out.history,
         **out.extra,
     }
+    if callable(out.unobserved):
+        out.unobserved = out.unobserved()
+    unobserved = unobserved_record(method, out.unobserved)
+    if unobserved is not None:
+        record["unobserved"] = unobserved
+    non_finite: list[str] = []
+    record = finite_or_null(record, found=non_finite)
+    if non_finite:
+        log.warning("%s: non-finite values recorded as null: %s", method, ", ".join(non_finite[:8]))
     return out, record
 
 

@@ -43,6 +43,7 @@ from capssim.reconstruct.cagf import CAGFParameters, cagf_confidence
 from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
 from capssim.reconstruct.descent import steepest_descent
 from capssim.reconstruct.init_fusion import fuse_initial_estimate
+from capssim.reconstruct.interfaces import DivergenceError
 from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor
 from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
 from capssim.reconstruct.observation_model import method_geometry, method_psf
@@ -192,6 +193,20 @@ def mean_psnr(capture, image: torch.Tensor) -> float | None:
     return channel_mean_psnr(image, torch.as_tensor(capture.gt, dtype=torch.float32, device=image.device))
 
 
+def explain_divergence(exc: DivergenceError, opts: CapsOptions, defaults: CapsOptions) -> DivergenceError:
+    """``exc`` naming the options set away from ``defaults`` (the likely cause), or ``dt`` if none is."""
+    base = defaults.to_dict()
+    changed = {k: v for k, v in opts.to_dict().items() if k not in ("iterations", "track_psnr") and v != base[k]}
+    if not changed:
+        return exc
+    names = ", ".join(changed)
+    return DivergenceError(f"option {names}",
+                           ", ".join(f"{k}={v}" for k, v in changed.items()), solver=exc.solver,
+                           iteration=exc.iteration, peak=exc.peak, bound=exc.bound,
+                           fix="Set " + names + " back towards the default (" +
+                               ", ".join(f"{k}={base[k]}" for k in changed) + ").")
+
+
 def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: bool = True) -> MethodOutput:
     """The joint CAPS reconstruction (and its no-CAGF / no-NLSTR ablations)."""
     opts = CapsOptions.from_options(context.options)
@@ -225,10 +240,13 @@ def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: 
             nlstr = NonlocalSparseTensor((obs.n_channels, *hr_shape), nl_params, device=dev)
     observer = psnr_observer(capture, dev) if opts.track_psnr else None
     solver_hooks = {"stage": timer.stage, "progress": context.report, "observer": observer}
-    if nlstr is None:  # the data term alone (eq. 16)
-        image, history = steepest_descent(data, init, admm_params, **solver_hooks)
-    else:
-        image, history = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, **solver_hooks)
+    try:
+        if nlstr is None:  # the data term alone (eq. 16)
+            image, history = steepest_descent(data, init, admm_params, **solver_hooks)
+        else:
+            image, history = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, **solver_hooks)
+    except DivergenceError as exc:
+        raise explain_divergence(exc, opts, CapsOptions()) from None
     params = opts.to_dict()
     params.update({"psf": psf_record, "use_cagf": use_cagf, "use_nlstr": use_nlstr, "channels": obs.n_channels,
                    "reference_image": 0, "n_groups": nlstr.n_ref if nlstr else 0,
@@ -240,7 +258,7 @@ def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: 
         extra["init_psnr_db"] = init_psnr
         extra["psnr_db"] = mean_psnr(capture, image)
     return MethodOutput(image=image.detach().cpu().numpy().astype(np.float32), params=params, history=history,
-                        extra=extra)
+                        extra=extra, unobserved=data.unobserved_mask)
 
 
 @register_method("caps", input_kind="caps", reference=REFERENCE,

@@ -36,7 +36,8 @@ from capssim.reconstruct.admm import admm
 from capssim.reconstruct.cagf import cagf_confidence
 from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
 from capssim.reconstruct.init_fusion import fuse_initial_estimate
-from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, mean_psnr
+from capssim.reconstruct.interfaces import DivergenceError
+from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, explain_divergence, mean_psnr
 from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function
 from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
 from capssim.reconstruct.nlstr import NonlocalSparseTensor
@@ -103,6 +104,7 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     inits = torch.empty_like(out)
     history: list[dict] = []
     total = 3 * admm_params.iterations
+    data_terms: list[ConfidenceDataTerm] = []
 
     for k in range(3):
         obs = Observations(images=torch.as_tensor(rgb[:, k], device=dev),
@@ -118,10 +120,14 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
         def progress(done, _total, message, k=k):
             context.report(k * admm_params.iterations + done, total, f"colour {'RGB'[k]}: {message}")
 
-        image, hist = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, stage=timer.stage,
-                           progress=progress)
+        try:
+            image, hist = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, stage=timer.stage,
+                               progress=progress)
+        except DivergenceError as exc:
+            raise explain_divergence(exc, opts, CapsOptions.from_options({}, c1=0.001, c2=0.01)) from None
         out[k::3] = image
         inits[k::3] = init
+        data_terms.append(data)
         history.extend({**h, "colour": "RGB"[k]} for h in hist)
     params = opts.to_dict()
     params.update({"psf": psf_record, "bayer_method": bayer_method,
@@ -131,4 +137,6 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     if init_psnr is not None:
         extra["init_psnr_db"] = init_psnr
         extra["psnr_db"] = mean_psnr(capture, out)
-    return MethodOutput(image=out.cpu().numpy(), params=params, history=history, extra=extra)
+    return MethodOutput(image=out.cpu().numpy(), params=params, history=history, extra=extra,
+                        unobserved=lambda: np.stack([d.unobserved_mask() for d in data_terms], axis=1)
+                        .reshape(12, *hr_shape))  # channel c = 3 n + k

@@ -176,9 +176,22 @@ def demosaic_and_register(capture, context: RunContext, opts: NaiveOptions):
     return rgb, geometry, reg_record
 
 
+def unobserved_pixels(saturated: np.ndarray, geometry, device: torch.device) -> np.ndarray:
+    """``(12, 2H, 2W)`` bool: HR pixels whose source in their aperture's raw frame is out of view or within
+    one raw pixel of a saturated pixel (``saturated`` ``(4, H, W)``), for channel ``c = 3 n + k``."""
+    from scipy.ndimage import maximum_filter
+
+    usable = np.stack([maximum_filter(s.astype(np.uint8), size=3) == 0 for s in np.asarray(saturated)])
+    usable_t = torch.from_numpy(usable.astype(np.float32))[:, None].to(device)
+    grid = sampling_grid(geometry.raw_homographies, geometry.hr_shape, tuple(usable.shape[-2:]), device)
+    seen = F.grid_sample(usable_t, grid, mode="bilinear", padding_mode="zeros", align_corners=True)[:, 0]
+    return np.repeat((seen < 0.5).cpu().numpy(), 3, axis=0)
+
+
 def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext, params: dict,
-           reg_record: dict, extra: dict | None = None) -> MethodOutput:
-    """Clip, flatten to 12 channels ``c = 3 p + k``, copy to the host, record."""
+           reg_record: dict, extra: dict | None = None, geometry=None) -> MethodOutput:
+    """Clip, flatten to 12 channels ``c = 3 p + k``, copy to the host, record (with the
+    :func:`unobserved_pixels` of ``geometry`` when given)."""
     with context.timer.stage("to_host"):
         if opts.clip:
             image = image.clamp(0.0, 1.0)
@@ -189,7 +202,9 @@ def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext
             out["psnr_db"] = psnr
         host = image.to("cpu", torch.float32).numpy()
     params = {"bayer_method": opts.bayer_method, "clip": opts.clip, **params}
-    return MethodOutput(image=host, params=params, extra=out)
+    unobserved = None if geometry is None else (
+        lambda: unobserved_pixels(capture.caps_saturated(), geometry, context.device))
+    return MethodOutput(image=host, params=params, extra=out, unobserved=unobserved)
 
 
 @register_method("caps-naive", input_kind="caps", reference=REFERENCE,
@@ -203,4 +218,4 @@ def caps_naive(capture, *, context: RunContext) -> MethodOutput:
         image = bicubic_warp(rgb, geometry.raw_homographies, geometry.hr_shape)  # (4, 3, 2H, 2W)
     params = {"resampling": "bicubic (a=-0.75), x2 upsampling and registration warp composed, replicate border",
               "aperture_warps": geometry.aperture_homographies.tolist()}
-    return finish(capture, image, opts, context, params, reg_record)
+    return finish(capture, image, opts, context, params, reg_record, geometry=geometry)

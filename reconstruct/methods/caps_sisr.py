@@ -104,4 +104,5 @@ def caps_sisr(capture, *, context: RunContext) -> MethodOutput:
     params = {"upsampler": upsampler, "model_channels": channels, "model_scale": scale,
               "resampling": "x2 SR on the aperture-HR grid, then bicubic (a=-0.75) warp by H_n, replicate border",
               "aperture_warps": geometry.aperture_homographies.tolist()}
-    return finish(capture, image, opts, context, params, reg_record, extra={"upsampler": upsampler})
+    return finish(capture, image, opts, context, params, reg_record, extra={"upsampler": upsampler},
+                  geometry=geometry)

@@ -22,6 +22,7 @@ reproduced exactly except in a border band of 4 pixels (the bilinear kernels nee
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from capssim.capture import Capture
@@ -88,6 +89,26 @@ def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device 
     return as_output(out, mosaic)
 
 
+def dofp_unobserved(saturated, layout="sony", *, reach: int = 3) -> np.ndarray:
+    """``(12, H, W)`` bool: pixels with no unsaturated sample of their channel within ``reach`` pixels.
+
+    ``saturated`` ``(H, W)`` is the DoFP mosaic's saturation mask (H, W multiples of 4); a
+    channel ``c = 3 p + k`` is sampled at the Bayer-``k`` sites of angle ``p``'s sub-mosaic,
+    one or two per 4x4 period, so ``reach`` 3 (a 7x7 window) finds one everywhere in a clean mosaic,
+    borders included.
+    """
+    from scipy.ndimage import maximum_filter
+
+    sat = np.asarray(saturated, dtype=bool)
+    h, w = sat.shape
+    sites = np.zeros((4, 3, h, w), dtype=bool)
+    colour = bayer_masks(h // 2, w // 2).numpy().astype(bool)
+    for p, (dr, dc) in enumerate(angle_offsets(layout)):
+        sites[p, :, dr::2, dc::2] = colour
+    usable = (sites & ~sat).reshape(12, h, w)
+    return ~maximum_filter(usable, size=(1, 2 * reach + 1, 2 * reach + 1), mode="constant")
+
+
 @register_method("dofp-bilinear", input_kind="dofp", array_function=demosaic_dofp_bilinear,
                  description="DoFP colour-polarization camera, two-step bilinear demosaicking (Bayer, then polarization)",
                  reference=REFERENCE)
@@ -97,10 +118,12 @@ def dofp_bilinear(capture: Capture, *, context: RunContext) -> MethodOutput:
     reject_unknown_options(context.options, [])
     with context.timer.stage("load"):
         mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)
-        n_saturated = int(capture.dofp_saturated().sum())
+        saturated = capture.dofp_saturated()
+        n_saturated = int(saturated.sum())
     image = demosaic_dofp_bilinear(mosaic, layout=capture.dofp_layout, timer=context.timer)
     with context.timer.stage("to_host"):
         image = image.to("cpu", torch.float32).numpy()
     return MethodOutput(image=image, params={"layout": [list(r) for r in capture.dofp_layout]},
                         extra={"n_saturated_pixels": n_saturated,
-                               "saturation_handling": "none (interpolation uses saturated samples as they are)"})
+                               "saturation_handling": "none (interpolation uses saturated samples as they are)"},
+                        unobserved=lambda: dofp_unobserved(saturated, capture.dofp_layout))

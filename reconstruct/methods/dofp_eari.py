@@ -56,6 +56,7 @@ from capssim.reconstruct.dofp_common import (
 )
 from capssim.reconstruct.dofp_method import run_dofp_method
 from capssim.reconstruct.filters import correlate
+from capssim.reconstruct.methods.dofp_bilinear import dofp_unobserved
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 from capssim.reconstruct.residual_interpolation import (
     RI_BAYER_DEFAULTS,
@@ -136,4 +137,6 @@ def dofp_eari(capture: Capture, *, context: RunContext) -> MethodOutput:
     Options (``context.options``): ``eps``, ``weight_floor``, ``edge_eps``, ``bayer_sigma``,
     ``precision`` (``float32`` | ``float64``).
     """
-    return run_dofp_method(capture, context, demosaic_dofp_eari, DEFAULTS)
+    out = run_dofp_method(capture, context, demosaic_dofp_eari, DEFAULTS)
+    out.unobserved = lambda: dofp_unobserved(capture.dofp_saturated(), capture.dofp_layout)
+    return out

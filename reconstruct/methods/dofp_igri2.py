@@ -50,6 +50,7 @@ from capssim.reconstruct.dofp_common import (
     stack_12,
 )
 from capssim.reconstruct.dofp_method import run_dofp_method
+from capssim.reconstruct.methods.dofp_bilinear import dofp_unobserved
 from capssim.reconstruct.methods.dofp_eari import DEFAULTS
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 from capssim.reconstruct.residual_interpolation import polarization_residual_interpolation, ri_bayer_demosaic, ri_green
@@ -175,5 +176,7 @@ def dofp_igri2(capture: Capture, *, context: RunContext) -> MethodOutput:
 
     Options (``context.options``): ``eps``, ``weight_floor``, ``bayer_sigma``, ``precision``.
     """
-    return run_dofp_method(capture, context, demosaic_dofp_igri2,
-                           {k: DEFAULTS[k] for k in ("eps", "weight_floor", "bayer_sigma")})
+    out = run_dofp_method(capture, context, demosaic_dofp_igri2,
+                          {k: DEFAULTS[k] for k in ("eps", "weight_floor", "bayer_sigma")})
+    out.unobserved = lambda: dofp_unobserved(capture.dofp_saturated(), capture.dofp_layout)
+    return out
