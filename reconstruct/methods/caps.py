@@ -46,7 +46,7 @@ from capssim.reconstruct.init_fusion import fuse_initial_estimate
 from capssim.reconstruct.interfaces import DivergenceError
 from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor
 from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
-from capssim.reconstruct.observation_model import method_geometry, method_psf
+from capssim.reconstruct.observation_model import CAPTURE_PSF_SIGMA, method_geometry, method_psf
 from capssim.reconstruct.rearrange import observations_from_capture
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
@@ -73,7 +73,7 @@ class CapsOptions:
     nlstr: NLSTRParameters = field(default_factory=NLSTRParameters)
     cagf: CAGFParameters = field(default_factory=CAGFParameters)
     # observation model
-    psf_sigma: float = -1.0  # < 0: the capture's PSF
+    psf_sigma: float = CAPTURE_PSF_SIGMA  # the capture's PSF; >= 0: a Gaussian of this std (HR px)
     fov_mask: bool = True
     # diagnostics
     track_psnr: bool = False
