@@ -45,12 +45,13 @@ def check_pose_ranges(hr_shape: tuple[int, int], *, shift_max_px: float, rotatio
                       scale_max: float) -> None:
     """Refuse (:class:`~capssim.errors.InputError`) pose ranges outside the valid ones.
 
-    ``shift_max_px`` in [0, min(H, W) / 2] HR pixels, ``rotation_max_deg`` in [0, 45],
+    ``shift_max_px`` in [0, min(H, W)) HR pixels, ``rotation_max_deg`` in [0, 45],
     ``scale_max`` in [0, 0.5).
     """
-    half = min(int(v) for v in hr_shape) / 2.0
-    checks = (("shift_max_px", shift_max_px, 0 <= shift_max_px <= half,
-               f"a number in [0, {half:g}] HR pixels (half the image's smaller side: the apertures must overlap)"),
+    side = min(int(v) for v in hr_shape)
+    checks = (("shift_max_px", shift_max_px, 0 <= shift_max_px < side,
+               f"a number in [0, {side:g}) HR pixels (less than the image's smaller side: the apertures must "
+               "overlap)"),
               ("rotation_max_deg", rotation_max_deg, 0 <= rotation_max_deg <= POSE_LIMITS["rotation_max_deg"],
                "a number of degrees in [0, 45]"),
               ("scale_max", scale_max, 0 <= scale_max < POSE_LIMITS["scale_max"],
@@ -66,7 +67,7 @@ def random_aperture_homographies(rng: np.random.Generator, hr_shape: tuple[int, 
     """Random similarity per aperture (uniform ranges), the reference aperture 0 = identity.
 
     ``shift_max_px`` is in HR pixels; rotation and scale act about the image centre.
-    Valid ranges (:data:`POSE_LIMITS`): shift at most half the image's smaller side (the
+    Valid ranges (:data:`POSE_LIMITS`): shift less than the image's smaller side (the
     apertures must overlap), rotation at most 45 degrees, scale error below 0.5 (the scale
     ``1 +- scale_max`` stays positive). Returns ``(4, 3, 3)`` HR reference -> aperture-HR,
     and the drawn parameters.

@@ -43,13 +43,13 @@ class PoseRanges:
 
 
 def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None,
-                         allow_overexposure: bool = False) -> tuple[np.ndarray, dict]:
+                         allow_out_of_range: bool = False) -> tuple[np.ndarray, dict]:
     """Check a ``(12, H, W)`` ground truth and crop it to a size the camera model accepts.
 
     Values must be finite and on [0, 1] (full scale); others are refused, not clipped, so a
     mis-scaled ground truth never gives a silently different capture. With
-    ``allow_overexposure`` values above 1 (a scene brighter than full scale, which saturates
-    the sensor) are kept, with a warning; negative values are always refused.
+    ``allow_out_of_range`` (the Python API's :func:`simulate_capture`) values outside [0, 1] are
+    kept with a warning: above 1 the sensor saturates, below 0 it clips to black.
 
     ``crop`` takes a centred ``crop x crop`` window (must be a multiple of 4). Without it, a
     size that is not a multiple of 4 is trimmed (centred) to the largest multiple of 4,
@@ -63,12 +63,15 @@ def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None,
     if not np.all(np.isfinite(gt)):
         raise InputError("gt", f"{int(np.sum(~np.isfinite(gt)))} NaN/inf values", "finite values")
     low, high = float(gt.min()), float(gt.max())
-    if low < 0.0 or (high > 1.0 and not allow_overexposure):
+    if (low < 0.0 or high > 1.0) and not allow_out_of_range:
         raise InputError("gt", f"values in [{low:.6g}, {high:.6g}]", "intensities on [0, 1] (1 = full scale)",
                          "Rescale the ground truth (divide by its peak) or clip it to [0, 1] before simulating.")
     if high > 1.0:
         log.warning("ground truth above full scale (max %.4g) in %.2f %% of its values: the sensor saturates there, "
                     "and scores on [0, 1] do not describe it", high, 100.0 * float(np.mean(gt > 1.0)))
+    if low < 0.0:
+        log.warning("ground truth below 0 (min %.4g) in %.2f %% of its values: the sensor clips them to black",
+                    low, 100.0 * float(np.mean(gt < 0.0)))
     h, w = gt.shape[1:]
     info: dict = {"source_height": h, "source_width": w}
     if crop is not None:
@@ -105,7 +108,7 @@ def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF 
     :class:`~capssim.capture.Capture` (not yet written).
     """
     t0 = time.perf_counter()
-    gt, _ = prepare_ground_truth(gt, allow_overexposure=True)
+    gt, _ = prepare_ground_truth(gt, allow_out_of_range=True)
     hr_shape = gt.shape[1:]
     measurement = CameraArrayMeasurement(sensor, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio,
                                          seed=seed)

@@ -161,7 +161,11 @@ def test_ground_truth_outside_unit_range_is_refused(caplog):
     assert "above full scale (max 1.7)" in caplog.text
     gt[3, 4, 5] = -0.1
     with pytest.raises(InputError, match="-0.1"):
-        simulate_capture(gt, NoNoiseSensor())
+        prepare_ground_truth(gt)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="capssim.simulate"):
+        simulate_capture(gt, NoNoiseSensor())  # the Python API keeps it: the sensor clips it to black
+    assert "below 0 (min -0.1)" in caplog.text
 
 
 def test_simulate_cli_refuses_a_ground_truth_above_full_scale(tmp_path):
