@@ -288,3 +288,20 @@ def test_a_killed_file_writers_temporary_is_removed_and_files_in_system_folders_
     if Path("/sys").is_dir():
         with pytest.raises(InputError, match="/sys"):
             atomic_write_text("/sys/capssim-test.json", "{}")
+
+
+def test_option_placeholders_name_what_to_type_not_python_types():
+    import re
+
+    from typer.testing import CliRunner
+
+    from capssim.cli import app
+
+    commands = ["simulate", "render", "reconstruct", "evaluate", "demosaic", "dataset", "gt-check", "mtf", "design",
+                "scenes"] + [f"bench {s}" for s in ("suite", "reconstruct", "registration", "dofp", "render", "dataset")]
+    for command in commands:
+        result = CliRunner().invoke(app, [*command.split(), "--help"], terminal_width=200)
+        assert result.exit_code == 0, (command, result.output)
+        options = [line for line in result.output.splitlines() if line.lstrip().startswith("-")]
+        assert not [line for line in options if re.search(r"<\w+\[", line)], \
+            f"capssim {command} --help shows a Python type as an option's placeholder"

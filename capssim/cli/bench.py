@@ -166,8 +166,8 @@ def render_bench_summary(run) -> str:
 # -- reconstruct ---------------------------------------------------------------------------------
 @bench_app.command("reconstruct")
 def reconstruct(
-    sizes: List[int] = typer.Option([256, 512, 1024], "--size", help="HR output size (repeatable)."),
-    devices: List[str] = typer.Option(["cpu", "cuda"], "--device",
+    sizes: List[int] = typer.Option([256, 512, 1024], "--size", metavar="PIXELS", help="HR output size (repeatable)."),
+    devices: List[str] = typer.Option(["cpu", "cuda"], "--device", metavar="DEVICE",
                                       help="Devices to time (repeatable; cuda is skipped when absent)."),
     iterations: int = typer.Option(25, "--iterations", help="ADMM iterations (paper: 25)."),
     repeats: int = RepeatsOption,
@@ -189,7 +189,8 @@ def reconstruct(
 # -- registration --------------------------------------------------------------------------------
 @bench_app.command("registration")
 def registration(
-    captures: List[Path] = typer.Argument(..., help="Capture folders with true homographies (simulated or rendered)."),
+    captures: List[Path] = typer.Argument(..., metavar="CAPTURE...",
+                                          help="Capture folders with true homographies (simulated or rendered)."),
     mode: str = typer.Option("local-correlation", "--mode", help="Registration mode (capssim reconstruct "
                                                                  "--registration names them)."),
     stokes_weight: Optional[float] = typer.Option(None, "--stokes-weight",

@@ -46,7 +46,7 @@ def expand_methods(names: List[str], capture_path: Path) -> list[str]:
 def reconstruct(
     capture: Optional[Path] = typer.Argument(None, help="Capture folder (from 'capssim simulate' or "
                                                         "'capssim render'); not needed with --list."),
-    method: List[str] = typer.Option(["caps"], "--method", "-m",
+    method: List[str] = typer.Option(["caps"], "--method", "-m", metavar="METHOD",
                                      help="Method name; repeat for several, or 'all'. "
                                           "'capssim reconstruct --list' shows them."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
@@ -60,7 +60,7 @@ def reconstruct(
                                           "ri-luminance (one of the two only: faster) | stokes-subspace (Stokes-consistent data "
                                           "whose polarization texture biases the default); see the docs, "
                                           "guides/reconstruction.md."),
-    option: List[str] = typer.Option([], "--option", "-O", help="Method option KEY=VALUE (repeatable)."),
+    option: List[str] = typer.Option([], "--option", "-O", metavar="KEY=VALUE", help="Method option KEY=VALUE (repeatable)."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
 ) -> None:

@@ -73,9 +73,10 @@ def render(
     f_number: float = typer.Option(1.65, "--f-number", help="f-number for --psf airy."),
     wavelength_nm: float = typer.Option(550.0, "--wavelength-nm", help="Wavelength for --psf airy."),
     pixel_um: float = typer.Option(4.8, "--pixel-um", help="Raw pixel pitch for --psf airy (HR pitch is half)."),
-    param: Optional[List[str]] = typer.Option(None, "--param", help="Scene parameter KEY=VALUE (repeatable)."),
+    param: Optional[List[str]] = typer.Option(None, "--param", metavar="KEY=VALUE", help="Scene parameter KEY=VALUE (repeatable)."),
     geometry: Optional[List[str]] = typer.Option(
-        None, "--geometry", help="Array parameter KEY=VALUE (repeatable): baseline_m, tilt_max_deg, roll_max_deg, "
+        None, "--geometry", metavar="KEY=VALUE",
+        help="Array parameter KEY=VALUE (repeatable): baseline_m, tilt_max_deg, roll_max_deg, "
                                  "focal_scale_max, converge."),
     planar: str = typer.Option("auto", "--planar", help="auto | on | off: render a planar scene once and warp."),
     oversample: Optional[int] = typer.Option(None, "--oversample",
