@@ -163,11 +163,15 @@ class PSF:
         if self.type == "gaussian":
             return gaussian_psf_kernel(self.sigma_hr_px)
         if self.type == "airy":
-            pitch = self.hr_pixel_um if self.hr_pixel_um is not None else hr_pixel_um
-            if pitch is None:
-                raise InputError("psf.hr_pixel_um", None, "the HR pixel pitch in micrometres for an Airy PSF")
-            return airy_psf_kernel(self.f_number, self.wavelength_nm, float(pitch))
+            return airy_psf_kernel(self.f_number, self.wavelength_nm, self._airy_pitch(hr_pixel_um))
         return np.asarray(self.taps, dtype=np.float64)
+
+    def _airy_pitch(self, hr_pixel_um: float | None) -> float:
+        """The HR pixel pitch (micrometres) of an Airy PSF: its own, else ``hr_pixel_um``."""
+        pitch = self.hr_pixel_um if self.hr_pixel_um is not None else hr_pixel_um
+        if pitch is None:
+            raise InputError("psf.hr_pixel_um", None, "the HR pixel pitch in micrometres for an Airy PSF")
+        return float(pitch)
 
     def kernel_radius(self, *, hr_pixel_um: float | None = None) -> int:
         """Half-width of :meth:`kernel` in HR pixels, computed without building it."""
@@ -176,10 +180,7 @@ class PSF:
         if self.type == "gaussian":
             return gaussian_kernel_radius(self.sigma_hr_px)
         if self.type == "airy":
-            pitch = self.hr_pixel_um if self.hr_pixel_um is not None else hr_pixel_um
-            if pitch is None:
-                raise InputError("psf.hr_pixel_um", None, "the HR pixel pitch in micrometres for an Airy PSF")
-            return airy_kernel_radius(self.f_number, self.wavelength_nm, float(pitch))
+            return airy_kernel_radius(self.f_number, self.wavelength_nm, self._airy_pitch(hr_pixel_um))
         return max(len(self.taps), len(self.taps[0])) // 2
 
     def check_extent(self, hr_shape: tuple[int, int], *, option: str = "psf", hr_pixel_um: float | None = None,

@@ -70,9 +70,7 @@ def crop_homographies(geometry: ArrayGeometry, top: int, left: int, hr_shape) ->
     Returns ``(4, 3, 3)`` HR reference -> aperture-HR and ``(16, 3, 3)`` HR reference -> sub-image
     pixels, both in the crop's coordinates (:meth:`capssim.geometry.ArrayGeometry.cropped`).
     """
-    if top % CROP_MULTIPLE or left % CROP_MULTIPLE:
-        raise InputError("crop offset", (top, left), f"multiples of {CROP_MULTIPLE} HR pixels")
-    crop = geometry.cropped(top, left, hr_shape)
+    crop = geometry.cropped(top, left, hr_shape)  # refuses offsets that are not multiples of 4
     return crop.aperture_homographies.copy(), crop.lr_homographies
 
 
