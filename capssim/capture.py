@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import tifffile
 
 from capssim import __version__
 from capssim.conventions import (
@@ -39,10 +40,11 @@ from capssim.conventions import (
     dofp_layout_name,
     split_bayer,
 )
-from capssim.errors import CaptureFormatError, InputError, UnknownNameError
+from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
 from capssim.geometry import ArrayGeometry
-from capssim.imageio import atomic_directory, atomic_write_json, read_tiff, write_tiff
+from capssim.imageio import atomic_directory, atomic_write_json, write_tiff
 from capssim.psf import PSF
+from capssim.resources import check_memory
 from capssim.sensor import Sensor, sensor_from_meta
 
 log = logging.getLogger(__name__)
@@ -99,7 +101,7 @@ def build_meta(*, kind: str, hr_shape: tuple[int, int], aperture_homographies: n
                         "homography_direction": "HR reference pixel -> target pixel"},
         "cfa": "RGGB",
         "polarizer_angles_deg": list(POLARIZER_ANGLES_DEG),
-        "extinction_ratio": extinction_ratio,
+        "extinction_ratio": None if extinction_ratio is None or np.isinf(extinction_ratio) else extinction_ratio,
         "dofp_layout": [list(r) for r in cell],
         "dofp_layout_name": dofp_layout_name(cell),
         "aperture_homographies": hn.tolist(),
@@ -309,16 +311,50 @@ class Capture:
         return self.sensor.saturation_mask(self.dofp_raw)
 
 
-def _check_array(name: str, arr: np.ndarray, shape: tuple, sensor: Sensor) -> None:
-    if arr.shape != shape:
-        raise CaptureFormatError(f"{name}: shape {arr.shape}, but meta.json geometry says {shape}.")
-    if sensor.model == "none":
-        if arr.dtype != np.float32:
-            raise CaptureFormatError(f"{name}: dtype {arr.dtype}; a capture with sensor 'none' stores float32.")
-        if not np.all(np.isfinite(arr)):
-            raise CaptureFormatError(f"{name}: holds NaN or inf values.")
-    elif arr.dtype != np.uint16:
-        raise CaptureFormatError(f"{name}: dtype {arr.dtype}; a capture with sensor {sensor.model!r} stores uint16 DN.")
+def _check_layout(name: str, shape: tuple, dtype, expected: tuple, sensor: Sensor | None) -> None:
+    """A frame's ``shape`` and ``dtype`` against the geometry's ``expected`` shape and the sensor's
+    storage (``sensor`` None: the float ground truth)."""
+    if tuple(shape) != expected:
+        raise CaptureFormatError(f"{name}: shape {tuple(shape)}, but meta.json geometry says {expected}.")
+    if sensor is None:
+        if not np.issubdtype(dtype, np.floating):
+            raise CaptureFormatError(f"{name}: dtype {dtype}; the ground truth is stored as float on [0, 1].")
+    elif sensor.model == "none":
+        if dtype != np.float32:
+            raise CaptureFormatError(f"{name}: dtype {dtype}; a capture with sensor 'none' stores float32.")
+    elif dtype != np.uint16:
+        raise CaptureFormatError(f"{name}: dtype {dtype}; a capture with sensor {sensor.model!r} stores uint16 DN.")
+
+
+def _check_array(name: str, arr: np.ndarray, shape: tuple, sensor: Sensor | None) -> None:
+    _check_layout(name, arr.shape, arr.dtype, shape, sensor)
+    if (sensor is None or sensor.model == "none") and not np.all(np.isfinite(arr)):
+        raise CaptureFormatError(f"{name}: holds NaN or inf values.")
+
+
+def _read_frame(path: Path, name: str, shape: tuple, sensor: Sensor | None) -> np.ndarray:
+    """The TIFF ``path / name``, its header's shape and dtype checked before a pixel is read (a forged
+    or mismatched header allocates nothing) and its size against the memory limit."""
+    file = path / name
+    if not file.is_file():
+        raise CaptureFormatError(f"{path}: meta.json lists {name} but the file is missing.")
+    quiet = logging.getLogger("tifffile")
+    level, quiet.level = quiet.level, logging.ERROR  # its warnings repeat the error below
+    try:
+        with tifffile.TiffFile(file) as tif:
+            series = tif.series[0]
+            _check_layout(f"{path.name}/{name}", series.shape, np.dtype(series.dtype), shape, sensor)
+            check_memory("meta.json geometry", float(np.prod(shape, dtype=np.float64)) * series.dtype.itemsize,
+                         what=f"reading {name}", fix="Check the geometry in meta.json.")
+            array = series.asarray()
+    except CapssimError:
+        raise
+    except Exception as exc:  # tifffile raises many kinds
+        raise InputError(f"{path.name}/{name}", f"unreadable TIFF {str(file)!r} ({exc})", "a valid TIFF file") from None
+    finally:
+        quiet.level = level
+    _check_array(f"{path.name}/{name}", array, shape, sensor)
+    return array
 
 
 def write_capture(path, capture: Capture, *, overwrite: bool = False) -> Path:
@@ -368,32 +404,16 @@ def read_capture(path, *, load_gt: bool = True, require_gt: bool = False) -> Cap
     geo = meta["geometry"]
     hh, ww, h, w = geo["hr_height"], geo["hr_width"], geo["raw_height"], geo["raw_width"]
 
-    def load(key):
-        name = files.get(key)
-        if name is None:
-            return None
-        if not (path / name).is_file():
-            raise CaptureFormatError(f"{path}: meta.json lists {name} but the file is missing.")
-        return read_tiff(path / name, argument=f"{path.name}/{name}")
-
-    caps = load("caps_raw")
-    if caps is None:
-        raise CaptureFormatError(f"{path}: meta.json files has no caps_raw entry.")
-    _check_array("caps_raw.tiff", caps, (N_APERTURES, h, w), sensor)
-    dofp = load("dofp_raw")
-    if dofp is not None:
-        _check_array("dofp_raw.tiff", dofp, (hh, ww), sensor)
+    caps = _read_frame(path, files["caps_raw"], (N_APERTURES, h, w), sensor)
+    dofp = None if files.get("dofp_raw") is None else _read_frame(path, files["dofp_raw"], (hh, ww), sensor)
     gt = None
     if load_gt or require_gt:
-        if "gt" not in files or not (path / files["gt"]).is_file():
+        if files.get("gt") is None or not (path / files["gt"]).is_file():
             if require_gt:
                 raise CaptureFormatError(f"{path}: no gt.tiff; scoring needs the ground truth. "
                                          "Captures from a real camera cannot be scored.")
         else:
-            gt = load("gt")
-            if gt.shape != (N_CHANNELS, hh, ww):
-                raise CaptureFormatError(f"{path}/gt.tiff: shape {gt.shape}; expected {(N_CHANNELS, hh, ww)}.")
-            gt = gt.astype(np.float32, copy=False)
+            gt = _read_frame(path, files["gt"], (N_CHANNELS, hh, ww), None).astype(np.float32, copy=False)
     return Capture(meta=meta, caps_raw=caps, dofp_raw=dofp, gt=gt, path=path)
 
 

@@ -83,8 +83,11 @@ def dofp_layout(layout: str | tuple | list) -> tuple[tuple[int, int], tuple[int,
                 "dofp_layout", repr(layout),
                 f"one of {sorted(DOFP_LAYOUTS)} or four angles like '90-45-135-0' (row-major 2x2 cell)",
             )
-    arr = np.asarray(layout)
-    if arr.shape != (2, 2) or sorted(int(v) for v in arr.ravel()) != sorted(POLARIZER_ANGLES_DEG):
+    try:
+        arr = np.asarray(layout, dtype=np.float64)
+    except (TypeError, ValueError):  # ragged lists, nulls, strings
+        arr = np.zeros(0)
+    if arr.shape != (2, 2) or sorted(arr.ravel().tolist()) != sorted(POLARIZER_ANGLES_DEG):
         raise InputError(
             "dofp_layout", repr(layout),
             "a 2x2 cell holding each of 0, 45, 90, 135 degrees once",

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import math
 import os
+import shutil
+from pathlib import Path
 
 from capssim.errors import InputError, ResourceError
 
@@ -85,5 +87,26 @@ def check_range(option: str, value: float, *, high: float, what: str, reason: st
                                            f"({reason}). {fix}")
 
 
-__all__ = ["MEMORY_FRACTION", "MEMORY_LIMIT_ENV", "available_memory_bytes", "check_memory", "check_range",
-           "format_bytes", "memory_limit"]
+def free_disk_bytes(path: str | os.PathLike) -> int | None:
+    """Free bytes on the file system that holds ``path`` (or its nearest existing parent); ``None`` if unknown."""
+    where = Path(path).absolute()
+    while not where.exists() and where != where.parent:
+        where = where.parent
+    try:
+        return shutil.disk_usage(where).free
+    except OSError:
+        return None
+
+
+def check_disk(option: str, estimate_bytes: float, path: str | os.PathLike, *, what: str, fix: str) -> None:
+    """Refuse (:class:`~capssim.errors.ResourceError`) an ``option`` whose output ``what`` would not fit on the
+    disk that holds ``path``."""
+    free = free_disk_bytes(path)
+    if free is not None and estimate_bytes > free:
+        raise ResourceError(option, estimate_bytes,
+                            f"{what} would take about {format_bytes(estimate_bytes)} on disk, more than the "
+                            f"{format_bytes(free)} free at {path}. {fix}")
+
+
+__all__ = ["MEMORY_FRACTION", "MEMORY_LIMIT_ENV", "available_memory_bytes", "check_disk", "check_memory",
+           "check_range", "format_bytes", "free_disk_bytes", "memory_limit"]

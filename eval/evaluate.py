@@ -96,6 +96,9 @@ class CaptureScorer:
         self.gt = capture.gt
         self.convention = M.get_convention(convention)
         self.score_options = {"min_s0": min_s0, "min_dolp": min_dolp, "border": border, "lpips": lpips}
+        crop = self.convention.border if border is None else int(border)
+        if self.gt is not None and crop >= 0:  # a crop the ground truth cannot take fails every method: say it once
+            M._check_size(np.asarray(self.gt), self.convention, crop)
         self.star = star_geometry(capture.meta) if with_mtf else None
         self.gt_mtf: StarMTF | None = None
         self.mtf_error: str | None = None

@@ -19,6 +19,9 @@ One entry point, :func:`score`, under three conventions (docs: guides/scoring.md
       truth* has ``S0 > min_s0`` (default 0.02, i.e. a mean intensity of 1 % of full
       scale) and ``DoLP > min_dolp`` (default 0.05). The mask depends on the ground truth
       only, so an estimate cannot shrink it. ``aop_psnr`` = 20 log10(180 / RMSE).
+    * ``*_gt_peak`` (every convention): each intensity and Stokes PSNR/SSIM again with the data
+      range times the GT's peak ``P`` (its largest scored value), i.e. the scene exposed to full
+      scale; they rank methods on dark scenes, where the fixed-peak ones cap (notes/scoring.md).
 
 ``tokyotech`` (Morimatsu et al. 2020, EARI; their published MATLAB evaluation)
     * border crop of 15 pixels with their indexing (rows ``15..H-15`` 1-based, i.e.
@@ -35,7 +38,8 @@ One entry point, :func:`score`, under three conventions (docs: guides/scoring.md
 
 Well-defined results on hard inputs (each pinned by a test):
 
-* identical images (MSE = 0, e.g. both all dark): PSNR is capped at :data:`PSNR_CAP_DB`;
+* identical images (MSE = 0, e.g. both all dark): PSNR is capped at :data:`PSNR_CAP_DB` (so is any
+  PSNR above it; ``notes`` says when a non-zero error hit the cap); a GT of zeros: ``*_gt_peak`` None;
 * constant images: SSIM is computed with the explicit data range, so its stabilizing
   constants keep it finite (1 for equal constants, < 1 otherwise);
 * AoP undefined everywhere (no ground-truth pixel passes the mask, e.g. DoLP = 0 or an
@@ -109,6 +113,14 @@ METRIC_SPECS: dict[str, tuple[int, str, str]] = {
     "aop_mae_deg": (-1, "deg", "mean |wrap-aware AoP difference|, per colour, pooled, masked"),
     "aop_psnr": (+1, "dB", "20 log10(180 / aop_rmse_deg) (Qiu et al.)"),
     "aop_fraction": (0, "", "fraction of colour-pixels inside the AoP mask (not a quality metric)"),
+    "psnr_gt_peak_mean": (+1, "dB", "mean over the 12 channels of PSNR(channel), data_range = P, the GT's peak"),
+    "psnr_gt_peak.<channel>": (+1, "dB", "PSNR of one channel, data_range = P (GT's largest value, 12 channels)"),
+    "ssim_gt_peak_mean": (+1, "", "mean over the 12 channels of SSIM(channel), data_range = P, the GT's peak"),
+    "ssim_gt_peak.<channel>": (+1, "", "SSIM of one channel, data_range = P (the scene exposed to full scale)"),
+    "cpsnr_gt_peak.<angle>": (+1, "dB", "CPSNR at one polarizer angle, peak = P (GT's largest value)"),
+    "s0_psnr_gt_peak": (+1, "dB", "as s0_psnr with the data range times P (GT's largest value)"),
+    "s1_psnr_gt_peak": (+1, "dB", "as s1_psnr with the data range times P (GT's largest value)"),
+    "s2_psnr_gt_peak": (+1, "dB", "as s2_psnr with the data range times P (GT's largest value)"),
     "lpips.<angle>": (-1, "", "LPIPS (AlexNet) of the RGB image at one polarizer angle; user-supplied weights"),
     "lpips_mean": (-1, "", "mean of lpips.<angle> over the four angles (paper Table 1)"),
 }
@@ -193,7 +205,7 @@ def _check_size(gt: np.ndarray, conv: Convention, border: int) -> None:
 
 # -- primitive metrics ----------------------------------------------------------------------
 def psnr(estimate: np.ndarray, reference: np.ndarray, *, data_range: float) -> float:
-    """skimage PSNR with an explicit ``data_range``; zero MSE gives :data:`PSNR_CAP_DB`."""
+    """skimage PSNR with an explicit ``data_range``, at most :data:`PSNR_CAP_DB` (zero MSE included)."""
     from skimage.metrics import peak_signal_noise_ratio
 
     mse = float(np.mean((np.asarray(estimate, np.float64) - reference) ** 2))
@@ -215,6 +227,40 @@ def _stokes_scaled(stokes: np.ndarray, scale: str) -> tuple[np.ndarray, np.ndarr
     if scale == "capssim":
         return stokes[0], stokes[1], stokes[2], 2.0
     return stokes[0] / 2.0, (stokes[1] + 1.0) / 2.0, (stokes[2] + 1.0) / 2.0, 1.0
+
+
+def _gt_peak_scores(est_c, gt_c, st_e, st_g, stokes_scale: str, *, with_ssim: bool) -> tuple[dict[str, Any], list]:
+    """The fixed-peak PSNRs/SSIMs of ``est_c / P`` against ``gt_c / P``, ``P = max(gt_c)``; None when ``P <= 0``."""
+    peak = float(gt_c.max())
+    if not peak > 0:
+        undefined = dict.fromkeys(k.split(".")[0] for k in METRIC_SPECS if "_gt_peak" in k)
+        return undefined, ["Scores against the ground truth's peak (*_gt_peak) undefined: it is 0 everywhere."]
+    out: dict[str, Any] = {"psnr_gt_peak": {CHANNEL_NAMES[c]: psnr(est_c[c], gt_c[c], data_range=peak)
+                                            for c in range(N_CHANNELS)}}
+    out["psnr_gt_peak_mean"] = float(np.mean(list(out["psnr_gt_peak"].values())))
+    out["ssim_gt_peak"] = out["ssim_gt_peak_mean"] = None
+    if with_ssim:
+        out["ssim_gt_peak"] = {CHANNEL_NAMES[c]: ssim(est_c[c], gt_c[c], data_range=peak) for c in range(N_CHANNELS)}
+        out["ssim_gt_peak_mean"] = float(np.mean(list(out["ssim_gt_peak"].values())))
+    out["cpsnr_gt_peak"] = {str(a): psnr(est_c[3 * p:3 * p + 3], gt_c[3 * p:3 * p + 3], data_range=peak)
+                            for p, a in enumerate(POLARIZER_ANGLES_DEG)}
+    (*est_s, rng_s), (*gt_s, _) = _stokes_scaled(st_e, stokes_scale), _stokes_scaled(st_g, stokes_scale)
+    for i in range(3):
+        out[f"s{i}_psnr_gt_peak"] = psnr(est_s[i], gt_s[i], data_range=rng_s * peak)
+    return out, []
+
+
+def _dark_scene_notes(est_c, gt_c, psnrs: dict[str, float], st_g, s0_guard: float | None) -> list[str]:
+    """Notes when a fixed-peak score cannot tell estimates apart: PSNR at its cap, DoLP all guarded."""
+    notes = []
+    if any(psnrs[CHANNEL_NAMES[c]] == PSNR_CAP_DB and np.any(est_c[c] != gt_c[c]) for c in range(N_CHANNELS)):
+        notes.append(f"PSNR at its {PSNR_CAP_DB:g} dB cap with a non-zero error (RMS below 1e-5 of full scale) in "
+                     "some channel: the fixed-peak scores cannot rank estimates there; compare psnr_gt_peak and "
+                     "ssim_gt_peak (data range = the ground truth's peak).")
+    if s0_guard and not np.any(st_g[0] > s0_guard):
+        notes.append(f"DoLP scores compare zeros: no ground-truth pixel has S0 > {s0_guard} (the DoLP dark guard); "
+                     "pass a lower min_s0 (--min-s0) to score DoLP on a dark scene.")
+    return notes
 
 
 # -- the entry point ------------------------------------------------------------------------
@@ -277,7 +323,8 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
         ``psnr`` / ``ssim`` per channel name, ``psnr_mean``, ``ssim_mean``, ``cpsnr`` per
         angle, ``s0_psnr``, ``s1_psnr``, ``s2_psnr``, ``dolp_psnr``, ``dolp_ssim``,
         ``dolp_psnr_per_colour``, ``aop_rmse_deg``, ``aop_mae_deg``, ``aop_psnr``,
-        ``aop_fraction``, ``lpips_mean`` (or None), ``settings`` and ``notes``.
+        ``aop_fraction``, ``lpips_mean`` (or None), the ``*_gt_peak`` scores
+        (:func:`_gt_peak_scores`), ``settings`` (with ``gt_peak``) and ``notes``.
     """
     conv = get_convention(convention)
     est, gt = check_pair(estimate12, gt12)
@@ -312,6 +359,8 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
     out["s0_psnr"] = psnr(e0, g0, data_range=rng_s)
     out["s1_psnr"] = psnr(e1, g1, data_range=rng_s)
     out["s2_psnr"] = psnr(e2, g2, data_range=rng_s)
+    peak_scores, peak_notes = _gt_peak_scores(est_c, gt_c, st_e, st_g, conv.stokes_scale, with_ssim=with_ssim)
+    out.update(peak_scores)
 
     # DoLP per colour, clipped to [0, 1]; dark guard on each image's own S0
     guard = s0_guard if s0_guard is not None else 0.0
@@ -351,10 +400,12 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
     else:
         out["lpips"], out["lpips_mean"] = None, None
 
+    notes += peak_notes + _dark_scene_notes(est_c, gt_c, out["psnr"], st_g, s0_guard)
     out["settings"] = {"border": b, "matlab_crop": conv.matlab_crop, "stokes_scale": conv.stokes_scale,
                        "min_s0": s0_guard, "min_dolp": dolp_min, "psnr_cap_db": PSNR_CAP_DB,
                        "ssim": {"gaussian_sigma": SSIM_SIGMA, "K1": 0.01, "K2": 0.03} if with_ssim else None,
-                       "scored_shape": list(gt_c.shape), "dolp": "per colour, clipped to [0, 1]",
+                       "scored_shape": list(gt_c.shape),
+                       "gt_peak": float(gt_c.max()), "dolp": "per colour, clipped to [0, 1]",
                        "aop": "per colour, wrap-aware, pooled over R,G,B"}
     out["notes"] = notes
     return out

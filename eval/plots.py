@@ -11,7 +11,7 @@ import numpy as np
 
 from capssim.imageio import atomic_write_bytes
 from capssim.polarization import dolp, stokes_from_12
-from capssim.visualize import aop_image, aop_legend, dolp_image, intensity_image
+from capssim.visualize import aop_image, dolp_image, draw_aop_key, draw_dolp_key, draw_intensity_key, intensity_image
 
 _MARKERS = "osD^v<>pP*hX"
 
@@ -115,7 +115,7 @@ def _crop_window(shape, size: int) -> tuple[slice, slice]:
 
 def crops(gt: np.ndarray, estimates: dict[str, np.ndarray], path: Path, *, title: str = "", crop: int = 128,
           center_rowcol: tuple[float, float] | None = None) -> Path:
-    """Ground truth and each method: intensity, DoLP and AoP (fig. 7 colour map) of one crop."""
+    """Ground truth and each method: intensity, DoLP and AoP (fig. 7 colour map) of one crop; a key under each column."""
     plt = _plt()
     if center_rowcol is not None:
         h, w = gt.shape[1:]
@@ -130,7 +130,8 @@ def crops(gt: np.ndarray, estimates: dict[str, np.ndarray], path: Path, *, title
     lum = s_gt.sum(axis=1)
     dmax = float(np.clip(np.percentile(dolp(lum, min_s0=1e-3), 99), 0.1, 1.0))
     rows = [("ground truth", gt)] + list(estimates.items())
-    fig, axes = plt.subplots(len(rows), 3, figsize=(3 * 2.6, len(rows) * 2.6 + 0.3), squeeze=False)
+    height, keys_in = len(rows) * 2.6 + 0.3 + 1.1, 1.1  # inches; the keys take the bottom keys_in
+    fig, axes = plt.subplots(len(rows), 3, figsize=(3 * 2.6, height), squeeze=False)
     for r, (name, img) in enumerate(rows):
         img_c = img[:, win[0], win[1]]
         panels = [intensity_image(img_c, white=white), dolp_image(img_c, dolp_max=dmax),
@@ -143,16 +144,19 @@ def crops(gt: np.ndarray, estimates: dict[str, np.ndarray], path: Path, *, title
             if c == 0:
                 ax.set_ylabel(name, fontsize=9)
             if r == 0:
-                ax.set_title(["intensity S0/2 (sRGB)", f"DoLP R,G,B (0..{dmax:.2f})",
-                              f"AoP hue, DoLP sat. (0..{dmax:.2f})"][c], fontsize=8)
-    legend_ax = fig.add_axes([0.92, 0.93 - 0.5 / len(rows), 0.06, 0.5 / len(rows) * 1.6])
-    legend_ax.imshow(aop_legend(64, dolp_max=dmax), extent=(0, 180, 0, dmax), aspect="auto")
-    legend_ax.set_xticks([0, 90, 180])
-    legend_ax.tick_params(labelsize=6)
-    legend_ax.set_xlabel("AoP (deg)", fontsize=6)
-    legend_ax.set_ylabel("DoLP", fontsize=6)
+                ax.set_title([f"intensity S0/2 (sRGB)\nwhite = {white:.3g} of full scale",
+                              f"DoLP of R, G, B\n0 (black) .. {dmax:.2f} (white)",
+                              f"AoP: hue = angle\nsaturation = DoLP / {dmax:.2f}"][c], fontsize=8)
     fig.suptitle(f"{title}  (crop {win[0].stop - win[0].start}x{win[1].stop - win[1].start} HR px)", fontsize=10)
-    fig.subplots_adjust(left=0.06, right=0.9, top=0.93, bottom=0.02, wspace=0.04, hspace=0.06)
+    fig.subplots_adjust(left=0.06, right=0.98, top=1 - 0.85 / height, bottom=keys_in / height, wspace=0.04,
+                        hspace=0.06)
+    for c, (draw, key_in) in enumerate(((lambda ax: draw_intensity_key(ax, white), 0.12),
+                                        (lambda ax: draw_dolp_key(ax, dmax), 0.12),
+                                        (lambda ax: draw_aop_key(ax, dmax), 0.55))):
+        box = axes[-1, c].get_position()
+        key_w = box.width * (0.55 if key_in > 0.2 else 0.85)
+        draw(fig.add_axes((box.x0 + (box.width - key_w) / 2, (keys_in - 0.12 - key_in) / height, key_w,
+                           key_in / height)))
     return _save(fig, path)
 
 

@@ -24,11 +24,26 @@ log = logging.getLogger(__name__)
 
 #: columns of the per-group tables: (metric key, header, digits)
 TABLE_COLUMNS = [
-    ("psnr_mean", "PSNR", 2), ("ssim_mean", "SSIM", 4), ("s0_psnr", "S0", 2), ("s1_psnr", "S1", 2),
+    ("psnr_mean", "PSNR", 2), ("psnr_gt_peak_mean", "PSNR/GT peak", 2), ("ssim_mean", "SSIM", 4),
+    ("ssim_gt_peak_mean", "SSIM/GT peak", 4), ("s0_psnr", "S0", 2), ("s1_psnr", "S1", 2),
     ("s2_psnr", "S2", 2), ("dolp_psnr", "DoLP", 2), ("dolp_ssim", "DoLP SSIM", 3), ("aop_rmse_deg", "AoP RMSE", 2),
     ("aop_mae_deg", "AoP MAE", 2), ("mtf_magnification_hv", "SR mag. hv", 2),
     ("mtf_magnification_diagonal", "SR mag. diag", 2),
 ]
+#: what the tables' columns mean (the header paragraph of report.md and of the results page)
+TABLE_LEGEND = (
+    "Means over seeds. PSNR in dB (12-channel mean; S0/S1/S2/DoLP pooled over R, G, B) and SSIM with data range 1 "
+    "(full scale); PSNR/GT peak and SSIM/GT peak: the same with the data range = the ground truth's peak, i.e. the "
+    "scene exposed to full scale (they still rank methods on a dark scene, where the fixed-peak PSNR reaches its "
+    "100 dB cap and SSIM rounds to 1). AoP errors in degrees over the masked pixels; SR magnification from the "
+    "Siemens-star MTF (limit resolution in cycles per Bayer sub-image pixel / 0.5). Time: the method's wall time "
+    "in seconds. Memory: the method's own peak, i.e. how far the process's resident memory (RSS, sampled every "
+    "5 ms) rose above its level just before the method (`peak_rss_delta_mb` in results.jsonl), after the memory "
+    "that earlier cases freed was handed back to the system; one-time costs (torch's first use, imports) fall on "
+    "the first method that needs them. The process's whole RSS, everything loaded before included, is "
+    "`peak_rss_mb` there. CUDA peak (on a GPU): torch's largest allocation during the method.")
+#: a scene whose ground-truth peak is below this fraction of full scale gets a dark-scene line in the report
+DARK_SCENE_PEAK = 0.1
 
 
 def _slug(text: str) -> str:
@@ -54,7 +69,9 @@ def group_records(records: list[dict]) -> dict[tuple[str, str], list[dict]]:
 
 def results_table(recs: list[dict], methods: list[str]) -> str:
     have = [c for c in TABLE_COLUMNS if any(r["metrics"].get(c[0]) is not None for r in recs)]
-    header = ["method"] + [h for _, h, _ in have] + ["time (s)", "peak RSS (MB)", "seeds"]
+    cuda = any(r.get("cuda_peak_mb") is not None for r in recs)
+    header = ["method"] + [h for _, h, _ in have] + ["time (s)", "memory (MB)"] + (["CUDA peak (MB)"] if cuda else [])
+    header.append("seeds")
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     by_method = defaultdict(list)
     for r in recs:
@@ -64,10 +81,21 @@ def results_table(recs: list[dict], methods: list[str]) -> str:
         if not rs:
             continue
         cells = [m] + [_fmt(_mean(r["metrics"].get(k) for r in rs), d) for k, _, d in have]
-        cells += [_fmt(_mean(r.get("wall_time_s") for r in rs), 2), _fmt(_mean(r.get("peak_rss_mb") for r in rs), 0),
-                  str(len(rs))]
+        cells += [_fmt(_mean(r.get("wall_time_s") for r in rs), 2), _fmt(_mean(r.get("peak_rss_delta_mb") for r in rs), 0)]
+        cells += [_fmt(_mean(r.get("cuda_peak_mb") for r in rs), 0)] if cuda else []
+        cells.append(str(len(rs)))
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def dark_scene_line(recs: list[dict]) -> str:
+    """A line for a group whose ground truth peaks below :data:`DARK_SCENE_PEAK` of full scale, else ``""``."""
+    peaks = [(r.get("metric_settings") or {}).get("gt_peak") for r in recs]
+    peaks = [p for p in peaks if p is not None]
+    if not peaks or max(peaks) >= DARK_SCENE_PEAK:
+        return ""
+    return (f"Dark scene: the ground truth peaks at {max(peaks):.3g} of full scale, so the fixed-peak PSNR and SSIM "
+            "barely move between methods (PSNR is capped at 100 dB); compare PSNR/GT peak and SSIM/GT peak.")
 
 
 def stage_table(recs: list[dict], methods: list[str]) -> str:
@@ -120,10 +148,7 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
     if verdict is not None:
         lines += ["## Regression check", "", "```", verdict.text(), "```", ""]
 
-    lines += ["## Results", "",
-              "Means over seeds. PSNR in dB (12-channel mean; S0/S1/S2/DoLP pooled over R,G,B); AoP errors in "
-              "degrees over the masked pixels; SR magnification from the Siemens-star MTF (limit resolution in "
-              "cycles per Bayer sub-image pixel / 0.5). Time = the method's wall time.", ""]
+    lines += ["## Results", "", TABLE_LEGEND, ""]
     plot_paths: dict[str, list[tuple[str, Path]]] = defaultdict(list)
     if plots and ok:
         for metric, label, hib, name in (("psnr_mean", "PSNR (dB, 12-ch mean)", True, "speed_vs_psnr.png"),
@@ -138,6 +163,7 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
                 log.warning("plot %s failed: %s", name, exc)
     for (scene, noise), rs in sorted(groups.items()):
         lines += [f"### {scene} / {noise}", "", results_table(rs, methods), ""]
+        lines += [dark_scene_line(rs), ""] if dark_scene_line(rs) else []
         st = stage_table(rs, methods)
         if st:
             lines += ["Time per stage (s):", "", st, ""]
@@ -226,12 +252,10 @@ def results_page(run, *, verdict=None, written: str | None = None) -> str:
                   f"({len(verdict.compared)} case(s) compared, {len(verdict.failures)} failure(s)).", ""]
     if run.notes:
         lines += ["## Substitutions", ""] + [f"- {n}" for n in run.notes] + [""]
-    lines += ["## Results", "",
-              "Means over seeds. PSNR in dB (12-channel mean; S0/S1/S2/DoLP pooled over R, G, B); AoP errors in "
-              "degrees over the masked pixels; SR magnification from the Siemens-star MTF. Time: the method's wall "
-              "time in seconds.", ""]
+    lines += ["## Results", "", TABLE_LEGEND, ""]
     for (scene, noise), rs in sorted(group_records(recs).items()):
         lines += [f"### {scene} / {noise}", "", results_table(rs, methods), ""]
+        lines += [dark_scene_line(rs), ""] if dark_scene_line(rs) else []
         stages = stage_table(rs, methods)
         if stages:
             lines += ["Time per stage (s):", "", stages, ""]

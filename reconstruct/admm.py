@@ -44,6 +44,10 @@ from capssim.reconstruct.interfaces import (
     no_stage,
     relative_change,
 )
+from capssim.resources import check_range
+
+#: the most iterations one run may ask for (a sane range: the paper uses 25; divergence tests a few thousand)
+MAX_ITERATIONS = 10_000
 
 
 @dataclass(frozen=True)
@@ -59,10 +63,14 @@ class ADMMParameters:
     def validate(self) -> None:
         if self.iterations < 0:
             raise InputError("iterations", self.iterations, "an integer >= 0")
+        check_range("iterations", self.iterations, high=MAX_ITERATIONS, what="the number of iterations",
+                    reason="the time grows with it; the paper uses 25", fix="Try --iterations 25.")
         for name in ("mu0", "dt"):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise InputError(name, v, "a finite positive number")
+        if self.mu0 > 1:
+            raise InputError("mu0", self.mu0, "a number in (0, 1] (eq. 27 caps mu at 1)")
         if not (self.grow_rate >= 0 and math.isfinite(self.grow_rate)):
             raise InputError("grow_rate", self.grow_rate, "a finite number >= 0")
         if self.grow_step < 1:

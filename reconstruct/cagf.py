@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
+from capssim.reconstruct.filters import sliding_window_sum
 
 DEFAULT_NU = 0.2
 DEFAULT_RADIUS = 4
@@ -52,10 +53,12 @@ def box_mean(x: torch.Tensor, radius: int) -> torch.Tensor:
     """Mean over the ``(2r+1)^2`` window of every pixel of ``(..., h, w)``, valid pixels only."""
     if radius <= 0:
         return x.clone()
-    shape = x.shape
-    flat = x.reshape(-1, 1, shape[-2], shape[-1])
-    out = F.avg_pool2d(flat, 2 * radius + 1, stride=1, padding=radius, count_include_pad=False)
-    return out.reshape(shape)
+    # separable exact window sums (about 2 log2(2r+1) passes), not avg_pool2d's (2r+1)^2 taps per pixel
+    h, w = x.shape[-2:]
+    size = 2 * radius + 1
+    padded = F.pad(x.reshape(-1, h, w), (radius, radius, radius, radius))
+    sums = sliding_window_sum(sliding_window_sum(padded, size, dim=2), size, dim=1)
+    return (sums / window_count(h, w, radius, device=x.device, dtype=x.dtype)).reshape(x.shape)
 
 
 def window_count(h: int, w: int, radius: int, *, device=None, dtype=torch.float32) -> torch.Tensor:
@@ -98,6 +101,11 @@ def pairwise_confidence(channels: torch.Tensor, *, nu: float = DEFAULT_NU, radiu
     if not nu > 0:
         raise InputError("nu", nu, "a positive number (the Gaussian variance of eq. 13)")
     c, h, w = channels.shape
+    if not (eps > 0 and np.isfinite(eps)):
+        raise InputError("cagf_eps", eps, "a finite positive number (the guided filter's epsilon, eq. 12)")
+    if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or not 1 <= radius <= max(h, w):
+        raise InputError("cagf_radius", radius, f"an integer in [1, {max(h, w)}] (window radius, LR pixels; "
+                                                "at most the image's larger side)", "The paper uses 4.")
     x = channels
     mean = box_mean(x, radius)                                          # (C, h, w)
     second = box_mean(x[:, None] * x[None, :], radius)                  # (C, C, h, w)

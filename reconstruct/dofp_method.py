@@ -10,6 +10,10 @@ import torch
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.registry import MethodOutput
 
+#: the range ``(low, high]`` of each float option: the regularizers are on [0, 1] data; below 1e-30
+#: ``1 / weight_floor`` overflows float32; ``bayer_sigma`` is a Gaussian std in pixels (below 0.01 its taps underflow)
+PARAMETER_RANGES = {"eps": (0.0, 1.0), "weight_floor": (1e-30, 1.0), "edge_eps": (0.0, 1.0), "bayer_sigma": (0.01, 16.0)}
+
 
 def reject_unknown_options(leftover: dict, known: Sequence[str]) -> None:
     """Raise :class:`~capssim.errors.UnknownNameError` when ``leftover`` holds an option not in ``known``."""
@@ -38,8 +42,9 @@ def run_dofp_method(capture, context, demosaic, defaults: dict):
             params[key] = float(raw)
         except (TypeError, ValueError):
             raise InputError(key, raw, "a number", f"Pass e.g. -O {key}={default}.") from None
-        if not np.isfinite(params[key]):
-            raise InputError(key, raw, "a finite number", f"Pass e.g. -O {key}={default}.")
+        low, high = PARAMETER_RANGES.get(key, (-np.inf, np.inf))
+        if not (np.isfinite(params[key]) and low < params[key] <= high):
+            raise InputError(key, raw, f"a finite number in ({low:g}, {high:g}]", f"Pass e.g. -O {key}={default}.")
     reject_unknown_options(opts, ["precision", *defaults])
     with context.timer.stage("load"):
         mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)

@@ -47,6 +47,17 @@ import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.reconstruct.filters import sliding_window_sum
+from capssim.reconstruct.nlstr_blocks import (
+    gather_blocks,
+    gram_maps,
+    group_matrix,
+    mode_products,
+    orthonormal_bases,
+    row_segments,
+    shrink_core,
+    unpack_grams,
+    weighted_block_sums,
+)
 from capssim.resources import check_memory, check_range
 
 log = logging.getLogger(__name__)
@@ -126,6 +137,27 @@ class _Strip:
     y_hi: int                  # last candidate block row (inclusive)
 
 
+def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int) -> torch.Tensor:
+    """Sums of ``x`` over ``[start, start + size)`` along ``dim`` for each of ``starts`` (ascending).
+
+    When the starts are ``0, s, 2s, ...`` with ``s`` dividing ``size`` (the reference grid of an
+    image whose sides are multiples of the stride), the windows are sums of ``size / s``
+    consecutive ``s``-chunks: one pass over ``x`` instead of window sums at every position.
+    """
+    n = starts.numel()
+    step = int(starts[1] - starts[0]) if n > 1 else size
+    span = step * (n - 1) + size
+    aligned = (size % step == 0 and span <= x.shape[dim] and int(starts[0]) == 0
+               and bool((starts == torch.arange(n, device=starts.device) * step).all()))
+    if not aligned:
+        return sliding_window_sum(x, size, dim=dim).index_select(dim, starts)
+    chunks = x.narrow(dim, 0, span).unflatten(dim, (span // step, step)).sum(dim + 1)
+    out = chunks.narrow(dim, 0, n).clone()
+    for q in range(1, size // step):
+        out.add_(chunks.narrow(dim, q, n))
+    return out
+
+
 def _triu(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
     return tuple(torch.triu_indices(n, n, device=device))
 
@@ -161,8 +193,9 @@ class NonlocalSparseTensor:
         idx = (ref_flat[:, None] + self.block_offsets[None, :]).reshape(-1)
         count.index_add_(0, idx, torch.ones(idx.numel(), dtype=dtype, device=self.device))
         self.inv_count = (1.0 / count).reshape(h, w)
-        self._tri_b = _triu(b, self.device)
         self._tri_c = _triu(c, self.device)
+        self._bases_cache: tuple | None = None  # (matches, per-strip bases) of the last estimate
+        self._groups_cache: tuple | None = None  # (matches, sparse group weights)
 
     # -- planning ------------------------------------------------------------------------
     def _map_planes(self) -> int:
@@ -200,6 +233,7 @@ class NonlocalSparseTensor:
         gram_rows = min(h, match_rows + 2 * r) - b + 1
         gram = gram_rows * (w - b + 1) * self._map_planes() * item * 3 + rows * nx * b * b * c * item * 10
         persistent = c * (h + 2 * r) * (w + 2 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
+        persistent += self.n_ref * b * b * c * item  # U of every group
         return int(persistent + 4 * h * w * c * item + max(match, gram))
 
     def check_resources(self, *, n_similar: int) -> None:
@@ -250,8 +284,8 @@ class NonlocalSparseTensor:
                 dy, dx = divmod(t, 2 * r + 1)
                 diff = a - zpad[:, ya + dy:ya + dy + rows, dx:dx + w]
                 sq[:, t] = diff.square_().sum(0)
-            box = sliding_window_sum(sq, b, dim=2).index_select(2, self.ref_x)         # (rows, n_off, nx)
-            box = sliding_window_sum(box, b, dim=0).index_select(0, ref_rows_rel)      # (nrows, n_off, nx)
+            box = window_sums_at(sq, b, self.ref_x, dim=2)                            # (rows, n_off, nx)
+            box = window_sums_at(box, b, ref_rows_rel, dim=0)                         # (nrows, n_off, nx)
             dist = box.permute(0, 2, 1)                                                # (nrows, nx, n_off)
             dist = dist.reshape(-1, n_off) / float(b * b * c)
             cy = ry[:, None] + dys[None, :]
@@ -278,171 +312,77 @@ class NonlocalSparseTensor:
         w = torch.where(finite, torch.exp(-torch.where(finite, d, torch.zeros_like(d)) / h), torch.zeros_like(d))
         return w / w.sum(1, keepdim=True)
 
-    # -- step: per-position Gram maps --------------------------------------------------
-    def _gram_maps(self, zr: torch.Tensor) -> torch.Tensor:
-        """Per-block-position Gram entries of a region ``(C, Hr, W)`` -> ``(Ny*Nx, planes)``.
-
-        Planes: height mode ``(i, i+d)`` for ``i + d < b`` (b(b+1)/2), width mode
-        likewise, channel mode ``(c, c')`` for ``c <= c'``. Box sums use
-        (exact pairwise sums, see :func:`capssim.reconstruct.filters.sliding_window_sum`).
-        """
-        c, hr, w = zr.shape
-        b = self.params.block
-        ny, nx = hr - b + 1, w - b + 1
-        zh = zr.permute(1, 2, 0)                                                   # (hr, W, C) view
-        planes = []
-        # height mode: G_h[i, i+d] = sum_{j<b, c} z[c, y+i, x+j] z[c, y+i+d, x+j]
-        for d in range(b):
-            prod = (zr[:, :hr - d, :] * zr[:, d:, :]).sum(0)                      # (hr-d, W)
-            rowbox = sliding_window_sum(prod, b, dim=1)                           # (hr-d, nx)
-            for i in range(b - d):
-                planes.append(rowbox[i:i + ny])
-        # width mode: G_w[j, j+d] = sum_{i<b, c} z[c, y+i, x+j] z[c, y+i, x+j+d]
-        for d in range(b):
-            prod = (zr[:, :, :w - d] * zr[:, :, d:]).sum(0)                       # (hr, W-d)
-            colbox = sliding_window_sum(prod, b, dim=0)                           # (ny, W-d)
-            for j in range(b - d):
-                planes.append(colbox[:, j:j + nx])
-        maps_hw = torch.stack(planes, dim=-1)                                      # (ny, nx, b(b+1))
-        # channel mode: 2-D box of every channel product c <= c'
-        iu, ju = self._tri_c
-        prods = zh.index_select(2, iu) * zh.index_select(2, ju)                    # (hr, W, T)
-        box = sliding_window_sum(sliding_window_sum(prods, b, dim=0), b, dim=1)    # (ny, nx, T)
-        return torch.cat([maps_hw, box], dim=-1).reshape(ny * nx, -1)
-
-    def _unpack(self, sums: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Summed Gram entries ``(k, planes)`` -> height+width ``(2k, b, b)`` and channel ``(k, C, C)``."""
-        b, c = self.params.block, self.shape[0]
-        k = sums.shape[0]
-        nb = b * (b + 1) // 2
-        # plane order above: for d, for i -> pair (i, i + d)
-        pairs = [(i, i + d) for d in range(b) for i in range(b - d)]
-        rows = torch.tensor([p[0] for p in pairs], device=sums.device)
-        cols = torch.tensor([p[1] for p in pairs], device=sums.device)
-        hw = sums.new_zeros(2, k, b, b)
-        for mode in range(2):
-            vals = sums[:, mode * nb:(mode + 1) * nb]
-            hw[mode][:, rows, cols] = vals
-            hw[mode][:, cols, rows] = vals
-        cc = sums.new_zeros(k, c, c)
-        iu, ju = self._tri_c
-        vals = sums[:, 2 * nb:]
-        cc[:, iu, ju] = vals
-        cc[:, ju, iu] = vals
-        return hw.reshape(2 * k, b, b), cc
-
-    @staticmethod
-    def _bases(gram: torch.Tensor) -> torch.Tensor:
-        """Eigenvectors (columns) of a batch of symmetric PSD matrices, scale-normalized."""
-        scale = torch.diagonal(gram, dim1=-2, dim2=-1).sum(-1).clamp(min=1e-30)[:, None, None]
-        n = gram.shape[-1]
-        eye = torch.eye(n, dtype=gram.dtype, device=gram.device)
-        _, vecs = torch.linalg.eigh(gram / scale + 1e-7 * eye)
-        return vecs
-
-    # -- transforms --------------------------------------------------------------------
-    @staticmethod
-    def _mode_products(t: torch.Tensor, ph: torch.Tensor, pw: torch.Tensor, pc: torch.Tensor,
-                       transpose: bool) -> torch.Tensor:
-        """``t x1 Ph x2 Pw x3 Pc`` (or with the transposes) for blocks ``t`` ``(k, b, b, C)``."""
-        k, b, _, c = t.shape
-        if transpose:
-            ph, pw = ph.transpose(1, 2), pw.transpose(1, 2)
-        else:
-            pc = pc.transpose(1, 2)
-        # mode 1 (height): out[a, j, c] = sum_i Ph[a, i] t[i, j, c]
-        x = torch.bmm(ph, t.reshape(k, b, b * c)).reshape(k, b, b, c)
-        # mode 2 (width)
-        x = torch.bmm(pw, x.transpose(1, 2).reshape(k, b, b * c)).reshape(k, b, b, c).transpose(1, 2)
-        # mode 3 (channel): out[..., d] = sum_c x[..., c] Pc[c, d]
-        return torch.bmm(x.reshape(k, b * b, c), pc).reshape(k, b, b, c)
-
-    def _gather_blocks(self, z_flat: torch.Tensor, py: torch.Tensor, px: torch.Tensor) -> torch.Tensor:
-        """Blocks ``(k, b, b, C)`` at top-left corners ``py, px`` ``(k,)`` of ``z_flat`` ``(H*W, C)``."""
-        b = self.params.block
-        w = self.shape[2]
-        idx = ((py * w + px)[:, None] + self.block_offsets[None, :]).reshape(-1)
-        return z_flat.index_select(0, idx).reshape(-1, b, b, z_flat.shape[1])
-
     # -- step: dictionaries, cores, aggregation ---------------------------------------
-    def estimate(self, z: torch.Tensor, matches: BlockMatches) -> tuple[torch.Tensor, dict]:
+    def _group_matrix(self, matches: BlockMatches) -> torch.Tensor:
+        """The groups' weights as a sparse ``(K, positions)`` matrix (cached for the last ``matches``)."""
+        if self._groups_cache is None or self._groups_cache[0] is not matches:
+            b, w = self.params.block, self.shape[2]
+            n_columns = self.shape[1] * w - (b - 1) * (w + 1)  # one past the last block corner
+            self._groups_cache = (matches, group_matrix(matches.pos_y * w + matches.pos_x, matches.weights, n_columns))
+        return self._groups_cache[1]
+
+    def _strip_bases(self, z: torch.Tensor, strip: _Strip, py: torch.Tensor, px: torch.Tensor):
+        """PCA bases ``Ph, Pw`` ``(k, b, b)`` and ``Pc`` ``(k, C, C)`` of a strip's groups (eq. 21)."""
+        b, w = self.params.block, self.shape[2]
+        maps = gram_maps(z[:, strip.y_lo:strip.y_hi + b, :], b, self._tri_c)        # (ny*nx, planes)
+        local = (py - strip.y_lo) * (w - b + 1) + px                                  # (k, P)
+        sums = maps.index_select(0, local[:, 0])
+        for j in range(1, local.shape[1]):
+            sums.add_(maps.index_select(0, local[:, j]))
+        del maps
+        gram_hw, gram_c = unpack_grams(sums, b, self._tri_c, self.shape[0])
+        k = py.shape[0]
+        bases_hw = orthonormal_bases(gram_hw)
+        return bases_hw[:k], bases_hw[k:], orthonormal_bases(gram_c)
+
+    def estimate(self, z: torch.Tensor, matches: BlockMatches, *, reuse_bases: bool = False,
+                 terms: bool = False) -> tuple[torch.Tensor, dict]:
         """Steps 1-2 of section 4 and eq. 29: the aggregated sparse estimate ``X`` ``(C, H, W)``.
 
-        Returns ``X`` and statistics: ``l1`` (sum of lambda_k/mu |C|), ``fit``
-        (``||alpha - C||^2``), ``nonlocal`` (``sum eta_k/mu ||beta - C||^2``), ``zero_fraction``.
+        ``reuse_bases``: keep the dictionaries of the previous call (same ``matches``) instead
+        of recomputing them from ``z`` (a lazier schedule, :class:`~capssim.reconstruct.nlstr_prior.
+        MatchSchedule` ``dictionary_gap``); refused when there are none for these matches.
+        Returns ``X`` and statistics: ``zero_fraction`` of the cores and, when ``terms``, ``l1``
+        (sum of lambda_k/mu |C|), ``fit`` (``||alpha - C||^2``), ``nonlocal``
+        (``sum eta_k/mu ||beta - C||^2``).
         """
         self._check(z)
         c, h, w = self.shape
-        b = self.params.block
-        prm = self.params
-        z_flat = z.permute(1, 2, 0).reshape(h * w, c).contiguous()
+        b, prm = self.params.block, self.params
+        if reuse_bases and (self._bases_cache is None or self._bases_cache[0] is not matches):
+            raise InputError("reuse_bases", True, "False when the matches changed (no dictionaries to reuse)")
+        if not reuse_bases:
+            self._bases_cache = (matches, [])
+        z_pixels = z.permute(1, 2, 0).reshape(h * w, c).contiguous()
+        segments = row_segments(z_pixels, b)
+        u_all = weighted_block_sums(z_pixels, self._group_matrix(matches), b, w).view(self.n_ref, b, b * c)
+        row_starts = torch.arange(b, device=z.device) * w
         num = torch.zeros(h * w, c, dtype=z.dtype, device=z.device)
-        stats = {"l1": 0.0, "fit": 0.0, "nonlocal": 0.0, "zeros": 0.0, "coefficients": 0}
-        acc = {k: z.new_zeros(()) for k in ("l1", "fit", "nonlocal", "zeros")}
-        for strip in self.strips:
+        acc: dict = {}
+        for s_i, strip in enumerate(self.strips):
             ry, rx, groups = self._strip_refs(strip)
             k = groups.numel()
-            zr = z[:, strip.y_lo:strip.y_hi + b, :]
-            maps = self._gram_maps(zr)                                              # (ny*nx, planes)
-            nx = w - b + 1
-            py = matches.pos_y[groups]
-            px = matches.pos_x[groups]
-            local = (py - strip.y_lo) * nx + px                                    # (k, P)
-            sums = maps.index_select(0, local[:, 0])
-            for j in range(1, matches.n_similar):
-                sums.add_(maps.index_select(0, local[:, j]))
-            del maps
-            gram_hw, gram_c = self._unpack(sums)
-            bases_hw = self._bases(gram_hw)
-            ph, pw = bases_hw[:k], bases_hw[k:]
-            pc = self._bases(gram_c)
-            ref_blocks = self._gather_blocks(z_flat, ry, rx)
-            wts = matches.weights[groups]
-            u = self._gather_blocks(z_flat, py[:, 0], px[:, 0]).mul_(wts[:, :1, None, None])
-            for j in range(1, matches.n_similar):
-                u.add_(self._gather_blocks(z_flat, py[:, j], px[:, j]).mul_(wts[:, j:j + 1, None, None]))
-            alpha = self._mode_products(ref_blocks, ph, pw, pc, transpose=True).reshape(k, -1)
-            beta = self._mode_products(u, ph, pw, pc, transpose=True).reshape(k, -1)
-            core, parts = shrink_core(alpha, beta, prm.c1, prm.c2, adaptive=prm.adaptive, eps=prm.eps)
-            for key in acc:
-                acc[key] += parts[key]
-            blocks = self._mode_products(core.reshape(k, b, b, c), ph, pw, pc, transpose=False)
+            py, px = matches.pos_y[groups], matches.pos_x[groups]
+            if reuse_bases:
+                ph, pw, pc = self._bases_cache[1][s_i]
+            else:
+                ph, pw, pc = self._strip_bases(z, strip, py, px)
+                self._bases_cache[1].append((ph, pw, pc))
+            pair = z.new_empty(k, b, 2, b * c)  # the reference block R and U = S x4 w (eq. 19), stacked
+            pair[:, :, 0] = gather_blocks(segments, ry * w + rx, row_starts)
+            pair[:, :, 1] = u_all.index_select(0, groups)
+            coeffs = mode_products(pair.view(k, b, 2, b, c), ph, pw, pc, transpose=True)
+            alpha, beta = coeffs[:, :, 0].reshape(k, -1), coeffs[:, :, 1].reshape(k, -1)
+            core, parts = shrink_core(alpha, beta, prm.c1, prm.c2, adaptive=prm.adaptive, eps=prm.eps, terms=terms)
+            for key, value in parts.items():
+                acc[key] = acc.get(key, 0.0) + value
+            blocks = mode_products(core.view(k, b, b, c), ph, pw, pc, transpose=False)
             idx = ((ry * w + rx)[:, None] + self.block_offsets[None, :]).reshape(-1)
             num.index_add_(0, idx, blocks.reshape(-1, c))
         x = num.reshape(h, w, c).permute(2, 0, 1) * self.inv_count
-        n_coef = self.n_ref * b * b * c
         stats = {key: float(v) for key, v in acc.items()}
-        stats["zero_fraction"] = stats.pop("zeros") / max(n_coef, 1)
+        stats["zero_fraction"] = stats.pop("zeros") / max(self.n_ref * b * b * c, 1)
         return x.contiguous(), stats
-
-
-def shrink_core(alpha: torch.Tensor, beta: torch.Tensor, c1: float, c2: float, *, adaptive: str = "element",
-                eps: float = 1e-8) -> tuple[torch.Tensor, dict]:
-    """Eq. 23 with the adaptive ``lambda_k/mu`` and ``eta_k/mu`` of section 4, for cores ``(k, n)``.
-
-    ``C = soft((2 t beta + alpha) / (1 + 2 t), (lambda/mu) / (1 + 2 t))``, ``t = eta/mu``.
-    Returns the core and the summed terms ``l1`` (``lambda/mu |C|``), ``fit``
-    (``|alpha - C|^2``), ``nonlocal`` (``eta/mu |beta - C|^2``) and ``zeros`` (count of zeros).
-    """
-    if adaptive == "element":
-        lam = c1 / (alpha.abs() + eps)
-        t = c2 / ((alpha - beta).square() + eps)
-    elif adaptive == "block":
-        lam = (c1 / (alpha.abs().sum(1, keepdim=True) + eps)).expand_as(alpha)
-        t = (c2 / ((alpha - beta).square().sum(1, keepdim=True) + eps)).expand_as(alpha)
-    else:
-        raise InputError("adaptive", adaptive, "'element' or 'block'")
-    denom = 1.0 + 2.0 * t
-    v = (2.0 * t * beta + alpha) / denom
-    thr = lam / denom
-    core = torch.sign(v) * torch.clamp(v.abs() - thr, min=0)
-    parts = {
-        "l1": (lam * core.abs()).sum(),
-        "fit": (alpha - core).square().sum(),
-        "nonlocal": (t * (beta - core).square()).sum(),
-        "zeros": (core == 0).sum().to(alpha.dtype),
-    }
-    return core, parts
 
 
 __all__ = ["BlockMatches", "NLSTRParameters", "NonlocalSparseTensor", "reference_positions", "shrink_core"]

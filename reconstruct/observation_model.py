@@ -20,7 +20,9 @@ from capssim.geometry import ArrayGeometry
 from capssim.homography import registration_error_hr_px
 from capssim.psf import PSF
 from capssim.reconstruct.registration import estimate_lr_homographies, registration_parameters
+from capssim.reconstruct.registration_store import stored_or_computed
 from capssim.reconstruct.registry import RunContext
+from capssim.threads import small_tensor_threads
 
 
 def truth_known(capture: Capture) -> bool:
@@ -60,28 +62,41 @@ def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray
     """The array geometry a method reconstructs with (true or estimated) and a record of it.
 
     ``images`` ``(16, H/2, W/2)`` and ``saturated`` (same shape, bool) are the Bayer sub-images
-    the registration works on. When the capture's truth is known, the record holds the
-    registration error in HR pixels per sub-image.
+    the registration works on. Estimated warps are registered once per capture and input and
+    stored with it (:mod:`capssim.reconstruct.registration_store`); the record's ``store`` and
+    ``reused_from`` say whether they were computed or reused. When the capture's truth is known,
+    the record holds the registration error in HR pixels per sub-image.
     """
     hr_shape = capture.hr_shape
     if context.true_warps:
         geometry = capture.geometry
         record = {"source": "true (meta.json)"}
     else:
-        result = estimate_lr_homographies(images.astype(np.float32), hr_shape=hr_shape, saturated=saturated,
-                                          parameters=registration_parameters(context.registration),
-                                          device=str(context.device))
-        aperture = np.asarray(result.aperture_homographies, dtype=np.float64)
-        if aperture.shape != (4, 3, 3) or not np.all(np.isfinite(aperture)):
-            raise CapssimError(f"registration returned invalid homographies (shape {aperture.shape}, "
-                               f"finite: {bool(np.all(np.isfinite(aperture)))})")
+        mode = context.registration
+        aperture, record = stored_or_computed(
+            capture.path, lambda: _estimated_aperture_warps(images, saturated, hr_shape, mode, context.device),
+            images=images, saturated=saturated, hr_shape=hr_shape, mode=mode,
+            parameters=registration_parameters(mode), reuse=context.reuse_registration)
         geometry = ArrayGeometry(aperture, hr_shape)
-        record = _registration_record(result, context.registration)
     if truth_known(capture):
         err = registration_error_hr_px(geometry.lr_homographies, capture.true_lr_homographies(), hr_shape)
         record.update({"error_hr_px_median": float(np.median(err)), "error_hr_px_max": float(np.max(err)),
                        "error_hr_px": [float(e) for e in err]})
     return geometry, record
+
+
+def _estimated_aperture_warps(images: np.ndarray, saturated: np.ndarray, hr_shape, mode: str,
+                              device) -> tuple[np.ndarray, dict]:
+    """Register the sub-images (one torch thread: small tensors); the aperture homographies
+    ``(4, 3, 3)`` and the registration's record."""
+    with small_tensor_threads():
+        result = estimate_lr_homographies(images.astype(np.float32), hr_shape=hr_shape, saturated=saturated,
+                                          parameters=registration_parameters(mode), device=str(device))
+    aperture = np.asarray(result.aperture_homographies, dtype=np.float64)
+    if aperture.shape != (4, 3, 3) or not np.all(np.isfinite(aperture)):
+        raise CapssimError(f"registration returned invalid homographies (shape {aperture.shape}, "
+                           f"finite: {bool(np.all(np.isfinite(aperture)))})")
+    return aperture, _registration_record(result, mode)
 
 
 def _registration_record(result, mode: str) -> dict:

@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from capssim.capture import Capture, read_capture, write_reconstruction
-from capssim.errors import CaptureFormatError, InputError, UnknownNameError
+from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
+from capssim.physical_validity import project_to_physical
 from capssim.reconstruct import methods as method_modules
 from capssim.reconstruct.registration_parameters import registration_parameters
 
@@ -62,6 +63,7 @@ class RunContext:
     options: dict = field(default_factory=dict)
     true_warps: bool = False
     registration: str = "local-correlation"  # reconstruct.registration.REGISTRATION_MODES
+    reuse_registration: bool = True  # reconstruct.registration_store: False registers again (and re-stores)
     progress: Callable[[int, int, str], None] | None = None
 
     def report(self, done: int, total: int, message: str = "") -> None:
@@ -214,8 +216,16 @@ def check_horizon(capture: Capture) -> None:
 
 
 def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
-                registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None, **options) -> tuple[MethodOutput, dict]:
-    """Run ``method`` on ``capture``; return its output and the record written to ``NAME.json``."""
+                registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None,
+                physical_projection: bool = True, reuse_registration: bool = True, **options) -> tuple[MethodOutput, dict]:
+    """Run ``method`` on ``capture``; return its output and the record written to ``NAME.json``.
+
+    ``physical_projection``: project the output onto physically valid intensities
+    (:func:`capssim.physical_validity.project_to_physical`: ``I >= 0``, ``I0 + I90 = I45 + I135``,
+    DoLP <= 1) where all four angles are observed; its time is a stage of the method's.
+    ``reuse_registration``: reuse the warps stored with the capture for the same registration
+    (:mod:`capssim.reconstruct.registration_store`); False registers again and replaces them.
+    """
     spec = get_method(method)
     dev = resolve_device(device)
     if spec.input_kind == "caps" and not true_warps:
@@ -226,7 +236,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         raise CaptureFormatError(f"method {method!r} needs dofp_raw.tiff, which this capture lacks.")
     timer = StageTimer(dev)
     ctx = RunContext(device=dev, timer=timer, options=dict(options), true_warps=true_warps,
-                     registration=registration, progress=progress)
+                     registration=registration, reuse_registration=reuse_registration, progress=progress)
     t0 = time.perf_counter()
     with torch.no_grad():
         out = spec.function(capture, context=ctx)
@@ -236,7 +246,17 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     if image.shape != (12, hh, ww):
         raise RuntimeError(f"method {method!r} returned shape {image.shape}, expected {(12, hh, ww)}")
     if not np.all(np.isfinite(image)):
-        raise RuntimeError(f"method {method!r} returned {int(np.sum(~np.isfinite(image)))} non-finite values")
+        given = ", ".join(f"{k}={v}" for k, v in options.items()) or "none"
+        raise CapssimError(f"method {method!r} returned {int(np.sum(~np.isfinite(image)))} non-finite values "
+                           f"(method options: {given}). Try the method's default options; if it fails with them "
+                           "too, please report it with the capture.")
+    if callable(out.unobserved):
+        out.unobserved = out.unobserved()
+    projection = None
+    if physical_projection:
+        with timer.stage("physical_projection"):
+            image, projection = project_to_physical(image, unobserved=out.unobserved)
+        total += timer.stages["physical_projection"]
     out.image = image
     record = {
         "method": method,
@@ -250,10 +270,9 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         "wall_time_s": total,
         "stages_s": dict(timer.stages),
         "history": out.history,
+        "physical_projection": None if projection is None else projection.to_dict(),
         **out.extra,
     }
-    if callable(out.unobserved):
-        out.unobserved = out.unobserved()
     unobserved = unobserved_record(method, out.unobserved)
     if unobserved is not None:
         record["unobserved"] = unobserved

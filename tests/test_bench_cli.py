@@ -56,7 +56,7 @@ def test_dofp_subject_scores_the_published_columns(tmp_path):
     _gt_folder(tmp_path / "gt" / "tiny")
     out = tmp_path / "rows.json"
     r = _invoke("bench", "dofp", "--gt-root", tmp_path / "gt", "--scenes", "tiny", "--methods", "dofp-bilinear",
-                "--threads", 1, "--json", out)
+                "--threads", 1, "-o", out)
     assert r.exit_code == 0, r.output
     assert "border crop 15 px" in r.output and "dofp-bilinear" in r.output
     (row,) = json.loads(out.read_text())
@@ -73,7 +73,7 @@ def test_registration_subject(tmp_path):
     capture = tmp_path / "cap"
     write_capture(capture, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=2))
     out = tmp_path / "reg.json"
-    r = _invoke("bench", "registration", capture, "--mode", "ri-luminance", "--json", out)
+    r = _invoke("bench", "registration", capture, "--mode", "ri-luminance", "-o", out)
     assert r.exit_code == 0, r.output
     result = json.loads(out.read_text())
     (row,) = result["rows"]
@@ -115,7 +115,7 @@ def test_results_page_is_written_atomically_and_listed(tmp_path):
 def test_reconstruct_subject_runs_its_worker_in_a_subprocess(tmp_path):
     out = tmp_path / "rb.json"
     r = _invoke("bench", "reconstruct", "--size", 64, "--device", "cpu", "--iterations", 1, "--threads", 1,
-                "--json", out)
+                "-o", out)
     assert r.exit_code == 0, r.output
     (result,) = json.loads(out.read_text())
     assert result["hr_size"] == 64 and result["threads"] == 1 and result["wall_s"] > 0

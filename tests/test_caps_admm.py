@@ -40,8 +40,12 @@ def test_parameter_validation():
 
 
 def _changed(history, i):
-    """True where iteration i changed a parameter: re-matched blocks or stepped mu."""
-    return history[i].get("rematched", False) or (i > 0 and history[i]["mu"] != history[i - 1]["mu"])
+    """True where iteration i changed a parameter: re-matched blocks, new (lazily updated) dictionaries
+    after reused ones (``dictionary_gap``), or stepped mu."""
+    new_dictionaries = history[i].get("new_dictionaries", False) and i > 0 \
+        and not history[i - 1].get("new_dictionaries", True)
+    return (history[i].get("rematched", False) or new_dictionaries
+            or (i > 0 and history[i]["mu"] != history[i - 1]["mu"]))
 
 
 @pytest.mark.parametrize("method", ["caps", "caps-no-cagf"])

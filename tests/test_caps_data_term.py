@@ -10,7 +10,7 @@ from capssim.geometry import ArrayGeometry, lr_homographies
 from capssim.homography import similarity
 from capssim.operators.camera import lr_sampling_operator
 from capssim.psf import gaussian_psf_kernel
-from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
+from capssim.reconstruct.data_term import ConfidenceDataTerm, confidence_mix, field_of_view_mask
 from capssim.reconstruct.rearrange import Observations
 
 HR = (24, 32)
@@ -94,3 +94,24 @@ def test_field_of_view_mask():
     assert inside[:4].all()
     # a +3 px shift moves the first sub-image column outside the reference grid
     assert not inside[4:, :, 0].any() and inside[4:, :, 1:].all()
+
+
+def test_confidence_mix_equals_the_per_pixel_product():
+    gen = torch.Generator().manual_seed(5)
+    conf = torch.rand(4, 4, 6, 7, generator=gen, dtype=torch.float64)
+    b = torch.randn(4, 6, 7, generator=gen, dtype=torch.float64)
+    assert torch.allclose(confidence_mix(conf, b), torch.einsum("jchw,jhw->chw", conf, b))
+
+
+def test_residual_is_reused_only_for_the_same_unmodified_image():
+    data, _ = setup()
+    x = torch.rand(12, *HR, dtype=torch.float64)
+    calls = []
+    forward = data.operator.forward
+    data.operator.forward = lambda t: calls.append(1) or forward(t)
+    f = data.value(x)
+    _, f2 = data.descent_direction(x)                 # same x: M applied once
+    assert f2 == f and len(calls) == 1
+    x.mul_(0.5)                                       # modified in place: recomputed
+    assert data.value(x) != f and len(calls) == 2
+    assert data.value(x.clone()) == data.value(x) and len(calls) == 4  # another tensor: recomputed

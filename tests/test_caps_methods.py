@@ -172,9 +172,9 @@ def test_cuda_matches_cpu():
 def test_options_compose_the_parameter_objects_under_the_same_names():
     """CapsOptions holds one parameter object per step; the option names and the record stay flat."""
     names = ["iterations", "mu0", "grow_rate", "grow_step", "dt", "n_similar", "n_similar_step", "n_similar_min",
-             "rematch_change", "rematch_min_gap", "rematch_max_gap", "block", "stride", "search_radius", "c1", "c2",
-             "adaptive", "weight_bandwidth", "strip_mb", "nu", "cagf_radius", "cagf_eps", "psf_sigma", "fov_mask",
-             "track_psnr"]
+             "rematch_change", "rematch_min_gap", "rematch_max_gap", "dictionary_gap", "block", "stride",
+             "search_radius", "c1", "c2", "adaptive", "weight_bandwidth", "strip_mb", "nu", "cagf_radius", "cagf_eps",
+             "psf_sigma", "fov_mask", "track_psnr", "preset"]
     assert list(CapsOptions().to_dict()) == names == list(CapsOptions.option_names())
     opts = CapsOptions.from_options({"iterations": "7", "strip-mb": "0.5", "cagf_radius": 2, "rematch_max_gap": 4,
                                      "fov_mask": "off"}, c1=0.001)
@@ -185,3 +185,15 @@ def test_options_compose_the_parameter_objects_under_the_same_names():
         CapsOptions.from_options({"eps": 1e-3})  # NLSTR's eps is not an option
     with pytest.raises(InputError):
         CapsOptions.from_options({"rematch_min_gap": 5, "rematch_max_gap": 2}).validated_parameters()
+
+
+def test_preset_fast_sets_its_options_and_explicit_options_win():
+    fast = CapsOptions.from_options({"preset": "fast"})
+    assert (fast.admm.iterations, fast.matching.dictionary_gap, fast.nlstr.stride, fast.preset) == (8, 4, 5, "fast")
+    assert CapsOptions.from_options({"preset": "fast", "iterations": "12"}).admm.iterations == 12
+    default = CapsOptions.from_options({})
+    assert (default.admm.iterations, default.matching.dictionary_gap, default.preset) == (25, 3, "default")
+    assert CapsOptions.from_options({"preset": "literal"}).matching.dictionary_gap == 1
+    assert CapsOptions.from_options({"preset": "fast"}, c1=0.001).nlstr.c1 == 0.001  # a method's own defaults stay
+    with pytest.raises(UnknownNameError):
+        CapsOptions.from_options({"preset": "fastest"})

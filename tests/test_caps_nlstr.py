@@ -7,7 +7,14 @@ import torch
 from capssim.errors import InputError
 from capssim.reconstruct.filters import sliding_window_sum
 from capssim.reconstruct.interfaces import no_stage
-from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor, reference_positions, shrink_core
+from capssim.reconstruct.nlstr import (
+    NLSTRParameters,
+    NonlocalSparseTensor,
+    reference_positions,
+    shrink_core,
+    window_sums_at,
+)
+from capssim.reconstruct.nlstr_blocks import gram_maps, mode_products, unpack_grams, weighted_block_sums
 from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
 
 
@@ -61,12 +68,12 @@ def test_group_gram_from_maps_equals_direct():
     c, h, w, b = 4, 20, 22, 4
     z = torch.rand(c, h, w, dtype=torch.float64)
     nl = NonlocalSparseTensor((c, h, w), NLSTRParameters(block=b, stride=2, search_radius=2), dtype=torch.float64)
-    maps = nl._gram_maps(z)  # the whole image is one region
+    maps = gram_maps(z, b, nl._tri_c)  # the whole image is one region
     nx = w - b + 1
     rng = np.random.default_rng(0)
     pos = [(int(rng.integers(0, h - b + 1)), int(rng.integers(0, w - b + 1))) for _ in range(5)]
     sums = sum(maps[y * nx + x] for y, x in pos)[None]
-    gram_hw, gram_c = nl._unpack(sums)
+    gram_hw, gram_c = unpack_grams(sums, b, nl._tri_c, c)
     blocks = torch.stack([z[:, y:y + b, x:x + b].permute(1, 2, 0) for y, x in pos])  # (P, b, b, c)
     direct_h = sum(blk.reshape(b, -1) @ blk.reshape(b, -1).T for blk in blocks)
     direct_w = sum(blk.transpose(0, 1).reshape(b, -1) @ blk.transpose(0, 1).reshape(b, -1).T for blk in blocks)
@@ -82,10 +89,10 @@ def test_mode_products_are_orthonormal_transforms():
     ph = torch.linalg.qr(torch.randn(k, b, b, dtype=torch.float64))[0]
     pw = torch.linalg.qr(torch.randn(k, b, b, dtype=torch.float64))[0]
     pc = torch.linalg.qr(torch.randn(k, c, c, dtype=torch.float64))[0]
-    core = NonlocalSparseTensor._mode_products(t, ph, pw, pc, transpose=True)
+    core = mode_products(t, ph, pw, pc, transpose=True)
     ref = torch.einsum("kia,kjb,kcd,kijc->kabd", ph, pw, pc, t)  # C = R x1 Ph^T x2 Pw^T x3 Pc^T
     assert torch.allclose(core, ref)
-    back = NonlocalSparseTensor._mode_products(core, ph, pw, pc, transpose=False)
+    back = mode_products(core, ph, pw, pc, transpose=False)
     assert torch.allclose(back, t)
     assert torch.allclose(core.square().sum(), t.square().sum())
 
@@ -204,3 +211,45 @@ def test_sliding_window_sum_never_aliases_and_checks_size():
     assert x.abs().sum() > 0
     with pytest.raises(InputError, match="size"):
         sliding_window_sum(x, 8, dim=-1)
+
+
+def test_weighted_block_sums_equal_the_gathered_sum():
+    torch.manual_seed(6)
+    c, h, w, b = 3, 17, 19, 4
+    z = torch.rand(c, h, w, dtype=torch.float64)
+    nl = NonlocalSparseTensor((c, h, w), NLSTRParameters(block=b, stride=3, search_radius=2), dtype=torch.float64)
+    m = nl.match(z, 6)
+    u = weighted_block_sums(z.permute(1, 2, 0).reshape(h * w, c).contiguous(), nl._group_matrix(m), b, w)
+    for k in (0, 7, nl.n_ref - 1):
+        expected = sum(float(m.weights[k, p]) * z[:, m.pos_y[k, p]:m.pos_y[k, p] + b, m.pos_x[k, p]:m.pos_x[k, p] + b]
+                       for p in range(6))
+        assert torch.allclose(u[k], expected.permute(1, 2, 0))
+
+
+def test_dictionary_gap_reuses_dictionaries_between_updates():
+    clean = piecewise_scene(h=24, w=28).float()
+    nl = NonlocalSparseTensor(tuple(clean.shape), NLSTRParameters())
+    m = nl.match(clean, 10)
+    fresh, _ = nl.estimate(clean, m)
+    reused, _ = nl.estimate(clean, m, reuse_bases=True)
+    assert torch.allclose(fresh, reused)                      # same z, same groups: the same dictionaries
+    with pytest.raises(InputError):
+        nl.estimate(clean, nl.match(clean, 8), reuse_bases=True)  # new groups: nothing to reuse
+    schedule = MatchSchedule(n_similar=10, rematch_min_gap=10, rematch_max_gap=10, dictionary_gap=3)
+    prior = NLSTRPrior(nl, schedule)
+    flags = []
+    for i in range(7):
+        _, fields = prior.estimate(clean, mu=0.5, iteration=i, stage=no_stage)
+        prior.after_step(iteration=i, change=0.01)
+        flags.append(fields["new_dictionaries"])
+    assert flags == [True, False, False, True, False, False, True]
+    with pytest.raises(InputError):
+        MatchSchedule(dictionary_gap=0).validate()
+
+
+def test_window_sums_at_a_stride_aligned_grid_equal_the_sliding_sums():
+    x = torch.rand(6, 20, 3, dtype=torch.float64)
+    for starts in (torch.arange(0, 13, 4), torch.tensor([0, 4, 8, 12]), torch.tensor([0, 3, 6, 9, 12]),
+                   torch.tensor([0, 4, 8, 10])):
+        expected = sliding_window_sum(x, 8, dim=1).index_select(1, starts)
+        assert torch.allclose(window_sums_at(x, 8, starts, dim=1), expected)

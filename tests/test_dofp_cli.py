@@ -43,15 +43,21 @@ def test_demosaic_writes_tiff_previews_and_record(tmp_path, scene64, method, bit
                                                      "intensity.png", "panel.png"]
     image = tifffile.imread(out / "demosaicked.tiff")
     assert image.shape == (12, 64, 64) and image.dtype == np.float32
-    # float end to end: sampled pixels equal DN / (2^bits - 1) exactly (no 8-bit round trip)
-    cmap = dofp_channel_map(64, 64, "sony")
-    np.testing.assert_array_equal(np.take_along_axis(image, cmap[None], axis=0)[0],
-                                  (data.astype(np.float64) / (2 ** bits - 1)).astype(np.float32))
     assert np.abs(image - scene64).mean() < 0.03
+    four = image.reshape(4, 3, 64, 64).astype(np.float64)  # physically valid by default
+    assert four.min() >= 0 and np.abs(four[0] + four[2] - four[1] - four[3]).max() < 1e-5
+    # float end to end: without the projection, sampled pixels equal DN / (2^bits - 1) exactly
+    raw_out = tmp_path / "raw-out"
+    assert _invoke("demosaic", str(raw), "--method", method, "--no-physical-projection", "-o", str(raw_out)).exit_code == 0
+    unprojected = tifffile.imread(raw_out / "demosaicked.tiff")
+    cmap = dofp_channel_map(64, 64, "sony")
+    np.testing.assert_array_equal(np.take_along_axis(unprojected, cmap[None], axis=0)[0],
+                                  (data.astype(np.float64) / (2 ** bits - 1)).astype(np.float32))
     record = json.loads((out / "demosaic.json").read_text())
     assert record["method"] == method and record["layout"] == [[90, 45], [135, 0]]
     assert record["input"]["bit_depth"] == bits and record["stages_s"]
-    assert cv2.imread(str(out / "panel.png")).shape == (64, 3 * 64 + 8, 3)
+    panel = cv2.imread(str(out / "panel.png"))  # titled maps with their keys (tests/test_hardening_outputs.py)
+    assert panel.shape[0] > 260 and panel.shape[1] > 3 * 260 and set(record["previews"]) >= {"dolp.png", "panel.png"}
 
 
 def test_demosaic_white_and_black_level(tmp_path, scene64):
@@ -62,7 +68,7 @@ def test_demosaic_white_and_black_level(tmp_path, scene64):
     tifffile.imwrite(raw, dn)
     out = tmp_path / "out"
     result = _invoke("demosaic", str(raw), "--layout", "0-45-135-90", "--method", "dofp-bilinear",
-                     "--white-level", "4095", "--black-level", "64", "-o", str(out))
+                     "--white-level", "4095", "--black-level", "64", "--no-physical-projection", "-o", str(out))
     assert result.exit_code == 0, result.output
     image = tifffile.imread(out / "demosaicked.tiff")
     kept = np.take_along_axis(image, cmap[None], axis=0)[0]

@@ -282,10 +282,14 @@ def test_methods_run_through_the_registry(tmp_path, scene64, layout):
         assert all(v >= 0 for v in record["stages_s"].values())
     assert set(METHODS) <= set(list_reconstructions(path))
     from capssim.imageio import read_tiff
+    from capssim.physical_validity import project_to_physical
 
     out = read_tiff(path / "recon" / "dofp-bilinear.tiff")
     expected = demosaic_dofp_bilinear(capture.dofp_float(), layout=layout)
-    np.testing.assert_array_equal(out, expected)
+    np.testing.assert_array_equal(out, project_to_physical(expected)[0])  # the registry's projection
+    unprojected = run_method(path, "dofp-bilinear", physical_projection=False)
+    assert unprojected["physical_projection"] is None
+    np.testing.assert_array_equal(read_tiff(path / "recon" / "dofp-bilinear.tiff"), expected)
 
 
 def test_eari_options_through_the_registry(scene64):

@@ -213,3 +213,12 @@ def test_bad_suite_and_baseline(tmp_path):
     run = BenchRun(spec={"name": "x"}, output=tmp_path, results_path=tmp_path / "r", records=[], environment={})
     with pytest.raises(InputError, match="update-baseline"):
         check_against_baseline(run, tmp_path / "missing.json")
+
+
+def test_a_suite_times_reused_registration_as_if_computed():
+    from capssim.eval.benchmarks.cases import reused_registration_s
+
+    assert reused_registration_s({"registration": {"store": "reused", "time_s": 2.5}}) == 2.5
+    assert reused_registration_s({"registration": {"store": "computed", "time_s": 2.5}}) == 0.0
+    assert reused_registration_s({"registration": {"source": "true"}}) == 0.0
+    assert reused_registration_s({}) == 0.0

@@ -238,7 +238,7 @@ def test_cli_simulate_and_design(tmp_path):
     r = run("simulate", "--gt", str(scene), "-o", str(tmp_path / "x"), "--noise", "poisson-gaussian", "--sensor", "nikon")
     assert r.returncode == 2 and "imx250myr" in r.stderr
     assert not (tmp_path / "x").exists()
-    r = run("design", "--json", str(tmp_path / "d.json"))
+    r = run("design", "-o", str(tmp_path / "d.json"))
     assert r.returncode == 0 and "8.67" in r.stdout
     d = json.loads((tmp_path / "d.json").read_text())
     assert round(d["diffraction_to_nyquist_ratio"], 1) == 8.7 and d["r_sr"] == 2.0

@@ -305,3 +305,12 @@ def test_option_placeholders_name_what_to_type_not_python_types():
         options = [line for line in result.output.splitlines() if line.lstrip().startswith("-")]
         assert not [line for line in options if re.search(r"<\w+\[", line)], \
             f"capssim {command} --help shows a Python type as an option's placeholder"
+
+
+@pytest.mark.parametrize("pair, flag", [("physical_projection=0", "--no-physical-projection"),
+                                        ("device=cuda", "--device"), ("true_warps=1", "--true-warps"),
+                                        ("progress=0", "--progress")])
+def test_method_option_that_is_a_command_flag_names_the_flag(pair, flag, capture_dir, capsys, monkeypatch):
+    status, err = run_cli(["reconstruct", capture_dir, "-m", "caps-naive", "-O", pair, "--no-progress"],
+                          capsys, monkeypatch)
+    assert_user_error(status, err, "--option", pair.split("=")[0], flag)

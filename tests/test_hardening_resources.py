@@ -224,3 +224,31 @@ def test_demosaic_cli_refuses_bad_dolp_max(tmp_path):
         result = runner.invoke(app, ["demosaic", str(raw), "-o", str(tmp_path / "out"), "--dolp-max", bad])
         assert isinstance(result.exception, InputError) and "--dolp-max" in str(result.exception)
     assert not (tmp_path / "out").exists()
+
+
+# -- dataset sample counts ----------------------------------------------------------------
+@pytest.mark.parametrize("dry_run", [True, False])
+def test_dataset_refuses_a_sample_count_the_disk_cannot_hold(tmp_path, dry_run):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "gt.tiff", _gt(64))
+    config = tmp_path / "c.yaml"
+    config.write_text("seed: 0\nsamples: 1000000000\nsources:\n  - gt: gt.tiff\n    size: 32\n")
+    args = ["dataset", str(config), "-o", str(tmp_path / "ds")] + (["--dry-run"] if dry_run else [])
+    result = runner.invoke(app, args)
+    assert isinstance(result.exception, ResourceError), result.output
+    message = str(result.exception)
+    assert message.startswith("samples:") and "1000000000 samples" in message and "TiB on disk" in message
+    assert not (tmp_path / "ds").exists()
+
+
+def test_dataset_refuses_more_local_workers_than_the_machine_can_start(tmp_path):
+    import tifffile
+
+    tifffile.imwrite(tmp_path / "gt.tiff", _gt(64))
+    config = tmp_path / "c.yaml"
+    config.write_text("seed: 0\nsamples: 2\nsources:\n  - gt: gt.tiff\n    size: 32\n")
+    result = runner.invoke(app, ["dataset", str(config), "-o", str(tmp_path / "ds"), "--workers", "100000"])
+    assert isinstance(result.exception, ResourceError), result.output
+    assert str(result.exception).startswith("--workers:") and "per core" in str(result.exception)
+    assert not (tmp_path / "ds").exists()

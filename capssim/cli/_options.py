@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
-from typing import Optional
+from typing import Callable, Optional
 
 import typer
 
 from capssim.errors import InputError
+from capssim.resources import check_memory
 from capssim.sensor import Sensor, make_sensor
 
 #: largest ``--seed`` (numpy's ``SeedSequence`` takes any integer >= 0; 63 bits keep it an int64 everywhere)
@@ -20,8 +22,59 @@ def sensor_from_options(noise: str, sigma: Optional[float], sensor_preset: Optio
     return make_sensor(noise, sigma=sigma, preset=sensor_preset)
 
 
+def number_in(option: str, low: float = -math.inf, high: float = math.inf, *, low_open: bool = False,
+              high_open: bool = False, what: str = "", fix: str | None = None) -> Callable:
+    """A typer callback refusing a value of ``option`` that is not finite or lies outside ``low .. high``
+    (``*_open``: that end excluded) with an :class:`InputError`; ``None`` (the option not given) passes."""
+    if math.isinf(high):
+        valid = f"a finite number {'>' if low_open else '>='} {low:g}"
+    else:
+        valid = f"a finite number in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    valid += f" ({what})" if what else ""
+
+    def check(value):
+        if value is None:
+            return value
+        above = value > low if low_open else value >= low
+        below = value < high if high_open else value <= high
+        if not (math.isfinite(value) and above and below):
+            raise InputError(option, value, valid, fix)
+        return value
+
+    return check
+
+
+def each(check: Callable) -> Callable:
+    """``check`` applied to every value of a repeatable option."""
+    return lambda values: values if values is None else [check(v) for v in values]
+
+
+#: bytes per HR pixel a benchmark's scene holds at least (12 float64 channels, several copies)
+SCENE_BYTES_PER_HR_PIXEL = 768
+
+
+def check_hr_size(option: str) -> Callable:
+    """A callback refusing an HR ``size`` whose scene alone would pass the memory limit (the resource guard)."""
+    def check(size):
+        if size is not None:
+            check_memory(option, float(size) ** 2 * SCENE_BYTES_PER_HR_PIXEL, what=f"a {size}x{size} scene",
+                         fix=f"Use a smaller {option}.")
+        return size
+
+    return check
+
+
+def check_iterations(iterations: Optional[int]) -> Optional[int]:
+    """``--iterations`` in ``0 .. MAX_ITERATIONS`` (the solvers' sane range)."""
+    from capssim.reconstruct.admm import MAX_ITERATIONS  # start-up time: pulls torch
+
+    return number_in("--iterations", 0, MAX_ITERATIONS, what="the paper uses 25")(iterations)
+
+
 NoiseOption = typer.Option("none", "--noise", help="Sensor noise model: none | gaussian | poisson-gaussian.")
-SigmaOption = typer.Option(None, "--sigma", help="Gaussian noise std on [0, 1] data (with --noise gaussian).")
+SigmaOption = typer.Option(None, "--sigma", help="Gaussian noise std on [0, 1] data (with --noise gaussian).",
+                           callback=number_in("--sigma", 0.0, 1.0, what="noise std on [0, 1] data",
+                                              fix="Try --sigma 0.01."))
 SensorOption = typer.Option(None, "--sensor", help="Sensor preset for poisson-gaussian: python1300 | imx250myr.")
 
 
@@ -36,6 +89,18 @@ SeedOption = typer.Option(0, "--seed", callback=check_seed, help="Random seed (p
 OverwriteOption = typer.Option(False, "--overwrite", help="Replace an existing output folder.")
 DofpLayoutOption = typer.Option("sony", "--dofp-layout",
                                 help="DoFP 2x2 polarizer cell: sony ([[90,45],[135,0]]) | 0-45-135-90.")
+
+ThreadsOption = typer.Option(None, "--threads", min=1,
+                             help="CPU threads for torch/OpenMP/OpenCV (default: $CAPSSIM_THREADS, else 1, steady "
+                                  "on a shared machine; the core count is faster where nothing else runs).")
+
+
+def apply_threads(threads: Optional[int], *, renderer: bool = False) -> int:
+    """Set the compute threads from ``--threads`` (else ``$CAPSSIM_THREADS``, else the default);
+    ``renderer``: Dr.Jit's (Mitsuba's) too."""
+    from capssim.threads import set_threads  # start-up time: pulls torch
+
+    return set_threads(threads, renderer=renderer)
 
 
 def echo_path(label: str, path: Path) -> None:

@@ -6,7 +6,7 @@ regression baselines, report and results page), ``reconstruct`` (time and memory
 the published protocol), ``render`` (the rendering choices) and ``dataset`` (generation
 throughput). Options that mean the same thing have the same name in every subject: ``--device``,
 ``--repeats``, ``--threads``, ``--size``, ``--scenes`` and ``--methods`` (comma-separated),
-``--json`` (also write the measurements to this file).
+``-o/--output`` (also write the measurements to this JSON file; ``suite``: the output folder).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from typing import List, Optional
 import typer
 from typer.core import TyperGroup
 
+from capssim.cli._options import ThreadsOption, apply_threads, check_hr_size, check_iterations, each, number_in
 from capssim.cli.evaluate import format_table, format_value
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_json
@@ -41,9 +42,9 @@ bench_app = typer.Typer(name="bench", cls=_BenchGroup, no_args_is_help=True, ric
                              "registration, dofp, render, dataset.")
 
 DeviceOption = typer.Option("cpu", "--device", help="cpu | cuda | auto.")
-RepeatsOption = typer.Option(1, "--repeats", help="Runs of each measurement; the tables show the fastest.")
-ThreadsOption = typer.Option(None, "--threads", help="torch CPU threads (default: torch's choice).")
-JsonOption = typer.Option(None, "--json", help="Also write the measurements to this JSON file.")
+RepeatsOption = typer.Option(1, "--repeats", help="Runs of each measurement; the tables show the fastest.",
+                             callback=number_in("--repeats", 1, 1000, what="runs"))
+JsonOption = typer.Option(None, "-o", "--output", help="Also write the measurements to this JSON file.")
 
 
 def _names(csv: Optional[str]) -> list[str] | None:
@@ -51,10 +52,7 @@ def _names(csv: Optional[str]) -> list[str] | None:
 
 
 def _set_threads(threads: Optional[int]) -> None:
-    if threads is not None:
-        import torch  # start-up time: torch loads only when a benchmark runs
-
-        torch.set_num_threads(threads)
+    apply_threads(threads)  # --threads, else $CAPSSIM_THREADS, else capssim.threads' default; inherited by workers
 
 
 def _write_json(path: Optional[Path], obj) -> None:
@@ -98,8 +96,19 @@ def suite(
     cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/cache)."),
     fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the plots (report and results only)."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=0, metavar="N",
+                                          help="Run the cases on a local Dask cluster of N worker processes (1 task "
+                                               "and --threads compute threads each; default: in this process)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", metavar="ADDRESS",
+                                            help="Run the cases on the Dask cluster at this address, "
+                                                 "e.g. tcp://host:8786 (workers must see OUTPUT and the data)."),
 ) -> None:
-    """Run a benchmark suite: scenes x methods x noise levels (x seeds); results.jsonl, report.md, plots."""
+    """Run a benchmark suite: scenes x methods x noise levels (x seeds); results.jsonl, report.md, plots.
+
+    Each case's line is appended to results.jsonl as it finishes; run the same command again to
+    finish an interrupted run (only the missing cases run). --workers N / --scheduler ADDRESS
+    run the cases in parallel on Dask, with the same results as a run in this process.
+    """
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -114,10 +123,14 @@ def suite(
                   TextColumn("{task.fields[case]}"), console=Console(stderr=True), transient=False) as progress:
         task = progress.add_task(f"bench {spec['name']}", total=None, case="")
         run = run_suite(spec, output, methods=_names(methods), scenes=_names(scenes), device=device, cache_dir=cache,
-                        fresh=fresh, events=_progress_events(progress, task))
+                        fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
+                        events=_progress_events(progress, task))
     verdict = check_against_baseline(run, check) if check is not None else None
     report = write_report(run, output, verdict=verdict, plots=not no_plots)
     typer.echo(render_bench_summary(run))
+    if run.execution.get("kind") == "dask":
+        typer.echo(f"ran on {run.execution['workers']} Dask worker(s), {run.execution['compute_threads']} compute "
+                   f"thread(s) each, in {run.wall_time_s:.1f} s")
     typer.echo(f"results: {run.results_path}")
     typer.echo(f"report:  {report}")
     if results_page is not None:
@@ -166,10 +179,11 @@ def render_bench_summary(run) -> str:
 # -- reconstruct ---------------------------------------------------------------------------------
 @bench_app.command("reconstruct")
 def reconstruct(
-    sizes: List[int] = typer.Option([256, 512, 1024], "--size", metavar="PIXELS", help="HR output size (repeatable)."),
+    sizes: List[int] = typer.Option([256, 512, 1024], "--size", metavar="PIXELS", help="HR output size (repeatable).",
+                                    callback=each(check_hr_size("--size"))),
     devices: List[str] = typer.Option(["cpu", "cuda"], "--device", metavar="DEVICE",
                                       help="Devices to time (repeatable; cuda is skipped when absent)."),
-    iterations: int = typer.Option(25, "--iterations", help="ADMM iterations (paper: 25)."),
+    iterations: int = typer.Option(25, "--iterations", help="ADMM iterations (paper: 25).", callback=check_iterations),
     repeats: int = RepeatsOption,
     threads: Optional[int] = ThreadsOption,
     gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth scene (default: ../shared/data/gt/qiu-kettle "
@@ -178,6 +192,7 @@ def reconstruct(
     as_json: Optional[Path] = JsonOption,
 ) -> None:
     """Wall time and peak memory per stage of 'caps' at the paper's defaults, each run in a fresh process."""
+    _set_threads(threads)
     from capssim.eval.benchmarks.reconstruct import format_tables, run_benchmark
 
     results = run_benchmark(sizes=sizes, devices=devices, iterations=iterations, repeats=repeats, gt=gt,
@@ -196,7 +211,7 @@ def registration(
     stokes_weight: Optional[float] = typer.Option(None, "--stokes-weight",
                                                   help="Weight of the Stokes-consistency term (default: the mode's)."),
     content_alignment: Optional[Path] = typer.Option(
-        None, "--content-alignment", help="capssim gt-check --json record of the captures' ground truth: also report "
+        None, "--content-alignment", help="capssim gt-check -o record of the captures' ground truth: also report "
                                           "the error against the content warps."),
     device: str = DeviceOption,
     threads: Optional[int] = ThreadsOption,
@@ -270,7 +285,8 @@ def render(
                                help="Comma-separated scenes for the cost table."),
     size: int = typer.Option(128, "--size", help="HR size."),
     spp: Optional[int] = typer.Option(None, "--spp", help="Fixed spp per HR pixel (default: --target-noise)."),
-    target_noise: Optional[float] = typer.Option(None, "--target-noise", help="Monte-Carlo target (default 0.004)."),
+    target_noise: Optional[float] = typer.Option(None, "--target-noise", help="Monte-Carlo target (default 0.004).",
+                                                 callback=number_in("--target-noise", 0.0, 1.0, low_open=True)),
     measure: bool = typer.Option(False, "--measure-savings", help="Measure each choice's saving (slow)."),
     warp_scene: Optional[str] = typer.Option(None, "--warp-accuracy",
                                              help="Planar scene: raw error of the planar warp vs real renders."),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 from typing import Optional
@@ -15,10 +16,12 @@ from capssim.cli._options import (
     SeedOption,
     SensorOption,
     SigmaOption,
+    ThreadsOption,
+    apply_threads,
     sensor_from_options,
 )
 from capssim.design import DesignInputs, system_design
-from capssim.imageio import atomic_write_json, check_output_free, read_gt_scene
+from capssim.imageio import atomic_write_json, check_output_file, check_output_free, read_gt_scene
 from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 
 
@@ -39,8 +42,10 @@ def simulate(
     extinction_ratio: Optional[float] = typer.Option(None, "--extinction-ratio",
                                                      help="Polarizer extinction ratio (default: ideal)."),
     overwrite: bool = OverwriteOption,
+    threads: Optional[int] = ThreadsOption,
 ) -> None:
     """Simulate CAPS and DoFP captures from a ground-truth scene (paper section 5.2)."""
+    apply_threads(threads)
     # these pull torch and the operators: loaded when the command runs (start-up time)
     from capssim.capture import write_capture
     from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
@@ -70,9 +75,13 @@ def design(
     depth_m: float = typer.Option(10.0, "--depth-m"),
     width_px: int = typer.Option(1280, "--width-px"),
     height_px: int = typer.Option(1024, "--height-px"),
-    as_json: Optional[Path] = typer.Option(None, "--json", help="Also write the numbers to this JSON file."),
+    as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON instead of a table."),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="Also write the numbers to this JSON file "
+                                                                      "(atomic; an existing file is replaced)."),
 ) -> None:
     """Print the system-design quantities of the paper (eq. 5-8). Defaults: the paper's prototype."""
+    if output is not None:
+        check_output_file(output, argument="-o/--output")
     d = system_design(DesignInputs(focal_length_mm, f_number, pixel_um, wavelength_nm, apertures, baseline_mm,
                                    depth_m, width_px, height_px))
     rows = [
@@ -88,12 +97,15 @@ def design(
         ("single-aperture FOV_h", f"{d['single_aperture_fov_h_deg']:.3f} deg"),
         ("equivalent focal length sqrt(N) f", f"{d['equivalent_focal_length_mm']:.1f} mm"),
     ]
-    width = max(len(r[0]) for r in rows)
-    for name, value in rows:
-        typer.echo(f"{name:<{width}}  {value}")
-    if as_json is not None:
-        atomic_write_json(as_json, d)
-        typer.echo(f"wrote {as_json}")
+    if as_json:
+        typer.echo(json.dumps(d, indent=2, allow_nan=False))
+    else:
+        width = max(len(r[0]) for r in rows)
+        for name, value in rows:
+            typer.echo(f"{name:<{width}}  {value}")
+    if output is not None:
+        atomic_write_json(output, d)
+        typer.echo(f"wrote {output}", err=as_json)  # stdout stays pure JSON with --json
 
 
 def register(app: typer.Typer) -> None:

@@ -11,6 +11,7 @@ from typing import Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+from capssim.cli._options import apply_threads
 from capssim.errors import InputError
 from capssim.imageio import check_writable_location
 
@@ -43,9 +44,10 @@ def dataset(
                                                "0 runs in this process without Dask."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler",
                                             help="Address of an existing Dask scheduler, e.g. tcp://host:8786."),
-    compute_threads: Optional[int] = typer.Option(None, "--compute-threads",
-                                                  help="torch/OpenMP/Mitsuba threads per worker "
-                                                       "(default: cores // workers locally, 1 on a cluster)."),
+    compute_threads: Optional[int] = typer.Option(None, "--threads", "--compute-threads", min=1,
+                                                  help="torch/OpenMP/Mitsuba threads per worker, or of this process "
+                                                       "with --workers 0 (default: cores // workers locally, 1 on "
+                                                       "a cluster, $CAPSSIM_THREADS or 1 in this process)."),
     verify: bool = typer.Option(False, "--verify", help="Check every sample against the manifest (after generating, "
                                                          "if CONFIG is given); exit 1 on corruption."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Check the config and print the first samples' parameters."),
@@ -56,6 +58,7 @@ def dataset(
     capssim dataset CONFIG -o OUT [--workers N | --scheduler ADDRESS] [--verify]
     capssim dataset --verify OUT
     """
+    apply_threads(compute_threads)
     if verify and output is None:
         if config is None:
             raise InputError("dataset", "nothing", "a dataset folder", "Run: capssim dataset --verify OUT")
@@ -72,6 +75,11 @@ def dataset(
     from capssim.dataset.sample import check_sample  # pulls torch and the renderer (start-up time)
 
     cfg = load_config(config)
+    if workers and scheduler is None:
+        from capssim.dataset.generate import check_local_workers  # start-up time
+
+        check_local_workers(workers)
+    _check_disk(cfg, output if output is not None else Path.cwd())
     if dry_run:
         typer.echo(f"config {config}: {cfg.samples} samples, {len(cfg.sources)} sources, seed {cfg.seed}, "
                    f"fingerprint {cfg.fingerprint()[:12]}")
@@ -118,6 +126,20 @@ def dataset(
     if verify:
         status = max(status, _verify(output))
     raise typer.Exit(status)
+
+
+#: samples whose drawn sizes set the per-sample disk estimate (the largest of them, times ``samples``)
+DISK_ESTIMATE_SAMPLES = 256
+
+
+def _check_disk(cfg, where: Path) -> None:
+    """Refuse a ``samples`` count whose files cannot fit on the disk that would hold them."""
+    from capssim.dataset.sample import sample_bytes_estimate  # start-up time
+    from capssim.resources import check_disk, format_bytes
+
+    largest = max(sample_bytes_estimate(cfg.sample_spec(i)) for i in range(min(cfg.samples, DISK_ESTIMATE_SAMPLES)))
+    check_disk("samples", float(cfg.samples) * largest, where, what=f"{cfg.samples} samples of up to {format_bytes(largest)} each",
+               fix="Lower 'samples' in the config, or write the dataset where there is room (-o).")
 
 
 def register(app: typer.Typer) -> None:

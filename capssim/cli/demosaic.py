@@ -10,10 +10,11 @@ from typing import Optional
 import numpy as np
 import typer
 
-from capssim.cli._options import OverwriteOption
+from capssim.cli._options import OverwriteOption, ThreadsOption, apply_threads
 from capssim.conventions import dofp_layout, dofp_layout_name
 from capssim.errors import InputError, UnknownNameError
 from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
+from capssim.physical_validity import project_to_physical
 
 DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2")
 
@@ -85,17 +86,23 @@ def demosaic(
     trim_odd: bool = typer.Option(False, "--trim-odd", help="Drop the last row/column of an odd-sized mosaic."),
     dolp_max: float = typer.Option(0.5, "--dolp-max", help="DoLP shown fully saturated in the AoP preview."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
+    physical_projection: bool = typer.Option(
+        True, "--physical-projection/--no-physical-projection",
+        help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1)."),
     overwrite: bool = OverwriteOption,
+    threads: Optional[int] = ThreadsOption,
 ) -> None:
     """Demosaick a real colour-polarization DoFP raw mosaic.
 
     Writes OUTPUT/demosaicked.tiff (12, H, W) float32 (channel c = 3*p + k, p over 0/45/90/135 deg,
-    k over R/G/B), previews intensity.png, dolp.png, aop.png, panel.png, and demosaic.json.
+    k over R/G/B), previews intensity.png, dolp.png, aop.png, panel.png (the three with titles, the
+    intensity and DoLP scales and the AoP colour key), and demosaic.json (with each preview's scale).
     """
     # start-up time: the previews and the methods pull torch
     from capssim.reconstruct.registry import StageTimer, dofp_array_function, resolve_device
-    from capssim.visualize import write_previews
+    from capssim.visualize import preview_scales, write_previews
 
+    apply_threads(threads)
     if method not in DOFP_METHODS:
         raise UnknownNameError("DoFP method", method, list(DOFP_METHODS))
     if not (math.isfinite(dolp_max) and 0.0 < dolp_max <= 1.0):
@@ -110,15 +117,22 @@ def demosaic(
     timer = StageTimer(dev)
     image = dofp_array_function(method)(mosaic, layout=cell, device=dev, timer=timer)
     image = np.asarray(image, dtype=np.float32)
+    projection = None
+    if physical_projection:
+        with timer.stage("physical_projection"):
+            image, projection = project_to_physical(image)
     record = {
         "command": "capssim demosaic", "method": method, "layout": [list(r) for r in cell],
         "layout_name": dofp_layout_name(cell), "input": info, "output_shape": list(image.shape),
         "channel_order": "c = 3*p + k, p over (0,45,90,135) deg, k over (R,G,B)", "device": str(dev),
         "stages_s": dict(timer.stages), "wall_time_s": time.perf_counter() - t0,
+        "physical_projection": None if projection is None else projection.to_dict(),
+        "previews": preview_scales(image, dolp_max=dolp_max),
     }
     with atomic_directory(output, overwrite=overwrite) as tmp:
         write_tiff(tmp / "demosaicked.tiff", image)
-        write_previews(image, tmp, dolp_max=dolp_max)
+        write_previews(image, tmp, dolp_max=dolp_max, title=f"{raw.name}: {method}, layout "
+                       f"{dofp_layout_name(cell)}, {image.shape[2]}x{image.shape[1]} px")
         atomic_write_json(tmp / "demosaic.json", record)
     h, w = image.shape[1:]
     typer.echo(f"wrote {output}: {method}, layout {dofp_layout_name(cell)}, {h}x{w} x 12 channels, "

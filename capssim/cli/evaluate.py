@@ -10,6 +10,7 @@ from typing import Optional
 import numpy as np
 import typer
 
+from capssim.cli._options import number_in
 from capssim.conventions import CHANNEL_NAMES
 from capssim.errors import InputError
 from capssim.imageio import read_image
@@ -47,7 +48,8 @@ def evaluate(
     methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated reconstructions to score (default: all)."),
     min_s0: Optional[float] = typer.Option(None, "--min-s0", help="AoP mask / DoLP guard: GT S0 above this (S0 in [0,2])."),
     min_dolp: Optional[float] = typer.Option(None, "--min-dolp", help="AoP mask: GT DoLP above this."),
-    border: Optional[int] = typer.Option(None, "--border", help="Border crop in pixels (default: the convention's)."),
+    border: Optional[int] = typer.Option(None, "--border", help="Border crop in pixels (default: the convention's).",
+                                         callback=number_in("--border", 0, what="pixels", fix="Try --border 0.")),
     lpips_weights: Optional[Path] = typer.Option(None, "--lpips-weights",
                                                  help="Local LPIPS-Alex weights (file or folder); never downloaded."),
     no_mtf: bool = typer.Option(False, "--no-mtf", help="Skip the Siemens-star MTF of star scenes."),
@@ -84,17 +86,18 @@ def render_evaluation(result: dict, *, lpips_used: bool) -> str:
     rows, ch_psnr, ch_ssim = [], [], []
     for name, e in result["methods"].items():
         if "error" in e:
-            rows.append([name, f"ERROR: {e['error']}"] + [""] * 10)
+            rows.append([name, f"ERROR: {e['error']}"] + [""] * 12)
             continue
         m = e["metrics"]
-        rows.append([name, fv(m["psnr_mean"]), fv(m["ssim_mean"], 4), fv(m["s0_psnr"]), fv(m["s1_psnr"]),
+        rows.append([name, fv(m["psnr_mean"]), fv(m.get("psnr_gt_peak_mean")), fv(m["ssim_mean"], 4),
+                     fv(m.get("ssim_gt_peak_mean"), 4), fv(m["s0_psnr"]), fv(m["s1_psnr"]),
                      fv(m["s2_psnr"]), fv(m["dolp_psnr"]), fv(m["dolp_ssim"], 4), fv(m["aop_rmse_deg"]),
                      fv(m["aop_mae_deg"]), fv(m.get("lpips_mean"), 4), fv(e.get("wall_time_s"), 2)])
         ch_psnr.append([name] + [fv(m["psnr"][c]) for c in CHANNEL_NAMES] + [fv(m["psnr_mean"])])
         ch_ssim.append([name] + [fv(m["ssim"][c], 3) for c in CHANNEL_NAMES] + [fv(m["ssim_mean"], 3)])
     out.append("")
-    out.append(format_table(["method", "PSNR", "SSIM", "S0", "S1", "S2", "DoLP", "DoLP-SSIM", "AoP-RMSE",
-                             "AoP-MAE", "LPIPS", "time-s"], rows))
+    out.append(format_table(["method", "PSNR", "PSNR-GTpk", "SSIM", "SSIM-GTpk", "S0", "S1", "S2", "DoLP",
+                             "DoLP-SSIM", "AoP-RMSE", "AoP-MAE", "LPIPS", "time-s"], rows))
     if ch_psnr:
         out += ["", "PSNR per channel (dB, data range 1):",
                 format_table(["method", *CHANNEL_NAMES, "mean"], ch_psnr), "",
@@ -106,6 +109,9 @@ def render_evaluation(result: dict, *, lpips_used: bool) -> str:
                     f"DoLP per colour, clipped to [0, 1], 0 where S0 <= {s['min_s0']}.",
                 f"AoP mask: ground-truth S0 > {s['min_s0']} and DoLP > {s['min_dolp']} "
                 f"(None = no mask); S0 = (I0+I45+I90+I135)/2 on [0, 2]."]
+        if s.get("gt_peak") is not None:
+            out.append(f"PSNR, SSIM: data range 1 (full scale); PSNR-GTpk, SSIM-GTpk: data range = the ground truth's "
+                       f"peak {s['gt_peak']:.3g} (the scene exposed to full scale; they rank methods on dark scenes).")
         fractions = {n: e["metrics"]["aop_fraction"] for n, e in result["methods"].items() if "metrics" in e}
         if fractions:
             out.append(f"AoP scored on {100 * next(iter(fractions.values())):.1f}% of colour-pixels.")
@@ -161,16 +167,21 @@ def mtf(
     image: Path = typer.Argument(..., help="Star image: PNG/TIFF, grey, RGB or 12-channel (capssim output)."),
     cycles: int = typer.Option(..., "--cycles", help="Sinusoidal periods of the star per turn."),
     center: Optional[str] = typer.Option(None, "--center", help="Star centre ROW,COL in pixels (default: found)."),
-    radius: Optional[float] = typer.Option(None, "--radius", help="Star radius in pixels (default: found)."),
+    radius: Optional[float] = typer.Option(None, "--radius", help="Star radius in pixels (default: found).",
+                                           callback=number_in("--radius", 0.0, low_open=True, what="pixels")),
     reference_pitch: Optional[float] = typer.Option(
         None, "--reference-pitch",
-        help="Pixels of this image per reference pixel for the magnification (default 1; 4 for a 12-channel image)."),
+        help="Pixels of this image per reference pixel for the magnification (default 1; 4 for a 12-channel image).",
+        callback=number_in("--reference-pitch", 0.0, low_open=True, what="pixels per reference pixel")),
     channel: Optional[str] = typer.Option(None, "--channel", help="Comma-separated channel names or indices (default: all)."),
     modulation: Optional[float] = typer.Option(None, "--modulation",
-                                               help="The target's true modulation (default: extrapolated to f=0)."),
-    threshold: float = typer.Option(0.03, "--threshold", help="MTF at the limit resolution (paper: 0.03)."),
+                                               help="The target's true modulation (default: extrapolated to f=0).",
+                                               callback=number_in("--modulation", 0.0, 1.0, low_open=True)),
+    threshold: float = typer.Option(0.03, "--threshold", help="MTF at the limit resolution (paper: 0.03).",
+                                    callback=number_in("--threshold", 0.0, 1.0, low_open=True, high_open=True)),
     residual_limit: float = typer.Option(0.5, "--residual-limit",
-                                         help="Stop where residual RMS / sinusoid RMS reaches this."),
+                                         help="Stop where residual RMS / sinusoid RMS reaches this.",
+                                         callback=number_in("--residual-limit", 0.0, low_open=True)),
     as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
 ) -> None:
     """MTF of a sinusoidal Siemens star per segment direction, limit resolution and SR magnification."""

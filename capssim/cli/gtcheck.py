@@ -16,11 +16,11 @@ def gt_check(
     crop: Optional[int] = typer.Option(None, "--crop", help="Check the centred N x N crop (as simulate --crop)."),
     dolp_max: float = typer.Option(0.1, "--dolp-max", help="Block DoLP below which a pixel is 'weakly polarized'."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda."),
-    as_json: Optional[Path] = typer.Option(None, "--json", help="Also write the report to this JSON file."),
+    as_json: Optional[Path] = typer.Option(None, "-o", "--output", help="Also write the report to this JSON file."),
     write_aligned: Optional[Path] = typer.Option(
         None, "--write-aligned", help="Write a 12-channel float TIFF with the 45/90/135 deg images resampled onto "
                                       "the 0 deg one (usable as simulate --gt)."),
-    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing --json / --write-aligned files."),
+    overwrite: bool = typer.Option(False, "--overwrite", help="Replace existing --output / --write-aligned files."),
 ) -> None:
     """Measure the inter-image offsets, Stokes residual and clipping of a ground truth (capssim.eval.gt_check)."""
     # start-up time: the check, the registry and the simulation pull torch
@@ -28,7 +28,7 @@ def gt_check(
     from capssim.reconstruct.registry import resolve_device
     from capssim.simulate import prepare_ground_truth
 
-    for name, path in (("--json", as_json), ("--write-aligned", write_aligned)):
+    for name, path in (("-o/--output", as_json), ("--write-aligned", write_aligned)):
         if path is not None and path.exists() and not overwrite:
             raise InputError(name, str(path), "a path that does not exist yet", "Pass --overwrite to replace it.")
     if write_aligned is not None and write_aligned.suffix.lower() not in (".tif", ".tiff"):

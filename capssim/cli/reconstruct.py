@@ -7,7 +7,14 @@ from typing import List, Optional
 
 import typer
 
+from capssim.cli._options import ThreadsOption, apply_threads, check_iterations
 from capssim.errors import InputError
+
+#: keywords of ``run_method`` that come from the command's flags, never from ``-O``
+COMMAND_FLAGS = {"device": "--device", "true_warps": "--true-warps", "registration": "--registration",
+                 "progress": "--progress/--no-progress",
+                 "physical_projection": "--physical-projection/--no-physical-projection",
+                 "reuse_registration": "--reuse-registration/--no-reuse-registration"}
 
 
 def parse_options(pairs: List[str]) -> dict:
@@ -20,6 +27,9 @@ def parse_options(pairs: List[str]) -> dict:
         key = key.strip()
         if not key:
             raise InputError("--option", repr(pair), "a non-empty KEY before '='")
+        if key in COMMAND_FLAGS:
+            raise InputError("--option", repr(pair), "a method option (capssim reconstruct --list shows the methods)",
+                             f"'{key}' is set by the command's own flag: use {COMMAND_FLAGS[key]}.")
         options[key] = value.strip()
     return options
 
@@ -50,7 +60,8 @@ def reconstruct(
                                      help="Method name; repeat for several, or 'all'. "
                                           "'capssim reconstruct --list' shows them."),
     device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
-    iterations: Optional[int] = typer.Option(None, "--iterations", help="ADMM iterations (paper: 25)."),
+    iterations: Optional[int] = typer.Option(None, "--iterations", help="ADMM iterations (paper: 25).",
+                                             callback=check_iterations),
     true_warps: bool = typer.Option(False, "--true-warps",
                                     help="Use the homographies stored in meta.json instead of estimating them."),
     registration: str = typer.Option("local-correlation", "--registration",
@@ -63,6 +74,15 @@ def reconstruct(
     option: List[str] = typer.Option([], "--option", "-O", metavar="KEY=VALUE", help="Method option KEY=VALUE (repeatable)."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
+    reuse_registration: bool = typer.Option(
+        True, "--reuse-registration/--no-reuse-registration",
+        help="Reuse the warps stored in CAPTURE/registration/ for the same input and mode (estimated once per "
+             "capture); --no-reuse-registration registers again and replaces them."),
+    threads: Optional[int] = ThreadsOption,
+    physical_projection: bool = typer.Option(
+        True, "--physical-projection/--no-physical-projection",
+        help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1) "
+             "where all four angles are observed."),
 ) -> None:
     """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
     from rich.console import Console
@@ -71,6 +91,7 @@ def reconstruct(
     from capssim.reconstruct.registry import available_methods, get_method, run_method  # start-up time
 
     console = Console(stderr=True)
+    apply_threads(threads)
     if list_methods:
         for name, spec in available_methods().items():
             typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}")
@@ -97,7 +118,8 @@ def reconstruct(
                 bar.update(task, completed=done, total=total, message=message)
 
             record = run_method(capture, name, device=device, true_warps=true_warps, registration=registration,
-                                progress=report, **method_options)
+                                progress=report, physical_projection=physical_projection,
+                                reuse_registration=reuse_registration, **method_options)
         reg = record.get("registration", {})
         err = reg.get("error_hr_px_median")
         rows.append((name, record["wall_time_s"], err))

@@ -18,6 +18,9 @@ from capssim.cli._options import (
     SeedOption,
     SensorOption,
     SigmaOption,
+    ThreadsOption,
+    apply_threads,
+    number_in,
     sensor_from_options,
 )
 from capssim.errors import InputError
@@ -60,7 +63,8 @@ def render(
     spp: Optional[int] = typer.Option(None, "--spp", help="Samples per HR pixel (default: from --target-noise)."),
     target_noise: Optional[float] = typer.Option(
         None, "--target-noise", help="RMS Monte-Carlo std of the ground truth on [0, 1] (default 0.004, or half "
-                                     "the sensor noise)."),
+                                     "the sensor noise).",
+        callback=number_in("--target-noise", 0.0, 1.0, low_open=True, what="RMS std on [0, 1] full scale")),
     max_spp: int = typer.Option(1024, "--max-spp", help="Upper limit of spp per HR pixel for --target-noise."),
     seed: int = SeedOption,
     noise: str = NoiseOption,
@@ -69,10 +73,14 @@ def render(
     variant: str = typer.Option("auto", "--variant", help="Mitsuba variant: auto (cuda -> llvm -> scalar) or a name."),
     dofp_layout: str = DofpLayoutOption,
     psf: str = typer.Option("gaussian", "--psf", help="Optical PSF: gaussian | airy | none."),
-    psf_sigma: float = typer.Option(DEFAULT_SIGMA_HR_PX, "--psf-sigma", help="Gaussian PSF std in HR pixels."),
-    f_number: float = typer.Option(1.65, "--f-number", help="f-number for --psf airy."),
-    wavelength_nm: float = typer.Option(550.0, "--wavelength-nm", help="Wavelength for --psf airy."),
-    pixel_um: float = typer.Option(4.8, "--pixel-um", help="Raw pixel pitch for --psf airy (HR pitch is half)."),
+    psf_sigma: float = typer.Option(DEFAULT_SIGMA_HR_PX, "--psf-sigma", help="Gaussian PSF std in HR pixels.",
+                                    callback=number_in("--psf-sigma", 0.0, what="HR pixels; 0 = no blur")),
+    f_number: float = typer.Option(1.65, "--f-number", help="f-number for --psf airy.",
+                                   callback=number_in("--f-number", 0.0, low_open=True)),
+    wavelength_nm: float = typer.Option(550.0, "--wavelength-nm", help="Wavelength for --psf airy.",
+                                        callback=number_in("--wavelength-nm", 0.0, low_open=True, what="nm")),
+    pixel_um: float = typer.Option(4.8, "--pixel-um", help="Raw pixel pitch for --psf airy (HR pitch is half).",
+                                   callback=number_in("--pixel-um", 0.0, low_open=True, what="micrometres")),
     param: Optional[List[str]] = typer.Option(None, "--param", metavar="KEY=VALUE", help="Scene parameter KEY=VALUE (repeatable)."),
     geometry: Optional[List[str]] = typer.Option(
         None, "--geometry", metavar="KEY=VALUE",
@@ -88,12 +96,17 @@ def render(
     measure_savings: bool = typer.Option(False, "--measure-savings",
                                          help="Also render what each choice avoided and record measured savings."),
     preview: Optional[Path] = typer.Option(None, "--preview", help="Also write an intensity|DoLP|AoP PNG of the GT."),
-    preview_white: Optional[float] = typer.Option(None, "--preview-white",
-                                                  help="Preview intensity shown white (default: 99.5th percentile)."),
-    preview_dolp_max: float = typer.Option(0.5, "--preview-dolp-max", help="Preview DoLP shown saturated."),
+    preview_white: Optional[float] = typer.Option(
+        None, "--preview-white", help="Preview intensity shown white (default: 99.5th percentile).",
+        callback=number_in("--preview-white", 0.0, low_open=True, what="intensity, full scale 1")),
+    preview_dolp_max: float = typer.Option(0.5, "--preview-dolp-max", help="Preview DoLP shown saturated.",
+                                           callback=number_in("--preview-dolp-max", 0.0, 1.0, low_open=True,
+                                                              what="a DoLP", fix="Try --preview-dolp-max 0.5.")),
     overwrite: bool = OverwriteOption,
+    threads: Optional[int] = ThreadsOption,
 ) -> None:
     """Render a library scene through the four CAPS apertures and a DoFP camera (Mitsuba 3)."""
+    apply_threads(threads, renderer=True)
     # these pull torch, the operators and the scene library: loaded when the command runs (start-up time)
     import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
     from capssim.capture import write_capture

@@ -90,7 +90,7 @@ def _size_spec(nullable: bool):
 
 SENSOR_SPEC = Mapping({
     "noise": Distribution(String(choices=list(NOISE_MODELS))),
-    "sigma": Distribution(Number(minimum=0)),
+    "sigma": Distribution(Number(minimum=0, maximum=1)),
     "preset": Distribution(String(choices=list(SENSOR_PRESETS))),
     "exposure": Distribution(Number(minimum=0, exclusive_minimum=True)),
     "bit_depth": Distribution(Integer(minimum=8, maximum=16)),
@@ -128,7 +128,7 @@ SCENE_SOURCE_SPEC = Mapping({
     "size": _size_spec(nullable=False),
     "spp": Distribution(Nullable(Integer(minimum=1))),
     "variant": String(),
-    "target_noise": Distribution(Nullable(Number(minimum=0, exclusive_minimum=True))),
+    "target_noise": Distribution(Nullable(Number(minimum=0, exclusive_minimum=True, maximum=1))),
     "scene_params": Mapping(extra=Distribution(Anything()), what="scene parameters (name: value or distribution)"),
     "geometry_params": Mapping(extra=Distribution(Anything()), what="geometry parameters (name: value or distribution)"),
     **{k: v for k, v in SHARED_SPECS.items() if k not in GT_ONLY_KEYS},

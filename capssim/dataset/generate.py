@@ -45,6 +45,7 @@ from capssim.dataset.manifest import (
 )
 from capssim.dataset.sample import generate_sample
 from capssim.errors import CapssimError, InputError
+from capssim.resources import check_memory, check_range
 
 log = logging.getLogger(__name__)
 
@@ -112,13 +113,71 @@ def sweep_leftovers(samples_dir: Path, finished_names: set[str]) -> list[str]:
     return removed
 
 
+#: a local worker process's memory before its first task (Python, torch, Dask), about
+WORKER_BYTES_ESTIMATE = 300 * 2**20
+#: local workers per core past which more only add start-up time and memory
+MAX_WORKERS_PER_CORE = 4
+
+
+def check_local_workers(workers: int, *, option: str = "--workers") -> None:
+    """Refuse a local worker count past :data:`MAX_WORKERS_PER_CORE` per core or the memory limit."""
+    cores = os.cpu_count() or 1
+    check_range(option, workers, high=MAX_WORKERS_PER_CORE * cores, what="the number of local worker processes",
+                reason=f"{MAX_WORKERS_PER_CORE} per core on this {cores}-core machine",
+                fix=f"Use --workers {cores} (one per core), or --scheduler ADDRESS for a larger cluster.")
+    check_memory(option, workers * WORKER_BYTES_ESTIMATE, what=f"{workers} worker processes",
+                 fix="Use fewer --workers.")
+
+
+#: environment variables Dask's nanny would give its workers and that capssim's workers must not have:
+#: an explicit ``MALLOC_TRIM_THRESHOLD_`` turns off glibc's dynamic mmap threshold, so every array of
+#: 128 kB or more is a fresh mmap (page faults, zeroing): the methods ran 3x slower in a worker
+#: (docs/notes/distributed-bench.md)
+UNSET_WORKER_ENV = ("MALLOC_TRIM_THRESHOLD_",)
+
+
 def _start_local_cluster(workers: int, compute_threads: int):
+    import dask
     from distributed import Client, LocalCluster
 
+    check_local_workers(workers)
+
     env = {var: str(compute_threads) for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                           env=env, silence_logs=logging.ERROR)
+    unset = {f"distributed.nanny.pre-spawn-environ.{var}": None for var in UNSET_WORKER_ENV}
+    with dask.config.set(unset):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
+                               env=env, silence_logs=logging.ERROR)
     return cluster, Client(cluster)
+
+
+def open_dask_client(*, workers: int | None = None, scheduler: str | None = None,
+                     compute_threads: int | None = None):
+    """``(cluster or None, client, compute threads)``: a Dask client that limits its workers' compute threads.
+
+    ``scheduler``: a client of the running cluster at that address (compute threads default 1);
+    else a new :class:`distributed.LocalCluster` of ``workers`` processes of 1 thread each
+    (default: one per core; compute threads default cores // workers). The caller closes the
+    client, then the cluster. Shared by ``capssim dataset`` and ``capssim bench suite``.
+    """
+    from distributed import Client
+
+    if scheduler is None:
+        workers = workers or available_cores()
+        compute_threads = compute_threads or max(1, available_cores() // workers)
+        log.info("starting a local Dask cluster: %d workers x 1 thread, %d compute threads each",
+                 workers, compute_threads)
+        cluster, client = _start_local_cluster(workers, compute_threads)
+    else:
+        log.info("connecting to the Dask scheduler at %s", scheduler)
+        try:
+            client = Client(scheduler, timeout="30s")
+        except OSError as exc:
+            raise InputError("scheduler", repr(scheduler), "the address of a running Dask scheduler",
+                             f"Could not connect ({exc}). Start one with 'dask scheduler' and "
+                             "'dask worker ADDRESS', or leave --scheduler out for a local cluster.") from None
+        cluster, compute_threads = None, compute_threads or 1
+    client.register_plugin(ThreadLimitPlugin(compute_threads), name=ThreadLimitPlugin.name)
+    return cluster, client, compute_threads
 
 
 def generate_dataset(config: DatasetConfig, out, *, workers: int | None = None, scheduler: str | None = None,
@@ -145,6 +204,8 @@ def generate_dataset(config: DatasetConfig, out, *, workers: int | None = None, 
         raise InputError("workers", workers, "an integer >= 0 (0: run in this process without Dask)")
     if compute_threads is not None and compute_threads < 1:
         raise InputError("compute_threads", compute_threads, "an integer >= 1")
+    if workers and client is None and scheduler is None:
+        check_local_workers(workers)
     out.mkdir(parents=True, exist_ok=True)
     samples_dir = out / SAMPLES_DIR
     with DatasetLock(out):
@@ -225,30 +286,17 @@ def _run_in_process(config, samples_dir, todo, writer, result, *, t_start, progr
 
 def _run_on_dask(config, samples_dir, todo, writer, result, *, t_start, progress, sample_function, client,
                  scheduler, workers, compute_threads, max_in_flight):
-    from distributed import Client, as_completed
+    from distributed import as_completed
 
     cluster = own_client = None
     try:
-        if client is None and scheduler is None:
-            workers = workers or available_cores()
-            compute_threads = compute_threads or max(1, available_cores() // workers)
-            log.info("starting a local Dask cluster: %d workers x 1 thread, %d compute threads each",
-                     workers, compute_threads)
-            cluster, client = _start_local_cluster(workers, compute_threads)
+        if client is None:
+            cluster, client, compute_threads = open_dask_client(workers=workers, scheduler=scheduler,
+                                                                compute_threads=compute_threads)
             own_client = client
-        elif client is None:
-            log.info("connecting to the Dask scheduler at %s", scheduler)
-            try:
-                client = Client(scheduler, timeout="30s")
-            except OSError as exc:
-                raise InputError("scheduler", repr(scheduler), "the address of a running Dask scheduler",
-                                 f"Could not connect ({exc}). Start one with 'dask scheduler' and "
-                                 "'dask worker ADDRESS', or leave --scheduler out for a local cluster.") from None
-            own_client = client
-            compute_threads = compute_threads or 1
         else:
             compute_threads = compute_threads or 1
-        client.register_plugin(ThreadLimitPlugin(compute_threads), name=ThreadLimitPlugin.name)
+            client.register_plugin(ThreadLimitPlugin(compute_threads), name=ThreadLimitPlugin.name)
         result.compute_threads = compute_threads
         nthreads = sum(client.nthreads().values()) or 1
         result.workers = len(client.nthreads())

@@ -209,6 +209,24 @@ def check_sample(spec: dict) -> None:
         check_render(src["scene"], **_render_options(spec, sensor))
 
 
+#: bytes a sample's files take per HR pixel, at most: gt.tiff (12 float32), caps_raw.tiff and dofp_raw.tiff
+#: (float32 without a sensor model, else uint16)
+SAMPLE_BYTES_PER_HR_PIXEL = 12 * 4 + 4 + 4
+#: meta.json and the file-system overhead of one sample folder, about
+SAMPLE_BYTES_OVERHEAD = 64 * 1024
+
+
+def sample_bytes_estimate(spec: dict) -> int:
+    """Disk bytes sample ``spec`` takes, at most (its HR side from the drawn size, or the whole ground truth)."""
+    src = spec["params"]["source"]
+    size = src.get("size")
+    if size is None and src["type"] == "gt":
+        height, width = _gt_shape(spec["resolved"]["gt_path"])
+    else:
+        height = width = int(size)
+    return height * width * SAMPLE_BYTES_PER_HR_PIXEL + SAMPLE_BYTES_OVERHEAD
+
+
 def render_seed(seed: int) -> int:
     """The 32-bit seed given to the renderer (the low bits of the sample's 63-bit seed)."""
     return int(seed) & 0xFFFFFFFF

@@ -28,7 +28,7 @@ class ConfigError(InputError):
         self.key_path = key_path
         self.config_file = config_file
         where = f"config {config_file}" if config_file else "config"
-        argument = f"{where}, key '{key_path}'" if key_path else where
+        argument = f"{where}, key {key_path!r}" if key_path else where  # repr: one line, whatever the key
         super().__init__(argument, received, valid, fix)
 
 

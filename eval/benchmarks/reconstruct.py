@@ -138,7 +138,8 @@ def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, m
     capture = read_capture(capture_path, load_gt=False)
     timer = MemoryStageTimer(dev)
     baseline = _rss_bytes() if dev.type != "cuda" else 0
-    ctx = RunContext(device=dev, timer=timer, options={"iterations": iterations}, true_warps=true_warps)
+    ctx = RunContext(device=dev, timer=timer, options={"iterations": iterations}, true_warps=true_warps,
+                     reuse_registration=False)  # --estimated-warps times the registration in every run
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
     with torch.no_grad():

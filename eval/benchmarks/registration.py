@@ -6,7 +6,7 @@ parameters of a named registration mode, and compared with the homographies stor
 ``meta.json`` by :func:`capssim.homography.registration_error_hr_px` (HR pixels). Captures
 simulated from a real ground truth can also be compared with their *content* warps: the stored
 warps composed with the offsets between the ground truth's analyzer images that
-``capssim gt-check --json`` measured (:func:`content_lr_homographies`).
+``capssim gt-check -o`` measured (:func:`content_lr_homographies`).
 """
 
 from __future__ import annotations
@@ -31,13 +31,13 @@ from capssim.reconstruct.registration_parameters import registration_parameters
 def content_lr_homographies(capture: Capture, alignment_matrices) -> np.ndarray:
     """``(16, 3, 3)`` *content* warps of a capture simulated from a real ground truth.
 
-    ``alignment_matrices``: the three ``(3, 3)`` matrices of ``capssim gt-check --json``
+    ``alignment_matrices``: the three ``(3, 3)`` matrices of ``capssim gt-check -o``
     (``alignment_matrices``: where the 45/90/135 deg ground-truth images' content lies relative to the
     0 deg image). Aperture n's content warp is its stored warp composed with that offset.
     """
     g = np.asarray(alignment_matrices, dtype=np.float64)
     if g.shape != (N_APERTURES - 1, 3, 3) or not np.all(np.isfinite(g)):
-        raise InputError("alignment_matrices", f"shape {g.shape}", "three finite 3x3 matrices from gt-check --json")
+        raise InputError("alignment_matrices", f"shape {g.shape}", "three finite 3x3 matrices from gt-check -o")
     aperture = capture.aperture_homographies().copy()
     for n in range(1, N_APERTURES):
         aperture[n] = aperture[n] @ g[n - 1]
@@ -45,7 +45,7 @@ def content_lr_homographies(capture: Capture, alignment_matrices) -> np.ndarray:
 
 
 def load_alignment_record(content_alignment) -> dict:
-    """A ``capssim gt-check --json`` record given as a dict or a JSON file path; it must hold
+    """A ``capssim gt-check -o`` record given as a dict or a JSON file path; it must hold
     ``alignment_matrices``."""
     record = content_alignment
     if not isinstance(record, dict):
@@ -53,10 +53,10 @@ def load_alignment_record(content_alignment) -> dict:
             record = json.loads(Path(record).read_text())
         except (OSError, ValueError) as exc:
             raise InputError("content_alignment", str(content_alignment),
-                             "a readable JSON file written by capssim gt-check --json") from exc
+                             "a readable JSON file written by capssim gt-check -o") from exc
     if "alignment_matrices" not in record:
         raise InputError("content_alignment", "a record without 'alignment_matrices'",
-                         "the JSON of capssim gt-check --json")
+                         "the JSON of capssim gt-check -o")
     return record
 
 
@@ -114,7 +114,7 @@ def run_registration_bench(captures, *, mode: str = "local-correlation", content
     mode
         a :data:`capssim.reconstruct.registration_parameters.REGISTRATION_MODES` name.
     content_alignment
-        a ``capssim gt-check --json`` record (path or dict) of the ground truth the captures were
+        a ``capssim gt-check -o`` record (path or dict) of the ground truth the captures were
         simulated from; rows then also give the error against the content warps
         (:func:`content_lr_homographies`).
     stokes_weight

@@ -16,37 +16,46 @@ A suite (``eval/suites/NAME.yaml`` or any YAML path; the scoring guide's "Benchm
 
 Every case is ``(scene, noise, seed, method)``; its capture comes from
 :mod:`capssim.eval.benchmarks.captures` and its scores from the one scoring path,
-:class:`capssim.eval.evaluate.CaptureScorer`. ``results.jsonl`` holds one JSON line per case and
-is rewritten atomically after every case: an interrupted run resumes where it stopped (cases
-already ``ok`` with the same case hash are not redone; the hash covers capture, method, options,
-device and fingerprints of the reconstruction and scoring code). Peak memory is that of
-:class:`~capssim.eval.benchmarks.provenance.PeakMemory` during the method (``peak_rss_mb``, and
-``peak_rss_delta_mb`` above the level before it; on CUDA also ``cuda_peak_mb``).
+:class:`capssim.eval.evaluate.CaptureScorer`, both run by the tasks of
+:mod:`capssim.eval.benchmarks.cases`: one capture task per (scene, noise, seed), then one task per
+case. They run in this process, or on Dask (``workers``: a local cluster; ``scheduler``: a running
+one; :mod:`capssim.eval.benchmarks.executors`), where the cases run in parallel.
+
+``results.jsonl`` (:mod:`capssim.eval.benchmarks.results`) gets each case's line as soon as the
+case finishes, and is rewritten in the plan's order at the end. An interrupted run, run again,
+does only the missing cases: a case already ``ok`` with the same case hash is not redone (the
+hash covers capture, method, options, device and fingerprints of the reconstruction and scoring
+code). A case's result depends on the case only: its capture's noise and poses come from its
+seed, and each worker computes with the thread count of a run in this process; a run on Dask
+gives the numbers of a run in this process. Wall time, stage times and peak memory are measured
+in the process that runs the method: :class:`~capssim.eval.benchmarks.provenance.PeakMemory`
+(``peak_rss_mb``, and ``peak_rss_delta_mb`` above the level before it; on CUDA also
+``cuda_peak_mb``); ``worker`` names that process (``host:pid``).
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import hashlib
-import json
 import logging
 import time
 import traceback
+import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import yaml
 
-from capssim.capture import read_capture, write_reconstruction
 from capssim.errors import InputError, UnknownNameError
-from capssim.eval.benchmarks.captures import CaptureFactory, Unavailable, expand_render_scenes
-from capssim.eval.benchmarks.provenance import PeakMemory, code_fingerprint, content_hash, environment, json_default
-from capssim.eval.evaluate import CaptureScorer, mtf_summary
+from capssim.eval.benchmarks.captures import expand_render_scenes
+from capssim.eval.benchmarks.cases import capture_task, forget_captures, method_task
+from capssim.eval.benchmarks.executors import check_execution, open_executor
+from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash, environment
+from capssim.eval.benchmarks.results import ResultsLog
 from capssim.eval.metrics import get_convention
-from capssim.imageio import atomic_write_text
 from capssim.reconstruct.registration_parameters import registration_parameters
-from capssim.reconstruct.registry import available_methods, reconstruct, resolve_device
+from capssim.reconstruct.registry import available_methods, resolve_device
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +63,8 @@ SUITES_DIR = Path(__file__).resolve().parents[1] / "suites"
 SCENE_SOURCES = ("render", "shared-gt", "gt", "synthetic")
 #: the source files whose change re-runs a case (cached captures are kept)
 RECONSTRUCTION_CODE = ("reconstruct",)
-SCORING_CODE = ("eval/metrics.py", "eval/mtf.py", "eval/star.py", "eval/evaluate.py", "eval/benchmarks/suite.py")
+SCORING_CODE = ("eval/metrics.py", "eval/mtf.py", "eval/star.py", "eval/evaluate.py", "eval/benchmarks/suite.py",
+                "eval/benchmarks/cases.py")
 
 
 # -- suites --------------------------------------------------------------------------------------
@@ -134,6 +144,8 @@ class BenchRun:
     environment: dict
     notes: list[str] = field(default_factory=list)
     wall_time_s: float = 0.0
+    #: where the cases ran: ``{kind: in-process|dask, workers, compute_threads}``
+    execution: dict = field(default_factory=dict)
 
     @property
     def n_errors(self) -> int:
@@ -146,28 +158,6 @@ class BenchRun:
 def case_key(scene: str, noise: str, seed: int, method_label: str) -> str:
     """Readable, stable identity of a case in baselines: ``scene/noise/seedN/method``."""
     return f"{scene}/{noise}/seed{seed}/{method_label}"
-
-
-def _load_results(path: Path) -> dict[str, dict]:
-    done: dict[str, dict] = {}
-    if not path.is_file():
-        return done
-    for line in path.read_text().splitlines():
-        line = line.strip()
-        if not line:
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            log.warning("ignoring a corrupt line of %s", path)
-            continue
-        if isinstance(rec, dict) and "case_id" in rec:
-            done[rec["case_id"]] = rec
-    return done
-
-
-def _write_results(path: Path, records: list[dict]) -> None:
-    atomic_write_text(path, "".join(json.dumps(r, default=json_default) + "\n" for r in records))
 
 
 def _now() -> str:
@@ -196,173 +186,196 @@ def plan(spec: dict, *, methods: list[str] | None, scenes: list[str] | None, emi
     return plan_scenes, scene_by_name, method_entries
 
 
+def _cache_writes(chain: list[dict], noise: dict, seed: int) -> list[tuple]:
+    """What a capture task of ``chain`` may write in the cache: its scenes' captures, and their
+    noise-free renders (shared by the noise levels of a rendered scene)."""
+    writes = [("capture", c["name"], noise["name"], seed) for c in chain]
+    return writes + [("render", c.get("scene", c["name"]), seed) for c in chain if c["source"] == "render"]
+
+
 class _SuiteRun:
-    """The state of one run: records so far, the previous run's records, notes, the capture factory."""
+    """The state of one run: the plan's groups and records, the results log, notes, labels."""
 
     def __init__(self, spec: dict, output: Path, *, device: str, cache: Path, fresh: bool, emit: Callable[..., None]):
-        self.spec, self.emit = spec, emit
-        self.results_path = output / "results.jsonl"
+        self.spec, self.emit, self.cache = spec, emit, cache
+        self.results = ResultsLog(output / "results.jsonl", fresh=fresh)
         self.device = str(resolve_device(device))
         self.env = environment(self.device)
         self.convention = get_convention(spec.get("convention", "capssim")).name
         self.registered = available_methods()
         self.recon_code = code_fingerprint(*RECONSTRUCTION_CODE)
         self.scoring_code = code_fingerprint(*SCORING_CODE)
-        self.previous = {} if fresh else _load_results(self.results_path)
-        self.factory = CaptureFactory(cache, emit)
+        self.run_id = uuid.uuid4().hex
+        self.groups: list[tuple[dict, dict, int]] = []  # (scene, noise, seed) in plan order
+        self.methods: list[dict] = []
+        self.records: dict[int, dict] = {}  # plan index (group x methods + method) -> record
+        self.pending: dict[int, dict] = {}  # plan index -> the record of a running case
+        self.labels: dict[object, str] = {}
         self.notes: list[str] = []
-        self.records: list[dict] = []
         self.announced: set[str] = set()
-
-    def flush(self) -> None:
-        keep = {r["case_id"] for r in self.records}
-        extra = [r for cid, r in self.previous.items() if cid not in keep and r.get("status") == "ok"]
-        _write_results(self.results_path, self.records + extra)
 
     def note(self, message: str) -> None:
         if message not in self.notes:
             self.notes.append(message)
             self.emit("note", message=message)
 
-    def capture(self, scene: dict, noise: dict, seed: int, scene_by_name: dict):
-        """``(entry or None, scene used, skip reason, failure)`` of a case: the scene's capture or its fallback's."""
-        skip_reason, failure = None, None
-        chain = [scene] + ([scene_by_name[scene["fallback"]]] if scene.get("fallback") else [])
-        for candidate in chain:
-            try:
-                self.emit("case", label=f"{candidate['name']}/{noise['name']}/seed{seed}: capture")
-                entry = self.factory.get(candidate, noise, seed)
-                if candidate is not scene:
-                    self.note(f"{scene['name']} unavailable ({skip_reason}); used {candidate['name']} instead")
-                return entry, candidate, None, None
-            except Unavailable as exc:
-                msg = f"{candidate['name']}: {exc}"
-                skip_reason = msg if skip_reason is None else f"{skip_reason}; {msg}"
-                self.emit("skip", message=f"skipped {msg}")
-            except Exception as exc:  # building the capture failed: every case of it fails
-                failure = (f"capture {candidate['name']}/{noise['name']}/seed{seed}: "
-                           f"{type(exc).__name__}: {exc}", traceback.format_exc(limit=8))
-                self.emit("error", message=f"error: {failure[0]}")
-                break
-        return None, scene, skip_reason, failure
+    def finish_case(self, index: int, rec: dict, *, new: bool = True) -> None:
+        self.records[index] = rec
+        if new:
+            self.results.append(rec)
+        self.emit("done")
 
-    def record_unavailable(self, base: dict, scene: dict, noise: dict, seed: int, methods: list[dict],
-                           skip_reason: str | None, failure: tuple[str, str] | None) -> None:
-        for m in methods:
-            rec = dict(base, scene=scene["name"], method=m["label"], method_name=m["name"],
+    def base(self, noise: dict, seed: int) -> dict:
+        return {"suite": self.spec["name"], "noise": noise["name"], "seed": seed, "environment": self.env,
+                "convention": self.convention}
+
+    def submit_captures(self, executor, scene_by_name: dict) -> None:
+        """One capture task per group; one that may write what an earlier one writes waits for it."""
+        writers: dict[tuple, object] = {}
+        for g, (scene, noise, seed) in enumerate(self.groups):
+            chain = [scene] + ([scene_by_name[scene["fallback"]]] if scene.get("fallback") else [])
+            writes = _cache_writes(chain, noise, seed)
+            after = list({id(writers[w]): writers[w] for w in writes if w in writers}.values())
+            tag = ("capture", g)
+            self.labels[tag] = f"{scene['name']}/{noise['name']}/seed{seed}: capture"
+            handle = executor.submit(capture_task, str(self.cache), self.run_id, chain, noise, seed, tag=tag,
+                                     after=after, name=f"capture-{scene['name']}-{noise['name']}-{seed}",
+                                     events=self.emit if executor.live_events else None)
+            writers.update((w, handle) for w in writes)
+
+    def on_capture(self, executor, g: int, outcome: dict | None, error: BaseException | None) -> None:
+        scene, noise, seed = self.groups[g]
+        if error is not None:  # the task itself did not finish (its worker died)
+            outcome = {"entry": None, "scene": scene, "skip_reason": None, "events": [],
+                       "failure": (f"capture {scene['name']}/{noise['name']}/seed{seed}: {type(error).__name__}: "
+                                   f"{error}", "".join(traceback.format_exception(error, limit=8)))}
+            self.emit("error", message=f"error: {outcome['failure'][0]}")
+        for kind, info in outcome["events"]:
+            self.emit(kind, **info)
+        used = outcome["scene"]
+        if outcome["entry"] is None:
+            self.record_unavailable(g, outcome["skip_reason"], outcome["failure"])
+            return
+        if used["name"] != scene["name"]:
+            self.note(f"{scene['name']} unavailable ({outcome['skip_reason']}); used {used['name']} instead")
+        self.submit_cases(executor, g, outcome["entry"], used)
+
+    def record_unavailable(self, g: int, skip_reason: str | None, failure: tuple[str, str] | None) -> None:
+        scene, noise, seed = self.groups[g]
+        for j, m in enumerate(self.methods):
+            rec = dict(self.base(noise, seed), scene=scene["name"], method=m["label"], method_name=m["name"],
                        key=case_key(scene["name"], noise["name"], seed, m["label"]),
                        case_id=content_hash([scene["name"], noise, seed, m, "unavailable"])[:20])
             if failure is not None:
                 rec.update(status="error", reason=failure[0], traceback=failure[1])
             else:
                 rec.update(status="skipped", skip_kind="data", reason=skip_reason)
-            self.records.append(rec)
-            self.emit("done")
-        self.flush()
+            self.finish_case(g * len(self.methods) + j, rec)
 
-    def run_methods(self, base: dict, entry, scene: dict, requested: dict, noise: dict, seed: int,
-                    methods: list[dict]) -> None:
-        """Every method on one capture; the capture is read and its ground truth measured once."""
-        scorer = None
-        for m in methods:
+    def registers(self, method: dict) -> bool:
+        """Whether ``method`` estimates the warps (and stores them with the capture for the next method)."""
+        return self.registered[method["name"]].input_kind == "caps" and not method["true_warps"]
+
+    def submit_cases(self, executor, g: int, entry, scene: dict) -> None:
+        """Every method on the capture of group ``g``: those done in an earlier run are taken from it.
+
+        A method that registers the capture waits for the first one registering it the same way,
+        and reuses its stored warps, as in a run in this process (no registration done twice).
+        """
+        requested, noise, seed = self.groups[g]
+        registering: dict[str, object] = {}  # registration mode -> the first case that registers so
+        for j, m in enumerate(self.methods):
+            index = g * len(self.methods) + j
             key = case_key(scene["name"], noise["name"], seed, m["label"])
             cid = content_hash({"capture": entry.key, "method": m, "device": self.device, "recon": self.recon_code,
                                 "scoring": self.scoring_code, "convention": self.convention})[:20]
-            rec = dict(base, scene=scene["name"], requested_scene=requested["name"], method=m["label"],
-                       method_name=m["name"], key=key, case_id=cid, capture=str(entry.path),
+            rec = dict(self.base(noise, seed), scene=scene["name"], requested_scene=requested["name"],
+                       method=m["label"], method_name=m["name"], key=key, case_id=cid, capture=str(entry.path),
                        capture_key=entry.key, scene_source=scene["source"])
-            if cid in self.previous and self.previous[cid].get("status") == "ok":
-                self.records.append(self.previous[cid])
-                self.emit("done")
-                continue
-            if m["name"] not in self.registered:
-                self.skip_unregistered(rec, m)
-                continue
-            self.emit("case", label=key)
-            try:
-                if scorer is None:
-                    capture = read_capture(entry.path, require_gt=True)
-                    scorer = CaptureScorer(capture, convention=self.convention)
-                    if scorer.measure_ground_truth() is None and scorer.mtf_error is not None:
-                        # the scene is scored, only without its MTF
-                        message = f"{scene['name']}: ground-truth MTF not measured ({scorer.mtf_error})"
-                        self.notes.append(message)
-                        self.emit("note", message=message)
-                self.run_case(rec, m, capture, scorer, entry)
-            except Unavailable as exc:
-                rec.update(status="skipped", skip_kind="data", reason=str(exc))
-                self.emit("skip", message=f"skipped {key}: {exc}")
-            except Exception as exc:  # a failing method must not stop the benchmark
-                rec.update(status="error", reason=f"{type(exc).__name__}: {exc}",
-                           traceback=traceback.format_exc(limit=8))
-                self.emit("error", message=f"error in {key}: {type(exc).__name__}: {exc}")
-            rec["finished"] = _now()
-            self.records.append(rec)
-            self.flush()
-            self.emit("done")
+            previous = self.results.done(cid)
+            if previous is not None:
+                self.finish_case(index, previous, new=False)
+            elif m["name"] not in self.registered:
+                self.skip_unregistered(index, rec, m)
+            else:
+                self.pending[index] = rec
+                self.labels[("case", index)] = key
+                registrar = registering.get(m["registration"]) if self.registers(m) else None
+                handle = executor.submit(method_task, rec, m, str(entry.path), entry.key, entry.info,
+                                         device=self.device, convention=self.convention, tag=("case", index),
+                                         case=True, after=[registrar] if registrar is not None else [], name=key)
+                if self.registers(m):
+                    registering.setdefault(m["registration"], handle)
 
-    def skip_unregistered(self, rec: dict, method: dict) -> None:
+    def on_case(self, index: int, rec: dict | None, error: BaseException | None) -> None:
+        if error is not None:  # the task itself did not finish (its worker died)
+            rec = dict(self.pending[index], status="error", reason=f"{type(error).__name__}: {error}",
+                       traceback="".join(traceback.format_exception(error, limit=8)), finished=_now())
+        del self.pending[index]
+        for message in rec.pop("notes_for_run", []):
+            self.note(message)
+        if rec["status"] == "error":
+            self.emit("error", message=f"error in {rec['key']}: {rec['reason']}")
+        elif rec["status"] == "skipped":
+            self.emit("skip", message=f"skipped {rec['key']}: {rec['reason']}")
+        self.finish_case(index, rec)
+
+    def skip_unregistered(self, index: int, rec: dict, method: dict) -> None:
         rec.update(status="skipped", skip_kind="method",
                    reason=f"method {method['name']!r} is not registered (available: "
                           f"{', '.join(self.registered) or 'none'})")
         if method["name"] not in self.announced:
             self.announced.add(method["name"])
             self.emit("skip", message=f"skipping every case of {method['label']}: {rec['reason']}")
-        self.records.append(rec)
-        self.flush()
-        self.emit("done")
+        self.finish_case(index, rec)
 
-    def run_case(self, rec: dict, method: dict, capture, scorer: CaptureScorer, entry) -> None:
-        """Reconstruct, write the reconstruction next to the capture, score; fills ``rec``."""
-        if self.registered[method["name"]].input_kind == "dofp" and capture.dofp_raw is None:
-            raise Unavailable("this capture has no DoFP frame")
-        with PeakMemory(device=self.device) as mem:
-            out, record = reconstruct(capture, method["name"], device=self.device, true_warps=bool(method["true_warps"]),
-                                      registration=method["registration"], **method["options"])
-        write_reconstruction(entry.path, method["label"], out.image, record)
-        scored = scorer.score(out.image)
-        rec.update(status="ok", metrics=scored.flat(), notes=scored.metrics["notes"],
-                   metric_settings=scored.metrics["settings"],
-                   wall_time_s=record["wall_time_s"], stages_s=record["stages_s"],
-                   peak_rss_mb=mem.peak_mb, peak_rss_delta_mb=mem.peak_mb - mem.start_mb,
-                   cuda_peak_mb=mem.cuda_peak_mb, params=record.get("params"),
-                   registration=record.get("registration"), capture_info=entry.info,
-                   recon=str(entry.path / "recon" / f"{method['label']}.tiff"))
-        if scorer.gt_mtf is not None:
-            rec["gt_mtf"] = mtf_summary(scorer.gt_mtf)["mean"]
-            rec["star"] = scorer.star
-            if scored.mtf is not None:
-                rec["mtf"] = scored.mtf["mean"]
+    def execute(self, executor, scene_by_name: dict) -> None:
+        self.submit_captures(executor, scene_by_name)
+        for (kind, index), result, error in executor.completed():
+            if not executor.live_events:  # the progress display shows the latest finished task
+                self.emit("case", label=f"finished {self.labels[kind, index]}")
+            if kind == "capture":
+                self.on_capture(executor, index, result, error)
             else:
-                rec["mtf_error"] = scored.mtf_error
+                self.on_case(index, result, error)
 
 
 def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = None, scenes: list[str] | None = None,
               device: str = "cpu", cache_dir: str | Path | None = None, fresh: bool = False,
+              workers: int | None = None, scheduler: str | None = None, threads: int | None = None,
               events: Callable[..., None] | None = None) -> BenchRun:
     """Run (or resume) a suite into ``output``; see the module docstring.
 
-    ``events(kind, **info)`` is told ``start`` (``total``), ``case`` (``label``), ``done``,
-    ``skip``, ``note`` and ``error`` (``message``): the command line draws its progress from them.
+    ``workers``: run the cases on a local Dask cluster of that many processes; ``scheduler``: on
+    the Dask cluster at that address; neither (or ``workers=0``): in this process. ``threads``:
+    the compute threads of each worker (default: :func:`capssim.threads.resolve_threads`'s,
+    ``$CAPSSIM_THREADS`` or the default, as the command line gives a run in this process).
+    ``events(kind, **info)`` is told ``start`` (``total``), ``case`` (``label``: the case
+    starting, in this process; the task just finished, on Dask), ``done``, ``skip``, ``note``
+    and ``error`` (``message``): the command line draws its progress from them.
     """
     emit = events or (lambda kind, **info: None)
     t_start = time.perf_counter()
+    plan_scenes, scene_by_name, plan_methods = plan(spec, methods=methods, scenes=scenes, emit=emit)
+    check_execution(workers=workers, scheduler=scheduler)  # before results.jsonl is touched
     output = Path(output)
     output.mkdir(parents=True, exist_ok=True)
     run = _SuiteRun(spec, output, device=device, cache=Path(cache_dir) if cache_dir else output / "cache",
                     fresh=fresh, emit=emit)
-    plan_scenes, scene_by_name, method_entries = plan(spec, methods=methods, scenes=scenes, emit=emit)
-    emit("start", total=len(plan_scenes) * len(spec["noise"]) * len(spec["seeds"]) * len(method_entries))
-    for scene in plan_scenes:
-        for noise in spec["noise"]:
-            for seed in map(int, spec["seeds"]):
-                base = {"suite": spec["name"], "noise": noise["name"], "seed": seed, "environment": run.env,
-                        "convention": run.convention}
-                entry, used, skip_reason, failure = run.capture(scene, noise, seed, scene_by_name)
-                if entry is None:
-                    run.record_unavailable(base, scene, noise, seed, method_entries, skip_reason, failure)
-                else:
-                    run.run_methods(base, entry, used, scene, noise, seed, method_entries)
-    run.flush()
-    return BenchRun(spec=spec, output=output, results_path=run.results_path, records=run.records,
-                    environment=run.env, notes=run.notes, wall_time_s=time.perf_counter() - t_start)
+    run.methods = plan_methods
+    run.groups = [(scene, noise, int(seed)) for scene in plan_scenes for noise in spec["noise"]
+                  for seed in spec["seeds"]]
+    emit("start", total=len(run.groups) * len(run.methods))
+    started = lambda tag: emit("case", label=run.labels[tag])  # noqa: E731
+    try:
+        with open_executor(workers=workers, scheduler=scheduler, threads=threads, started=started) as executor:
+            execution = {"kind": executor.kind, "workers": getattr(executor, "workers", None),
+                         "compute_threads": getattr(executor, "compute_threads", None)}
+            run.execute(executor, scene_by_name)
+    finally:
+        forget_captures()
+    records = [run.records[i] for i in sorted(run.records)]
+    run.results.finish(records)
+    return BenchRun(spec=spec, output=output, results_path=run.results.path, records=records,
+                    environment=run.env, notes=run.notes, wall_time_s=time.perf_counter() - t_start,
+                    execution=execution)

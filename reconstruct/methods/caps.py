@@ -77,6 +77,8 @@ class CapsOptions:
     fov_mask: bool = True
     # diagnostics
     track_psnr: bool = False
+    # named settings (PRESETS); explicit options override the preset's
+    preset: str = "default"
 
     @staticmethod
     def option_names() -> tuple[str, ...]:
@@ -86,8 +88,13 @@ class CapsOptions:
     @classmethod
     def from_options(cls, options: dict, **overrides) -> "CapsOptions":
         """Parse ``{name: value}`` (strings coerced to each option's type) over the typed defaults ``overrides``."""
-        values = dict(overrides)
-        for key, raw in (options or {}).items():
+        options = dict(options or {})
+        preset = str(next((raw for key, raw in options.items() if str(key).replace("-", "_") == "preset"),
+                          overrides.get("preset", "default"))).strip()
+        if preset not in PRESETS:
+            raise UnknownNameError("preset", preset, list(PRESETS))
+        values = {**overrides, **PRESETS[preset], "preset": preset}
+        for key, raw in options.items():
             name = str(key).replace("-", "_")
             if name not in _OPTIONS:
                 raise UnknownNameError("option", key, list(_OPTIONS))
@@ -113,6 +120,17 @@ class CapsOptions:
         return {name: getattr(getattr(self, group) if group else self, attr)
                 for name, (group, attr) in _OPTIONS.items()}
 
+
+#: named settings of the CAPS methods (``-O preset=NAME``): the options each sets; explicit options win.
+#: ``default``: the paper's parameters (section 5.1), dictionaries every 3rd iteration; ``literal``:
+#: Algorithm 1 as written, dictionaries at every iteration (same metrics within 0.03 dB, slower);
+#: ``fast``: 8 iterations, dictionaries every 4th, reference blocks every 5 px: about 3x faster, within
+#: 0.2 dB (docs/notes/reconstruction-speed.md; ``caps-fast`` in the ``ablation`` suite).
+PRESETS: dict[str, dict] = {
+    "default": {},
+    "literal": {"dictionary_gap": 1},
+    "fast": {"iterations": 8, "dictionary_gap": 4, "stride": 5},
+}
 
 #: the parameter group of each CapsOptions field that holds one
 _GROUPS = {"admm": ADMMParameters, "matching": MatchSchedule, "nlstr": NLSTRParameters, "cagf": CAGFParameters}
@@ -196,7 +214,8 @@ def mean_psnr(capture, image: torch.Tensor) -> float | None:
 def explain_divergence(exc: DivergenceError, opts: CapsOptions, defaults: CapsOptions) -> DivergenceError:
     """``exc`` naming the options set away from ``defaults`` (the likely cause), or ``dt`` if none is."""
     base = defaults.to_dict()
-    changed = {k: v for k, v in opts.to_dict().items() if k not in ("iterations", "track_psnr") and v != base[k]}
+    changed = {k: v for k, v in opts.to_dict().items()
+               if k not in ("iterations", "track_psnr", "preset") and v != base[k]}
     if not changed:
         return exc
     names = ", ".join(changed)

@@ -1,0 +1,171 @@
+"""Block-level kernels of NLSTR (paper eq. 21-23): Gram maps, PCA bases, mode products, cores.
+
+Split out of :mod:`capssim.reconstruct.nlstr`, which plans the strips and the groups. Blocks
+are ``(k, b, b, C)`` (height, width, channel); images ``(C, H, W)`` or, for the gathers, the
+pixel-major ``(H*W, C)`` layout in which a block's row of ``b`` pixels is ``b*C`` consecutive
+numbers. Everything is batched torch and runs unchanged on CUDA.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+
+from capssim.errors import InputError
+from capssim.reconstruct.filters import sliding_window_sum
+
+
+def gram_maps(zr: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """Per-block-position Gram entries of a region ``(C, Hr, W)`` -> ``(Ny*Nx, planes)``.
+
+    Planes: height mode ``(i, i+d)`` for ``i + d < b`` (b(b+1)/2, ordered by ``d`` then ``i``),
+    width mode likewise, channel mode ``(c, c')`` for ``c <= c'`` (``tri_c``). The box sums are
+    exact pairwise sums (:func:`capssim.reconstruct.filters.sliding_window_sum`); every plane is
+    written once into the position-major result (no stacking and concatenation).
+    """
+    c, hr, w = zr.shape
+    b = block
+    ny, nx = hr - b + 1, w - b + 1
+    nb = b * (b + 1) // 2
+    out = zr.new_empty(ny, nx, 2 * nb + tri_c[0].numel())
+    slot = 0
+    for d in range(b):  # height mode: G_h[i, i+d] = sum_{j<b, c} z[c, y+i, x+j] z[c, y+i+d, x+j]
+        rowbox = sliding_window_sum((zr[:, :hr - d, :] * zr[:, d:, :]).sum(0), b, dim=1)   # (hr-d, nx)
+        out[:, :, slot:slot + b - d] = rowbox.unfold(0, b - d, 1)[:ny]
+        slot += b - d
+    for d in range(b):  # width mode: G_w[j, j+d] = sum_{i<b, c} z[c, y+i, x+j] z[c, y+i, x+j+d]
+        colbox = sliding_window_sum((zr[:, :, :w - d] * zr[:, :, d:]).sum(0), b, dim=0)    # (ny, W-d)
+        out[:, :, slot:slot + b - d] = colbox.unfold(1, b - d, 1)[:, :nx]
+        slot += b - d
+    zh = zr.permute(1, 2, 0)                                                                # (hr, W, C) view
+    prods = zh.index_select(2, tri_c[0]) * zh.index_select(2, tri_c[1])                    # (hr, W, T)
+    out[:, :, slot:] = sliding_window_sum(sliding_window_sum(prods, b, dim=0), b, dim=1)
+    return out.view(ny * nx, -1)
+
+
+def unpack_grams(sums: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Tensor],
+                 channels: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Summed Gram entries ``(k, planes)`` -> height+width ``(2k, b, b)`` and channel ``(k, C, C)``."""
+    b, k = block, sums.shape[0]
+    nb = b * (b + 1) // 2
+    pairs = [(i, i + d) for d in range(b) for i in range(b - d)]  # the plane order of gram_maps
+    rows = torch.tensor([p[0] for p in pairs], device=sums.device)
+    cols = torch.tensor([p[1] for p in pairs], device=sums.device)
+    hw = sums.new_zeros(2, k, b, b)
+    for mode in range(2):
+        vals = sums[:, mode * nb:(mode + 1) * nb]
+        hw[mode][:, rows, cols] = vals
+        hw[mode][:, cols, rows] = vals
+    cc = sums.new_zeros(k, channels, channels)
+    iu, ju = tri_c
+    cc[:, iu, ju] = sums[:, 2 * nb:]
+    cc[:, ju, iu] = sums[:, 2 * nb:]
+    return hw.reshape(2 * k, b, b), cc
+
+
+def orthonormal_bases(gram: torch.Tensor) -> torch.Tensor:
+    """Eigenvectors (columns) of a batch of symmetric PSD matrices, scale-normalized (eq. 21)."""
+    scale = torch.diagonal(gram, dim1=-2, dim2=-1).sum(-1).clamp(min=1e-30)[:, None, None]
+    eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
+    return torch.linalg.eigh(gram / scale + 1e-7 * eye)[1]
+
+
+def mode_products(t: torch.Tensor, ph: torch.Tensor, pw: torch.Tensor, pc: torch.Tensor,
+                  transpose: bool) -> torch.Tensor:
+    """``t x1 Ph x2 Pw x3 Pc`` (or with the transposes) for blocks ``t`` ``(k, b, b, C)``.
+
+    ``t`` may also be ``(k, b, S, b, C)``: ``S`` stacked blocks of each group sharing its bases
+    (one batched product for the reference block and ``U`` of eq. 22-23).
+    """
+    k, b, c = t.shape[0], t.shape[1], t.shape[-1]
+    stacked = t.dim() == 5
+    s = t.shape[2] if stacked else 1
+    if transpose:
+        ph, pw = ph.transpose(1, 2), pw.transpose(1, 2)
+    else:
+        pc = pc.transpose(1, 2)
+    # mode 1 (height): out[a, ...] = sum_i Ph[a, i] t[i, ...]
+    x = torch.bmm(ph, t.reshape(k, b, -1))                                      # (k, b_a, S*b*C)
+    # mode 2 (width): bring the width index forward
+    x = x.view(k, b * s, b, c).transpose(1, 2).reshape(k, b, b * s * c)          # (k, b_j, (a, S), C)
+    x = torch.bmm(pw, x).view(k, b, b * s, c).transpose(1, 2)                    # (k, (a, S), b_j', C)
+    # mode 3 (channel): out[..., d] = sum_c x[..., c] Pc[c, d]
+    x = torch.bmm(x.reshape(k, b * s * b, c), pc)
+    return x.view(k, b, s, b, c) if stacked else x.view(k, b, b, c)
+
+
+def row_segments(z_pixels: torch.Tensor, block: int) -> torch.Tensor:
+    """Overlapping view ``(H*W - b + 1, b*C)`` of ``z_pixels`` ``(H*W, C)``: row ``p`` holds pixels
+    ``p .. p+b-1``, so a block is ``b`` gathered rows instead of ``b*b`` gathered pixels."""
+    n, c = z_pixels.shape
+    return z_pixels.as_strided((n - block + 1, block * c), (c, 1))
+
+
+def gather_blocks(segments: torch.Tensor, corners: torch.Tensor, row_starts: torch.Tensor) -> torch.Tensor:
+    """Blocks ``(k, b, b*C)`` whose top-left pixels have flat indices ``corners`` ``(k,)``.
+
+    ``row_starts`` ``(b,)`` are the flat offsets ``i * W`` of the block's rows; ``segments`` is
+    :func:`row_segments`.
+    """
+    idx = (corners[:, None] + row_starts[None, :]).reshape(-1)
+    return segments.index_select(0, idx).view(corners.shape[0], row_starts.shape[0], -1)
+
+
+def group_matrix(corners: torch.Tensor, weights: torch.Tensor, n_columns: int) -> torch.Tensor:
+    """Sparse CSR ``(K, n_columns)`` with row ``k`` holding ``weights[k]`` at the flat block corners
+    ``corners[k]`` (both ``(K, P)``; columns sorted within each row)."""
+    k, p = corners.shape
+    cols, order = torch.sort(corners, dim=1)
+    crow = torch.arange(0, k * p + 1, p, dtype=torch.int64, device=corners.device)
+    with warnings.catch_warnings():  # torch flags CSR as beta once per process
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow, cols.reshape(-1), weights.gather(1, order).reshape(-1),
+                                       size=(k, n_columns), check_invariants=False)
+
+
+def weighted_block_sums(z_pixels: torch.Tensor, group_weights: torch.Tensor, block: int, width: int) -> torch.Tensor:
+    """``U_k = sum_p w_kp B(pos_kp)`` (eq. 19) of every group, ``(K, b, b, C)``.
+
+    ``group_weights`` is :func:`group_matrix` of the groups' flat corners and weights. Pixel
+    ``(i, j)`` of every block is one sparse-dense product with ``z_pixels`` shifted by
+    ``i * W + j``: no ``(K, P, b, b, C)`` gather is ever built.
+    """
+    k, n_cols = group_weights.shape
+    u = z_pixels.new_empty(k, block, block, z_pixels.shape[1])
+    for i in range(block):
+        for j in range(block):
+            start = i * width + j
+            u[:, i, j] = torch.sparse.mm(group_weights, z_pixels[start:start + n_cols])
+    return u
+
+
+def shrink_core(alpha: torch.Tensor, beta: torch.Tensor, c1: float, c2: float, *, adaptive: str = "element",
+                eps: float = 1e-8, terms: bool = True) -> tuple[torch.Tensor, dict]:
+    """Eq. 23 with the adaptive ``lambda_k/mu`` and ``eta_k/mu`` of section 4, for cores ``(k, n)``.
+
+    ``C = soft((2 t beta + alpha) / (1 + 2 t), (lambda/mu) / (1 + 2 t))``, ``t = eta/mu``.
+    Returns the core and the summed terms ``zeros`` (count of zero coefficients) and, when
+    ``terms``, ``l1`` (``lambda/mu |C|``), ``fit`` (``|alpha - C|^2``) and ``nonlocal``
+    (``eta/mu |beta - C|^2``).
+    """
+    if adaptive == "element":
+        lam = c1 / (alpha.abs() + eps)
+        t = c2 / ((alpha - beta).square_().add_(eps))
+    elif adaptive == "block":
+        lam = (c1 / (alpha.abs().sum(1, keepdim=True) + eps)).expand_as(alpha)
+        t = (c2 / ((alpha - beta).square().sum(1, keepdim=True) + eps)).expand_as(alpha)
+    else:
+        raise InputError("adaptive", adaptive, "'element' or 'block'")
+    denom = 2.0 * t + 1.0
+    v = torch.addcmul(alpha, t, beta, value=2.0).div_(denom)
+    core = torch.sign(v).mul_((v.abs_() - lam / denom).clamp_(min=0))
+    parts = {"zeros": (core == 0).sum().to(alpha.dtype)}
+    if terms:
+        parts.update({"l1": (lam * core.abs()).sum(), "fit": (alpha - core).square().sum(),
+                      "nonlocal": (t * (beta - core).square()).sum()})
+    return core, parts
+
+
+__all__ = ["gather_blocks", "gram_maps", "group_matrix", "mode_products", "orthonormal_bases", "row_segments",
+           "shrink_core", "unpack_grams", "weighted_block_sums"]

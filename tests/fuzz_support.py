@@ -1,0 +1,108 @@
+"""Shared pieces of the fuzz suite (tests/test_fuzz_*.py): Hypothesis settings, odd values, the CLI outcome.
+
+Every fuzz test is derandomized (the same examples on every run, so CI is deterministic), has no
+deadline (a machine shared with other jobs varies in speed) and keeps no example database.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import resource
+import traceback
+from contextlib import contextmanager
+
+from hypothesis import HealthCheck, settings
+from hypothesis import strategies as st
+from typer.testing import CliRunner
+
+from capssim.cli import app
+from capssim.errors import CapssimError
+
+#: ``CAPSSIM_FUZZ_SCALE=N`` runs N times the examples (a longer search, locally; CI runs the default 1)
+FUZZ_SCALE = float(os.environ.get("CAPSSIM_FUZZ_SCALE", "1"))
+
+
+def fuzz_settings(max_examples: int) -> settings:
+    """Derandomized, no deadline, no database: ``max_examples`` examples (times ``CAPSSIM_FUZZ_SCALE``),
+    the same on every run."""
+    return settings(max_examples=max(1, round(max_examples * FUZZ_SCALE)), derandomize=True, deadline=None,
+                    database=None,
+                    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+
+
+#: values every numeric option must survive: non-finite, signed, huge, tiny, and no number at all
+ODD_WORDS = ["nan", "inf", "-inf", "NaN", "-0", "0", "-1", "1e300", "-1e300", "5e-324", "1e309", "abc", "", "1e",
+             "0x10", "1_000", "2.5", "-0.5", "1000000000", "99999999999999999999999"]
+
+#: a numeric option's odd value, as typed on the command line: never an ordinary mid-range value, so
+#: a fuzzed command stays cheap (a valid size or count in the thousands would be a long, legal run)
+odd_values = st.one_of(
+    st.sampled_from(ODD_WORDS),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(max_value=0).map(str),
+    st.integers(min_value=10**6, max_value=10**40).map(str),
+    st.text(alphabet="0123456789.eE+-_xnaif ", max_size=10),
+)
+
+#: the words that must never be accepted by any numeric option
+NEVER_VALID = ("nan", "NaN", "-inf", "-1e300")
+
+
+def invoke(args: list) -> tuple[str, str]:
+    """``capssim ARGS`` in this process, as the console entry point sees it: ``(outcome, message)``.
+
+    ``outcome`` is ``ok`` (exit 0), ``error`` (a :class:`~capssim.errors.CapssimError`: the entry
+    point prints its one-line message and exits 2) or ``usage`` (click refused the command line,
+    exit 2). Anything else (another exception, another exit status) fails the calling test with
+    the traceback.
+    """
+    handlers = logging.root.handlers[:]
+    try:
+        result = CliRunner().invoke(app, [str(a) for a in args])
+    finally:  # the CLI points logging at the runner's stream; give the old handlers back
+        logging.root.handlers[:] = handlers
+    exc = result.exception
+    if result.exit_code == 0:
+        return "ok", result.output
+    if isinstance(exc, CapssimError):
+        message = str(exc)
+        assert message and "\n" not in message.strip(), f"capssim {args}: a message of several lines: {message!r}"
+        return "error", message
+    if isinstance(exc, SystemExit) and result.exit_code == 2:
+        assert "Traceback" not in result.output, result.output
+        return "usage", result.output
+    trace = "".join(traceback.format_exception(exc)) if exc is not None and not isinstance(exc, SystemExit) else ""
+    raise AssertionError(f"capssim {' '.join(map(str, args))}: exit {result.exit_code}\n{result.output}\n{trace}")
+
+
+def peak_rss_bytes() -> int:
+    """This process's peak resident memory so far (Linux reports KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+#: the most a fuzz module may raise this process's peak memory: a huge allocation fails the module
+PEAK_GROWTH_LIMIT = 1536 * 2**20
+
+
+@contextmanager
+def address_space_headroom(gib: float):
+    """Cap this process's address space at its present size plus ``gib`` GiB (``RLIMIT_AS``), so that an
+    allocation a guard missed fails with a MemoryError here instead of taking the machine's memory."""
+    with open("/proc/self/status", encoding="ascii") as fh:
+        vm_size = next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmSize:"))
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (vm_size + int(gib * 2**30), hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
+
+
+def one_line_error(exc: BaseException) -> str:
+    """The message of a refused input: a :class:`CapssimError` with one non-empty line, else the test fails."""
+    if not isinstance(exc, CapssimError):
+        raise AssertionError("not a capssim error:\n" + "".join(traceback.format_exception(exc))) from exc
+    message = str(exc)
+    assert message.strip() and "\n" not in message.strip(), f"a message of several lines: {message!r}"
+    return message
