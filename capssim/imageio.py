@@ -164,6 +164,20 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
+def append_line_durably(path: str | os.PathLike, line: bytes) -> None:
+    """Append ``line`` (one JSON line, say, newline included) to ``path``: one ``write`` on an
+    ``O_APPEND`` descriptor, then ``fsync``. A kill leaves every earlier line whole and at most
+    this one cut short."""
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    try:
+        view = memoryview(line)
+        while view:
+            view = view[os.write(fd, view):]
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 

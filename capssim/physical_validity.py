@@ -78,25 +78,24 @@ def project_to_physical(image12: np.ndarray, *, unobserved: np.ndarray | None = 
     if image12.ndim != 3 or image12.shape[0] != N_CHANNELS:
         raise InputError("image12", f"shape {tuple(image12.shape)}", "(12, H, W), channel c = 3*p + k")
     x = np.asarray(image12, dtype=np.float32)
-    stokes = stokes_from_intensities(split_12(x), axis=0)  # (3, 3 colours, H, W)
-    four = split_12(x)
+    four = split_12(x)  # (4 angles, 3 colours, H, W)
     inconsistent = (four[0] + four[2] - four[1] - four[3]) / 2
-    valid, over = _cone_projection(stokes)
+    valid, over = _cone_projection(stokes_from_intensities(four, axis=0))
     projected = np.maximum(twelve_from_stokes(valid), 0.0)  # only rounding below 0 is left
-    keep = np.zeros(x.shape, dtype=bool)
+    kept_groups = np.zeros(four.shape[1:], dtype=bool)  # (3 colours, H, W): left unchanged
     if unobserved is not None:
         if unobserved.shape != x.shape:
             raise InputError("unobserved", f"shape {tuple(unobserved.shape)}", f"the image's shape {tuple(x.shape)}")
-        any_missing = split_12(np.asarray(unobserved, dtype=bool)).any(axis=0)  # (3, H, W)
-        keep = np.broadcast_to(any_missing[None], (4, *any_missing.shape)).reshape(x.shape)
+        kept_groups = split_12(np.asarray(unobserved, dtype=bool)).any(axis=0)
+    keep = np.broadcast_to(kept_groups[None], four.shape).reshape(x.shape)
     out = np.where(keep, x, projected)
     checked = ~keep
     n = max(int(checked.sum()), 1)
-    n_pix = max(int((~split_12(keep)[0]).sum()), 1)
+    n_pix = max(int((~kept_groups).sum()), 1)
     report = ProjectionReport(
         negative_fraction=float(((x < 0) & checked).sum() / n),
-        inconsistent_rms=float(np.sqrt(np.sum(np.where(split_12(keep)[0], 0.0, inconsistent) ** 2) / n_pix)),
-        over_polarized_fraction=float((over & ~split_12(keep)[0]).sum() / n_pix),
+        inconsistent_rms=float(np.sqrt(np.sum(np.where(kept_groups, 0.0, inconsistent) ** 2) / n_pix)),
+        over_polarized_fraction=float((over & ~kept_groups).sum() / n_pix),
         change_rms=float(np.sqrt(np.sum((out - x) ** 2) / n)),
     )
     return out.astype(np.float32), report

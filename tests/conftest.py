@@ -37,6 +37,17 @@ def smooth_random_scene(size: int = 64, *, seed: int = 0, dolp_max: float = 0.6)
     return twelve_from_stokes(np.stack([s0, s1, s2])).astype(np.float32)
 
 
+def write_png_gt(folder: Path, scene: np.ndarray) -> Path:
+    """``scene`` ``(12, H, W)`` on [0, 1] as a ground-truth folder ``0.png 45.png 90.png 135.png`` (8-bit RGB)."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for p, angle in enumerate((0, 45, 90, 135)):
+        rgb = np.round(np.clip(scene[3 * p:3 * p + 3], 0, 1) * 255).astype(np.uint8).transpose(1, 2, 0)
+        cv2.imwrite(str(folder / f"{angle}.png"), rgb[..., ::-1])
+    return folder
+
+
 @pytest.fixture
 def scene64() -> np.ndarray:
     return smooth_random_scene(64)

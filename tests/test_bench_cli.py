@@ -5,9 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
+from conftest import write_png_gt
 from typer.testing import CliRunner
 
 from capssim.capture import write_capture
@@ -44,12 +43,7 @@ def test_former_commands_name_the_new_one(old, new):
 
 
 def _gt_folder(path: Path, size: int = 64) -> Path:
-    gt, _ = texture_scene(size, seed=3)
-    path.mkdir(parents=True)
-    for p, angle in enumerate((0, 45, 90, 135)):
-        rgb = np.round(np.moveaxis(gt[3 * p:3 * p + 3], 0, -1) * 255).astype(np.uint8)
-        cv2.imwrite(str(path / f"{angle}.png"), rgb[..., ::-1])
-    return path
+    return write_png_gt(path, texture_scene(size, seed=3)[0])
 
 
 def test_dofp_subject_scores_the_published_columns(tmp_path):

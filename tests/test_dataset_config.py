@@ -7,10 +7,9 @@ import sys
 import textwrap
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-from conftest import smooth_random_scene
+from conftest import smooth_random_scene, write_png_gt
 
 from capssim.dataset import ConfigError, load_config, parse_config
 from capssim.dataset.augment import rotate_flip_twelve
@@ -22,12 +21,7 @@ CLI = [sys.executable, "-m", "capssim.cli.__main__"]
 
 
 def write_gt_folder(folder: Path, size: int = 32, seed: int = 0) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    gt = smooth_random_scene(size, seed=seed)
-    for p, angle in enumerate((0, 45, 90, 135)):
-        rgb = np.round(np.clip(gt[3 * p:3 * p + 3], 0, 1) * 255).astype(np.uint8).transpose(1, 2, 0)
-        cv2.imwrite(str(folder / f"{angle}.png"), rgb[..., ::-1])
-    return folder
+    return write_png_gt(folder, smooth_random_scene(size, seed=seed))
 
 
 def write_config(tmp_path: Path, text: str) -> Path:

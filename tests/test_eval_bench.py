@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import write_png_gt
 from typer.testing import CliRunner
 
 from capssim.cli import app
@@ -55,16 +56,9 @@ if "test-upsample" not in available_methods():
 
 
 def _write_gt_folder(path: Path, size: int = 48) -> Path:
-    import cv2
-
     from capssim.eval.synthetic import texture_scene
 
-    gt, _ = texture_scene(size, seed=5)
-    path.mkdir(parents=True)
-    for p, angle in enumerate((0, 45, 90, 135)):
-        rgb = np.round(np.moveaxis(gt[3 * p:3 * p + 3], 0, -1) * 255).astype(np.uint8)
-        cv2.imwrite(str(path / f"{angle}.png"), rgb[..., ::-1])
-    return path
+    return write_png_gt(path, texture_scene(size, seed=5)[0])
 
 
 SUITE = """

@@ -314,3 +314,14 @@ def test_method_option_that_is_a_command_flag_names_the_flag(pair, flag, capture
     status, err = run_cli(["reconstruct", capture_dir, "-m", "caps-naive", "-O", pair, "--no-progress"],
                           capsys, monkeypatch)
     assert_user_error(status, err, "--option", pair.split("=")[0], flag)
+
+
+def test_every_keyword_of_reconstruct_is_a_named_command_flag():
+    """A new keyword of ``registry.reconstruct`` given as ``-O KEY=...`` would clash with the flag passing it."""
+    import inspect
+
+    from capssim.cli.reconstruct import COMMAND_FLAGS
+    from capssim.reconstruct.registry import reconstruct
+
+    keywords = {name for name, p in inspect.signature(reconstruct).parameters.items() if p.kind is p.KEYWORD_ONLY}
+    assert keywords == set(COMMAND_FLAGS)

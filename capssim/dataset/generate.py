@@ -21,7 +21,6 @@ system) and have capssim installed.
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import time
 import traceback
@@ -46,15 +45,9 @@ from capssim.dataset.manifest import (
 from capssim.dataset.sample import generate_sample
 from capssim.errors import CapssimError, InputError
 from capssim.resources import check_memory, check_range
+from capssim.threads import CHILD_ENV_VARS, available_cores
 
 log = logging.getLogger(__name__)
-
-
-def available_cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 @dataclass
@@ -121,7 +114,7 @@ MAX_WORKERS_PER_CORE = 4
 
 def check_local_workers(workers: int, *, option: str = "--workers") -> None:
     """Refuse a local worker count past :data:`MAX_WORKERS_PER_CORE` per core or the memory limit."""
-    cores = os.cpu_count() or 1
+    cores = available_cores()
     check_range(option, workers, high=MAX_WORKERS_PER_CORE * cores, what="the number of local worker processes",
                 reason=f"{MAX_WORKERS_PER_CORE} per core on this {cores}-core machine",
                 fix=f"Use --workers {cores} (one per core), or --scheduler ADDRESS for a larger cluster.")
@@ -142,7 +135,7 @@ def _start_local_cluster(workers: int, compute_threads: int):
 
     check_local_workers(workers)
 
-    env = {var: str(compute_threads) for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+    env = {var: str(compute_threads) for var in CHILD_ENV_VARS}
     unset = {f"distributed.nanny.pre-spawn-environ.{var}": None for var in UNSET_WORKER_ENV}
     with dask.config.set(unset):
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",

@@ -20,13 +20,12 @@ from __future__ import annotations
 import fcntl
 import json
 import logging
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from capssim import __version__
 from capssim.errors import CaptureFormatError, InputError
-from capssim.imageio import atomic_write_bytes, atomic_write_json
+from capssim.imageio import append_line_durably, atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger(__name__)
 
@@ -89,16 +88,13 @@ class ManifestWriter:
 
     def __init__(self, path):
         self.path = Path(path)
-        self._fh = open(self.path, "ab")
+        self.path.touch()
 
     def append(self, record: dict) -> None:
-        line = json.dumps(record, sort_keys=True, separators=(",", ":")).encode("utf-8") + b"\n"
-        self._fh.write(line)
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
+        append_line_durably(self.path, json.dumps(record, sort_keys=True, separators=(",", ":")).encode("utf-8") + b"\n")
 
     def close(self) -> None:
-        self._fh.close()
+        pass
 
     def __enter__(self):
         return self

@@ -31,11 +31,12 @@ from capssim.psf import PSF
 from capssim.render import render_capture
 from capssim.render.pipeline import check_render
 from capssim.simulate import PoseRanges, simulate_capture
+from capssim.threads import set_threads
 
 log = logging.getLogger(__name__)
 
-THREAD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-                   "VECLIB_MAXIMUM_THREADS", "DRJIT_NUM_THREADS")
+#: thread variables of libraries beyond those :func:`capssim.threads.set_threads` exports
+EXTRA_THREAD_ENV_VARS = ("NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "DRJIT_NUM_THREADS")
 _render_threads: int | None = None
 
 
@@ -45,10 +46,9 @@ def limit_threads(n: int) -> None:
     Called once per Dask worker so that workers x threads does not exceed the cores.
     """
     global _render_threads
-    n = max(1, int(n))
-    for var in THREAD_ENV_VARS:
+    n = set_threads(max(1, int(n)))  # torch, OpenCV, OpenMP/MKL/OpenBLAS variables
+    for var in EXTRA_THREAD_ENV_VARS:
         os.environ[var] = str(n)
-    torch.set_num_threads(n)
     try:
         torch.set_num_interop_threads(n)
     except RuntimeError:  # only allowed before any inter-op work; harmless otherwise

@@ -14,11 +14,10 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from pathlib import Path
 
 from capssim.eval.benchmarks.provenance import json_default
-from capssim.imageio import atomic_write_text
+from capssim.imageio import append_line_durably, atomic_write_text
 
 log = logging.getLogger(__name__)
 
@@ -67,15 +66,7 @@ class ResultsLog:
 
     def append(self, record: dict) -> None:
         """Append ``record`` as one line, durably (one write, then fsync)."""
-        data = results_text([record]).encode()
-        fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
-        try:
-            view = memoryview(data)
-            while view:
-                view = view[os.write(fd, view):]
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        append_line_durably(self.path, results_text([record]).encode())
 
     def finish(self, records: list[dict]) -> None:
         """Rewrite the file atomically: ``records`` (this plan's, in its order), then the previous
