@@ -5,6 +5,7 @@ from capssim.operators.base import (
     Adjoint,
     Composition,
     LinearOperator,
+    Multiply,
     Reshape,
     Stack,
     adjointness_error,
@@ -24,7 +25,7 @@ from capssim.operators.warp import Warp, warp_image
 
 __all__ = [
     "Adjoint", "Analyzer", "BayerMosaic", "BayerSplit", "ChannelMix", "ChannelSample", "ChannelSelect",
-    "Composition", "Convolve", "Decimation", "DoFPMosaic", "IntegrateDecimate", "LinearOperator",
+    "Composition", "Convolve", "Decimation", "DoFPMosaic", "IntegrateDecimate", "LinearOperator", "Multiply",
     "PixelIntegration", "Reshape", "Stack", "Warp", "adjointness_error", "analyzer_matrix",
     "caps_raw_operator", "dofp_raw_operator", "lr_channel_matrix",
     "lr_observation_operator", "lr_sampling_operator", "operator_norm_estimate",

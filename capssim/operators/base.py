@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from typing import Sequence
 
+import numpy as np
+
 import torch
 
 from capssim.errors import InputError
@@ -191,6 +193,24 @@ class Reshape(LinearOperator):
 
     def _adjoint(self, y):
         return y.reshape(self.input_shape)
+
+
+class Multiply(LinearOperator):
+    """``y = w * x`` with fixed weights ``w`` of the operator's shape (diagonal, self-adjoint),
+    e.g. a flat field (gain x vignetting) on the raw grid."""
+
+    name = "multiply"
+
+    def __init__(self, weights):
+        w = torch.as_tensor(np.asarray(weights, dtype=np.float64))
+        super().__init__(tuple(w.shape), tuple(w.shape))
+        self.weights = w
+
+    def _forward(self, x):
+        return x * self._const("w", self.weights, x)
+
+    def _adjoint(self, y):
+        return y * self._const("w", self.weights, y)
 
 
 def adjointness_error(op: LinearOperator, *, dtype=torch.float64, device=None, seed: int = 0) -> float:

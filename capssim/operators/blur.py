@@ -18,8 +18,33 @@ def _replicate_index(n: int, before: int, after: int) -> torch.Tensor:
     return torch.clamp(torch.arange(-before, n + after), 0, n - 1)
 
 
+def stack_kernels(kernel) -> np.ndarray:
+    """``(G, kh, kw)`` float64 from one odd 2-D kernel or a sequence/stack of them.
+
+    Kernels of different odd sizes are zero-padded (centred) to the largest.
+    """
+    if isinstance(kernel, (list, tuple)):
+        ks = [np.asarray(k, dtype=np.float64) for k in kernel]
+    else:
+        arr = np.asarray(kernel, dtype=np.float64)
+        ks = [arr] if arr.ndim == 2 else list(arr) if arr.ndim == 3 else [arr]
+    for k in ks:
+        if k.ndim != 2 or k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
+            raise InputError("kernel", f"shape {k.shape}", "a 2-D kernel with odd height and width (or a stack of them)")
+    kh, kw = max(k.shape[0] for k in ks), max(k.shape[1] for k in ks)
+    out = np.zeros((len(ks), kh, kw))
+    for g, k in enumerate(ks):
+        top, left = (kh - k.shape[0]) // 2, (kw - k.shape[1]) // 2
+        out[g, top:top + k.shape[0], left:left + k.shape[1]] = k
+    return out
+
+
 class Convolve(LinearOperator):
     """``(..., H, W) -> (..., H, W)`` correlation with an odd ``kernel``, border replicated.
+
+    ``kernel``: one ``(kh, kw)`` kernel for every plane, or ``G`` kernels (a ``(G, kh, kw)``
+    stack or a list of odd kernels of any sizes): plane ``p`` of the flattened leading axes
+    uses kernel ``p // (planes // G)`` (e.g. one PSF per aperture of ``(4, 3, H, W)``).
 
     Forward = replicate-pad (a gather) then valid ``conv2d``; adjoint = ``conv_transpose2d``
     then the pad's adjoint (an ``index_add`` folding the border back).
@@ -28,21 +53,25 @@ class Convolve(LinearOperator):
     name = "convolve"
 
     def __init__(self, kernel, shape: tuple[int, ...]):
-        k = np.asarray(kernel, dtype=np.float64)
-        if k.ndim != 2 or k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
-            raise InputError("kernel", f"shape {k.shape}", "a 2-D kernel with odd height and width")
+        k = stack_kernels(kernel)
+        planes = int(np.prod(shape[:-2])) if len(shape) > 2 else 1
+        if planes % k.shape[0]:
+            raise InputError("kernel", f"{k.shape[0]} kernels", f"a number of kernels dividing the {planes} planes")
         super().__init__(shape, shape)
-        self.kernel = torch.as_tensor(k)[None, None]
-        self.pad = (k.shape[0] // 2, k.shape[1] // 2)
+        self.kernel = torch.as_tensor(k)[:, None]  # (G, 1, kh, kw)
+        self.pad = (k.shape[1] // 2, k.shape[2] // 2)
         h, w = shape[-2:]
         self.row_index = _replicate_index(h, self.pad[0], self.pad[0])
         self.col_index = _replicate_index(w, self.pad[1], self.pad[1])
-        self.is_identity = k.shape == (1, 1) and k[0, 0] == 1.0
+        self.is_identity = k.shape[1:] == (1, 1) and bool(np.all(k[:, 0, 0] == 1.0))
 
     def _grouped_kernel(self, like, n: int, *, flipped: bool = False):
-        # planes as channels of one grouped conv: much faster on CPU than a batch of 1-channel convs
+        # planes as channels of one grouped conv: much faster on CPU than a batch of 1-channel convs;
+        # consecutive blocks of n // G planes share kernel g
         k = self._const("kf" if flipped else "k", torch.flip(self.kernel, (2, 3)) if flipped else self.kernel, like)
-        return k.expand(n, 1, *k.shape[2:])
+        if k.shape[0] == 1:
+            return k.expand(n, 1, *k.shape[2:])
+        return k.repeat_interleave(n // k.shape[0], dim=0)
 
     def _forward(self, x):
         if self.is_identity:
