@@ -14,7 +14,6 @@ import math
 from typing import Sequence
 
 import numpy as np
-
 import torch
 
 from capssim.errors import InputError
