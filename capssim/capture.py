@@ -45,6 +45,7 @@ from capssim.geometry import ArrayGeometry
 from capssim.imageio import atomic_directory, atomic_write_json, write_tiff
 from capssim.psf import PSF
 from capssim.resources import check_memory
+from capssim.rig import RigModel
 from capssim.sensor import Sensor, sensor_from_meta
 
 log = logging.getLogger(__name__)
@@ -231,6 +232,11 @@ def validate_meta(meta: dict) -> None:
     except (InputError, TypeError, ValueError) as exc:
         raise CaptureFormatError(f"meta.json psf: got {_found(meta.get('psf'))} ({exc}); expected a PSF object "
                                  "such as {\"type\": \"gaussian\", \"sigma_hr_px\": 0.5}.") from None
+    if meta.get("rig") is not None:
+        try:
+            RigModel.from_dict(meta["rig"], where="meta.json rig")
+        except InputError as exc:
+            raise CaptureFormatError(f"{exc} (the true imperfect array; see docs: guides/calibration.md)") from None
 
 
 @dataclass
@@ -265,6 +271,12 @@ class Capture:
     @property
     def extinction_ratio(self) -> float | None:
         return self.meta.get("extinction_ratio")
+
+    @property
+    def rig(self) -> RigModel | None:
+        """The true imperfect array of a simulated or rendered capture (``meta.json["rig"]``), or ``None``."""
+        entry = self.meta.get("rig")
+        return None if entry is None else RigModel.from_dict(entry, where="meta.json rig")
 
     @property
     def geometry(self) -> ArrayGeometry:

@@ -21,6 +21,7 @@ import torch
 from capssim.operators.base import Composition
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
 from capssim.psf import PSF, as_psf
+from capssim.rig import RigModel
 from capssim.sensor import Sensor
 
 
@@ -37,7 +38,10 @@ class CameraArrayMeasurement:
     ``psf``: the optical PSF on the HR grid (a :class:`~capssim.psf.PSF`, a ``meta.json``
     mapping, or ``None`` for the default); ``dofp_layout``: the DoFP mosaic layout;
     ``extinction_ratio``: of the polarizers (``None``: ideal). The three streams of
-    :func:`seed_streams` are created once, so successive calls continue them.
+    :func:`seed_streams` are created once, so successive calls continue them. ``rig``: an
+    imperfect array (:class:`capssim.rig.RigModel`: its analyzer, per-aperture PSFs and flat
+    field replace the ideal ones for the CAPS frames; the DoFP camera is another camera and
+    keeps ``psf`` and ``extinction_ratio``).
     """
 
     sensor: Sensor
@@ -45,6 +49,7 @@ class CameraArrayMeasurement:
     dofp_layout: object = "sony"
     extinction_ratio: float | None = None
     seed: int = 0
+    rig: RigModel | None = None
     pose_rng: np.random.Generator = field(init=False, repr=False)
     caps_rng: np.random.Generator = field(init=False, repr=False)
     dofp_rng: np.random.Generator = field(init=False, repr=False)
@@ -57,7 +62,7 @@ class CameraArrayMeasurement:
     def caps_operator(self, hr_shape, aperture_homographies: np.ndarray) -> Composition:
         """``(12, 2H, 2W) -> (4, H, W)`` CAPS raw irradiance (eq. 9); homographies ``(4, 3, 3)`` HR ref -> aperture."""
         return caps_raw_operator(hr_shape, aperture_homographies, self.psf.kernel(),
-                                 extinction_ratio=self.extinction_ratio)
+                                 extinction_ratio=self.extinction_ratio, rig=self.rig)
 
     def dofp_operator(self, hr_shape) -> Composition:
         """``(12, 2H, 2W) -> (2H, 2W)`` DoFP raw irradiance with the same optics."""

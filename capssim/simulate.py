@@ -26,6 +26,7 @@ from capssim.homography import random_aperture_homographies
 from capssim.imageio import centre_crop
 from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import PSF
+from capssim.rig import RigModel
 from capssim.sensor import Sensor
 
 log = logging.getLogger(__name__)
@@ -97,7 +98,8 @@ def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None,
 def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF | dict | None = None,
                      dofp_layout="sony", extinction_ratio: float | None = None,
                      pose_ranges: PoseRanges = PoseRanges(), aperture_homographies: np.ndarray | None = None,
-                     source: dict | None = None, kind: str = "simulated", extra_meta: dict | None = None) -> Capture:
+                     source: dict | None = None, kind: str = "simulated", extra_meta: dict | None = None,
+                     rig: RigModel | None = None) -> Capture:
     """Simulate the CAPS raw frames and the DoFP raw frame of a ``(12, 2H, 2W)`` ground truth.
 
     The measurement is :class:`~capssim.measurement.CameraArrayMeasurement` (``y = sensor(A x)``,
@@ -105,14 +107,17 @@ def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF 
     (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS noise and the DoFP noise.
     ``gt`` on [0, 1]; values above full scale are kept with a warning (they saturate the
     sensor), negative ones refused (:func:`prepare_ground_truth`). Returns a
-    :class:`~capssim.capture.Capture` (not yet written).
+    :class:`~capssim.capture.Capture` (not yet written). ``rig``: an imperfect array
+    (:class:`capssim.rig.RigModel`); its true values go to ``meta.json["rig"]``.
     """
     t0 = time.perf_counter()
     gt, _ = prepare_ground_truth(gt, allow_out_of_range=True)
     hr_shape = gt.shape[1:]
     measurement = CameraArrayMeasurement(sensor, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio,
-                                         seed=seed)
+                                         seed=seed, rig=rig)
     measurement.psf.check_extent(hr_shape, option="psf")
+    for n, aperture_psf in enumerate((rig.psf_objects() if rig is not None else None) or []):
+        aperture_psf.check_extent(hr_shape, option=f"rig psf[{n}]")
     if aperture_homographies is None:
         aperture_homographies, pose_params = random_aperture_homographies(
             measurement.pose_rng, hr_shape, shift_max_px=pose_ranges.shift_max_px,
@@ -121,6 +126,8 @@ def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF 
         pose_params = None
     caps_raw, dofp_raw = measurement.measure(gt, aperture_homographies)
     extra = {"poses": {"ranges": pose_ranges.__dict__, "apertures": pose_params}}
+    if rig is not None and not rig.is_ideal:
+        extra["rig"] = rig.to_dict()
     if extra_meta:
         extra.update(extra_meta)
     meta = build_meta(kind=kind, hr_shape=hr_shape, aperture_homographies=aperture_homographies,

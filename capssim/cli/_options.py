@@ -105,3 +105,66 @@ def apply_threads(threads: Optional[int], *, renderer: bool = False) -> int:
 
 def echo_path(label: str, path: Path) -> None:
     typer.echo(f"{label}: {path}")
+
+
+# -- imperfect rigs (capssim simulate / render / calibration-captures) ------------------------------
+RigOption = typer.Option(None, "--rig", help="Imperfect camera array: a preset (ideal, realistic) or a capssim-rig "
+                                             "JSON file (capssim calibrate's output; its geometry, if any, gives "
+                                             "the aperture homographies). Default: the ideal array.")
+RigSeedOption = typer.Option(0, "--rig-seed", callback=check_seed, help="Draw of the --rig preset.")
+AngleOffsetsOption = typer.Option(None, "--angle-offsets",
+                                  help="Polarizer angle errors of the 4 apertures, degrees: a,b,c,d.")
+ExtinctionRatiosOption = typer.Option(None, "--extinction-ratios",
+                                      help="Polarizer extinction ratios of the rig: 1 value, 3 (per colour R,G,B) "
+                                           "or 12 (per aperture and colour).")
+GainsOption = typer.Option(None, "--gains", help="Gains of the 4 cameras (1 = nominal): a,b,c,d.")
+VignettingOption = typer.Option(None, "--vignetting",
+                                help="Corner fall-off of a centred radial vignetting, 0..0.9 (0.2 = corners at 80 %).")
+AperturePsfOption = typer.Option(None, "--aperture-psf-sigmas",
+                                 help="Gaussian PSF std of each aperture, HR pixels: a,b,c,d.")
+
+
+def _numbers(option: str, text: str, counts: tuple[int, ...]) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise InputError(option, repr(text), f"{' or '.join(map(str, counts))} comma-separated numbers",
+                         f"For example {option} " + ",".join(["1"] * counts[0]) + ".") from None
+    if len(values) not in counts or not all(math.isfinite(v) for v in values):
+        raise InputError(option, repr(text), f"{' or '.join(map(str, counts))} finite comma-separated numbers")
+    return values
+
+
+def rig_from_options(rig: Optional[str], rig_seed: int = 0, *, angle_offsets: Optional[str] = None,
+                     extinction_ratios: Optional[str] = None, gains: Optional[str] = None,
+                     vignetting: Optional[float] = None, aperture_psf_sigmas: Optional[str] = None):
+    """``(RigModel | None, ArrayGeometry | None)`` of the rig options; ``(None, None)`` when none is given."""
+    from capssim.rig import RigModel, read_rig_json
+
+    overrides = {"angle_offsets_deg": angle_offsets and _numbers("--angle-offsets", angle_offsets, (4,)),
+                 "extinction_ratio": extinction_ratios and _numbers("--extinction-ratios", extinction_ratios,
+                                                                    (1, 3, 12)),
+                 "gain": gains and _numbers("--gains", gains, (4,)),
+                 "vignetting_corner": vignetting,
+                 "psf_sigmas_hr_px": aperture_psf_sigmas and _numbers("--aperture-psf-sigmas", aperture_psf_sigmas,
+                                                                      (4,))}
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    if rig is None and not overrides:
+        return None, None
+    geometry = None
+    if rig is None or rig in ("ideal", "realistic"):
+        model = RigModel.preset(rig or "ideal", seed=rig_seed)
+    elif Path(rig).suffix.lower() == ".json" or Path(rig).exists():
+        loaded = read_rig_json(rig, argument="--rig")
+        model, geometry = loaded.rig, loaded.geometry
+    else:
+        raise InputError("--rig", repr(rig), "ideal, realistic, or a capssim-rig JSON file",
+                         "Write one with `capssim calibrate`, or use --rig realistic.")
+    try:
+        return model.with_overrides(**overrides), geometry
+    except InputError as exc:
+        flag = {"rig angle_offsets_deg": "--angle-offsets", "rig extinction_ratio": "--extinction-ratios",
+                "rig gain": "--gains", "rig vignetting": "--vignetting", "extinction_ratio": "--extinction-ratios",
+                "vignetting": "--vignetting", "aperture PSF sigmas": "--aperture-psf-sigmas"}.get(exc.argument,
+                                                                                                   exc.argument)
+        raise InputError(flag, exc.received, exc.valid, exc.fix) from None

@@ -10,17 +10,26 @@ from typing import Optional
 import typer
 
 from capssim.cli._options import (
+    AngleOffsetsOption,
+    AperturePsfOption,
     DofpLayoutOption,
+    ExtinctionRatiosOption,
+    GainsOption,
     NoiseOption,
     OverwriteOption,
+    RigOption,
+    RigSeedOption,
     SeedOption,
     SensorOption,
     SigmaOption,
     ThreadsOption,
+    VignettingOption,
     apply_threads,
+    rig_from_options,
     sensor_from_options,
 )
 from capssim.design import DesignInputs, system_design
+from capssim.errors import InputError
 from capssim.imageio import atomic_write_json, check_output_file, check_output_free, read_gt_scene
 from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 
@@ -41,11 +50,21 @@ def simulate(
     scale_max: float = typer.Option(0.005, "--scale-max", help="Max random relative scale error."),
     extinction_ratio: Optional[float] = typer.Option(None, "--extinction-ratio",
                                                      help="Polarizer extinction ratio (default: ideal)."),
+    rig: Optional[str] = RigOption,
+    rig_seed: int = RigSeedOption,
+    angle_offsets: Optional[str] = AngleOffsetsOption,
+    extinction_ratios: Optional[str] = ExtinctionRatiosOption,
+    gains: Optional[str] = GainsOption,
+    vignetting: Optional[float] = VignettingOption,
+    aperture_psf_sigmas: Optional[str] = AperturePsfOption,
     overwrite: bool = OverwriteOption,
     threads: Optional[int] = ThreadsOption,
 ) -> None:
-    """Simulate CAPS and DoFP captures from a ground-truth scene (paper section 5.2)."""
+    """Simulate CAPS and DoFP captures from a ground-truth scene (paper section 5.2), through an ideal or imperfect array."""
     apply_threads(threads)
+    rig_model, rig_geometry = rig_from_options(rig, rig_seed, angle_offsets=angle_offsets,
+                                               extinction_ratios=extinction_ratios, gains=gains,
+                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas)
     # these pull torch and the operators: loaded when the command runs (start-up time)
     from capssim.capture import write_capture
     from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
@@ -56,9 +75,17 @@ def simulate(
     image, crop_info = prepare_ground_truth(image, crop=crop)
     source.update(crop_info)
     psf = PSF.gaussian(psf_sigma)
+    homographies = None
+    if rig_geometry is not None:
+        if tuple(rig_geometry.hr_shape) != tuple(image.shape[1:]):
+            raise InputError("--rig", f"geometry for {rig_geometry.hr_shape[0]}x{rig_geometry.hr_shape[1]} HR px",
+                             f"the ground truth's size {image.shape[1]}x{image.shape[2]}",
+                             "Calibrate at the capture's size, or --crop the ground truth to it.")
+        homographies = rig_geometry.aperture_homographies
     capture = simulate_capture(
         image, sensor_from_options(noise, sigma, sensor), seed=seed, psf=psf, dofp_layout=dofp_layout,
-        extinction_ratio=extinction_ratio, pose_ranges=PoseRanges(shift_max, rotation_max, scale_max), source=source)
+        extinction_ratio=extinction_ratio, pose_ranges=PoseRanges(shift_max, rotation_max, scale_max), source=source,
+        rig=rig_model, aperture_homographies=homographies)
     write_capture(output, capture, overwrite=overwrite)
     hh, ww = capture.hr_shape
     typer.echo(f"wrote {output}: GT {hh}x{ww}, 4 raw frames {hh // 2}x{ww // 2}, DoFP {hh}x{ww}, "

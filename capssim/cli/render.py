@@ -12,15 +12,23 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from capssim.cli._options import (
+    AngleOffsetsOption,
+    AperturePsfOption,
     DofpLayoutOption,
+    ExtinctionRatiosOption,
+    GainsOption,
     NoiseOption,
     OverwriteOption,
+    RigOption,
+    RigSeedOption,
     SeedOption,
     SensorOption,
     SigmaOption,
     ThreadsOption,
+    VignettingOption,
     apply_threads,
     number_in,
+    rig_from_options,
     sensor_from_options,
 )
 from capssim.errors import InputError
@@ -102,11 +110,21 @@ def render(
     preview_dolp_max: float = typer.Option(0.5, "--preview-dolp-max", help="Preview DoLP shown saturated.",
                                            callback=number_in("--preview-dolp-max", 0.0, 1.0, low_open=True,
                                                               what="a DoLP", fix="Try --preview-dolp-max 0.5.")),
+    rig: Optional[str] = RigOption,
+    rig_seed: int = RigSeedOption,
+    angle_offsets: Optional[str] = AngleOffsetsOption,
+    extinction_ratios: Optional[str] = ExtinctionRatiosOption,
+    gains: Optional[str] = GainsOption,
+    vignetting: Optional[float] = VignettingOption,
+    aperture_psf_sigmas: Optional[str] = AperturePsfOption,
     overwrite: bool = OverwriteOption,
     threads: Optional[int] = ThreadsOption,
 ) -> None:
     """Render a library scene through the four CAPS apertures and a DoFP camera (Mitsuba 3)."""
     apply_threads(threads, renderer=True)
+    rig_model, rig_geometry = rig_from_options(rig, rig_seed, angle_offsets=angle_offsets,
+                                               extinction_ratios=extinction_ratios, gains=gains,
+                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas)
     # these pull torch, the operators and the scene library: loaded when the command runs (start-up time)
     import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
     from capssim.capture import write_capture
@@ -131,7 +149,8 @@ def render(
             scene_params=_parse_pairs(param, "--param"), geometry_params=_parse_pairs(geometry, "--geometry"),
             target_noise=target_noise, record_timing=not no_timing, progress=progress, psf=psf_value,
             extinction_ratio=extinction_ratio, planar=planar, oversample=oversample, camera=camera,
-            max_spp=max_spp, measure_savings=measure_savings)
+            max_spp=max_spp, measure_savings=measure_savings, rig=rig_model,
+            aperture_homographies=None if rig_geometry is None else rig_geometry.aperture_homographies)
     write_capture(output, capture, overwrite=overwrite)
     r = capture.meta["render"]
     timing = capture.render_timing["timing_s"]

@@ -23,9 +23,10 @@ import torch
 
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.measurement import CameraArrayMeasurement
-from capssim.operators import Analyzer, BayerMosaic, Convolve, IntegrateDecimate, Warp
+from capssim.operators import Analyzer, BayerMosaic, ChannelMix, Convolve, IntegrateDecimate, Warp
 from capssim.render.geometry import scale_matrix, shift_matrix
 from capssim.render.integrator import stokes_to_twelve
+from capssim.rig import RigModel
 from capssim.render.sampling import to_tensor
 
 
@@ -59,15 +60,30 @@ class Irradiance:
     dofp: torch.Tensor
 
 
+def aperture_kernels(kernel: np.ndarray, rig: RigModel | None) -> list[np.ndarray]:
+    """The optical PSF of each aperture: the rig's own ones, else ``kernel`` for all four."""
+    own = rig.psf_kernels() if rig is not None else None
+    return own if own is not None else [kernel] * N_APERTURES
+
+
+def _analyzer(height: int, width: int, extinction_ratio: float | None, rig: RigModel | None):
+    """Aperture n's polarizer per colour, ``(12, H, W) -> (4, 3, H, W)``: the rig's, else the ideal one."""
+    if rig is None or rig.is_ideal:
+        return Analyzer(height, width, extinction_ratio=extinction_ratio)
+    return ChannelMix(rig.analyzer_matrix(), height, width, out_lead=(N_APERTURES, 3))
+
+
 def _warped_apertures(twelve: torch.Tensor, homographies: np.ndarray, *, fine: int, margin: int, size: int,
-                      kernel: np.ndarray, extinction_ratio: float | None) -> torch.Tensor:
+                      kernel: np.ndarray, extinction_ratio: float | None, rig: RigModel | None = None) -> torch.Tensor:
     """``(4, 3, S, S)``: each aperture's analyzed view as the plane homography of the fine reference render."""
-    psf_radius = kernel.shape[0] // 2
-    analyzed = Analyzer(twelve.shape[1], twelve.shape[2], extinction_ratio=extinction_ratio)(twelve)
-    out_side = fine * (size + 2 * psf_radius)
+    kernels = aperture_kernels(kernel, rig)
+    analyzed = _analyzer(twelve.shape[1], twelve.shape[2], extinction_ratio, rig)(twelve)
     s_k = scale_matrix(fine)
     apertures = []
     for n in range(N_APERTURES):
+        kernel = kernels[n]
+        psf_radius = kernel.shape[0] // 2
+        out_side = fine * (size + 2 * psf_radius)
         g = s_k @ shift_matrix(psf_radius, psf_radius) @ homographies[n] @ shift_matrix(
             -margin, -margin) @ np.linalg.inv(s_k)
         warped = Warp(g[None], 3, tuple(twelve.shape[1:]), (out_side, out_side))(analyzed[n:n + 1])[0]
@@ -78,7 +94,7 @@ def _warped_apertures(twelve: torch.Tensor, homographies: np.ndarray, *, fine: i
 
 def observe(reference_stokes: np.ndarray, aperture_views: dict[int, np.ndarray], homographies: np.ndarray, *,
             measurement: CameraArrayMeasurement, kernel: np.ndarray, size: int, fine: int, margin: int,
-            use_warp: bool) -> Irradiance:
+            use_warp: bool, rig: RigModel | None = None) -> Irradiance:
     """The ground truth and raw irradiance of a render.
 
     ``reference_stokes``: the reference view's Stokes render (``fine`` times finer, ``margin``
@@ -91,9 +107,10 @@ def observe(reference_stokes: np.ndarray, aperture_views: dict[int, np.ndarray],
     with torch.no_grad():
         twelve = to_tensor(stokes_to_twelve(reference_stokes))  # (12, Hm, Wm) on the render grid
         if use_warp:
-            gt = blur_crop(IntegrateDecimate(fine, tuple(twelve.shape))(twelve), kernel, margin)
+            gt_kernel = np.ones((1, 1)) if rig is not None and rig.psf is not None else kernel
+            gt = blur_crop(IntegrateDecimate(fine, tuple(twelve.shape))(twelve), gt_kernel, margin)
             aperture_hr = _warped_apertures(twelve, homographies, fine=fine, margin=margin, size=size, kernel=kernel,
-                                            extinction_ratio=extinction_ratio)
+                                            extinction_ratio=extinction_ratio, rig=rig)
         else:
             gt = blur_crop(twelve, kernel, margin)
             ref = Analyzer(size, size, angles_deg=(POLARIZER_ANGLES_DEG[0],), extinction_ratio=extinction_ratio)(gt)[0]
@@ -103,8 +120,10 @@ def observe(reference_stokes: np.ndarray, aperture_views: dict[int, np.ndarray],
             aperture_hr = torch.stack(apertures)
         caps = BayerMosaic((N_APERTURES, 3, size // 2, size // 2))(
             IntegrateDecimate(2, tuple(aperture_hr.shape))(aperture_hr))
+        if rig is not None and rig.has_flat_field:
+            caps = caps * torch.as_tensor(rig.flat_field((size // 2, size // 2)), dtype=caps.dtype)
         dofp = measurement.dofp_operator((size, size))(gt)
     return Irradiance(gt, caps, dofp)
 
 
-__all__ = ["Irradiance", "blur_crop", "observe", "warp_margin"]
+__all__ = ["Irradiance", "aperture_kernels", "blur_crop", "observe", "warp_margin"]

@@ -41,7 +41,8 @@ from capssim.capture import Capture, build_meta
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import PSF
-from capssim.render.camera_model import observe, warp_margin
+from capssim.errors import InputError
+from capssim.render.camera_model import aperture_kernels, observe, warp_margin
 from capssim.render.choices import RenderPath, apply_measured, choice_records, measure_savings
 from capssim.render.geometry import ArrayCameras, PinholeCamera, RigTolerances, build_array, parallax_residual
 from capssim.render.integrator import ViewRender, derive_seed, render_view
@@ -145,13 +146,29 @@ def _choose_path(loaded: _Loaded, info, settings: RenderSettings, timer: _Timer)
                         "aperture", info.name, depth["max_hr_px"])
     else:
         use_warp = settings.planar == "on"
-    psf_radius = settings.psf.kernel().shape[0] // 2
-    margin = warp_margin(loaded.array.homographies, settings.size, psf_radius) if use_warp else psf_radius
+    if not use_warp and settings.aperture_homographies is not None:
+        raise InputError("aperture_homographies", "given for a scene rendered per aperture",
+                         "explicit homographies only on the planar warp path", "Use a planar scene or --planar on.")
+    if not use_warp and settings.rig is not None and (settings.rig.psf is not None or np.any(settings.rig.angle_offsets_deg)
+                                                      or not np.all(np.isinf(settings.rig.extinction_ratio))):
+        raise InputError("rig", "angle, extinction or PSF imperfections on a scene rendered per aperture",
+                         "a rig with only gain and vignetting there, or a planar scene (the planar warp path "
+                         "applies every imperfection)", "Use a planar scene or --planar on.")
+    psf_radius = max(k.shape[0] // 2 for k in aperture_kernels(settings.psf.kernel(), settings.rig))
+    psf_radius = max(psf_radius, settings.psf.kernel().shape[0] // 2)
+    margin = warp_margin(_homographies(loaded, settings), settings.size, psf_radius) if use_warp else psf_radius
     camera = loaded.array.cameras[0].expanded(margin)
     fine = settings.oversample if use_warp else 1
     if use_warp:
         camera = camera.supersampled(fine)
     return RenderPath(use_warp, fine, margin, depth), camera
+
+
+def _homographies(loaded: _Loaded, settings: RenderSettings) -> np.ndarray:
+    """``(4, 3, 3)``: the explicit ``aperture_homographies`` of the settings, else the drawn array's."""
+    if settings.aperture_homographies is not None:
+        return np.asarray(settings.aperture_homographies, dtype=np.float64)
+    return loaded.array.homographies
 
 
 def _render_apertures(loaded: _Loaded, path: RenderPath, spp: int, settings: RenderSettings, say: _Progress,
@@ -168,6 +185,17 @@ def _render_apertures(loaded: _Loaded, path: RenderPath, spp: int, settings: Ren
                                             cam.width * cam.height * spp))
         timer.add(f"render_aperture_{n}_s", time.perf_counter() - t1)
     return views
+
+
+def _rig_meta(rig, extra: dict) -> dict:
+    """``extra`` with the true rig (``meta.json["rig"]``) of an imperfect array.
+
+    The rig's PSFs are the whole optical blur of a rendered capture with them (its ground truth
+    has none); without them the ground truth and the raw frames share ``render.optics_psf``.
+    """
+    if rig is not None and not rig.is_ideal:
+        extra["rig"] = rig.to_dict()
+    return extra
 
 
 def check_render(scene: str, *, settings: RenderSettings | None = None, **options) -> tuple[dict, RenderSettings]:
@@ -218,8 +246,9 @@ def render_capture(scene: str, *, settings: RenderSettings | None = None, **opti
     t0 = time.perf_counter()
     kernel = settings.psf.kernel()
     irradiance = observe(reference.pooled.mean, {n: v.mean for n, v in aperture_views.items()},
-                         loaded.array.homographies, measurement=loaded.measurement, kernel=kernel, size=settings.size,
-                         fine=path.fine, margin=path.margin, use_warp=path.use_warp)
+                         _homographies(loaded, settings), measurement=loaded.measurement, kernel=kernel,
+                         size=settings.size, fine=path.fine, margin=path.margin, use_warp=path.use_warp,
+                         rig=settings.rig)
     # irradiance cannot be negative: clip float rounding (about -1e-8) before the sensor
     gt = np.clip(irradiance.gt.numpy(), 0.0, None).astype(np.float32)
     timer.add("camera_model_s", time.perf_counter() - t0)
@@ -244,13 +273,13 @@ def render_capture(scene: str, *, settings: RenderSettings | None = None, **opti
                   "truth_description": info.truth}
     scene_meta.update(sc.truth(params, loaded.array.cameras[0]))
     meta = build_meta(kind="rendered", hr_shape=(settings.size, settings.size),
-                      aperture_homographies=loaded.array.homographies,
+                      aperture_homographies=_homographies(loaded, settings),
                       psf={"type": "none", "note": "the optical PSF is already in gt.tiff and in the raw frames; "
                                                    "see render.optics_psf"},
                       sensor=settings.sensor, dofp_layout_spec=settings.dofp_layout,
                       extinction_ratio=settings.extinction_ratio, seed=settings.seed,
                       source={"scene": info.name, "renderer": "mitsuba"},
-                      extra={"render": render_meta, "scene": scene_meta})
+                      extra=_rig_meta(settings.rig, {"render": render_meta, "scene": scene_meta}))
     capture = Capture(meta=meta, caps_raw=caps_raw, dofp_raw=dofp_raw, gt=gt)
     capture.render_timing = {"timing_s": timing, "choices": choices}
     log.info("rendered %s (%s, %s, %d spp/HR px) in %.1f s", info.name, loaded.choice.variant, path.name,

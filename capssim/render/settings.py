@@ -9,10 +9,12 @@ from typing import Callable
 import numpy as np
 
 from capssim.errors import InputError
+from capssim.geometry import ArrayGeometry
 from capssim.psf import PSF, as_psf
 from capssim.render.geometry import RigTolerances
 from capssim.render.spectral import DEFAULT_CAMERA
 from capssim.resources import check_memory
+from capssim.rig import RigModel
 from capssim.sensor import NoNoiseSensor, Sensor, noise_sigma_estimate
 
 #: smallest HR ground-truth size (pixels)
@@ -56,6 +58,9 @@ class RenderSettings:
     ``progress(stage, done, total)`` is called as rays finish. With ``record_timing=False``
     ``meta.json`` holds no wall times (byte-identical regeneration). ``measure_savings`` also
     renders the alternatives each choice avoided and records the measured times (slow).
+    ``rig``: an imperfect array (:class:`capssim.rig.RigModel`; planar warp path);
+    ``aperture_homographies`` ``(4, 3, 3)``: replaces the array's drawn homographies (planar
+    warp path only; e.g. a calibrated rig's geometry, at ``size``).
     """
 
     size: int = 256
@@ -77,6 +82,8 @@ class RenderSettings:
     max_spp: int = DEFAULT_MAX_SPP
     measure_savings: bool = False
     render_seed: int | None = None
+    rig: RigModel | None = None
+    aperture_homographies: np.ndarray | None = None
 
     def checked(self) -> "RenderSettings":
         """These settings checked (:class:`~capssim.errors.InputError` otherwise), with defaults filled in.
@@ -105,6 +112,10 @@ class RenderSettings:
         if not (isinstance(self.max_spp, (int, np.integer)) and not isinstance(self.max_spp, bool)
                 and 1 <= self.max_spp <= 1 << 16):
             raise InputError("max_spp", self.max_spp, "an integer in [1, 65536] (samples per HR pixel)")
+        if self.rig is not None and not isinstance(self.rig, RigModel):
+            raise InputError("rig", type(self.rig).__name__, "a capssim.rig.RigModel or None")
+        if self.aperture_homographies is not None:
+            ArrayGeometry(self.aperture_homographies, (size, size))  # refuses a bad stack, naming it
         render_seed = self.seed if self.render_seed is None else int(self.render_seed)
         checked = replace(self, size=size, sensor=sensor, psf=psf, oversample=oversample, render_seed=render_seed)
         psf.check_extent((size, size), option="psf", memory=False)
