@@ -1,0 +1,157 @@
+"""Calibration captures of a camera array, simulated or rendered (docs: guides/calibration.md).
+
+A calibration capture is an ordinary capture folder whose ``meta.json`` holds
+``"calibration": {"target": ..., "level": L, ...}``; :func:`make_calibration_captures` writes one
+set, all through the same rig and the same aperture homographies:
+
+* ``flat``: uniform unpolarized light, every channel ``L`` (gain and vignetting);
+* ``polarizer-<phi>deg`` (``K >= 3``): uniform light through an ideal linear polarizer at ``phi``,
+  channel ``I(a) = L (1 + cos 2(a - phi))`` (polarizer angles and extinction ratios, Malus's law);
+* ``geometry``: a planar target textured at every scale (the aperture homographies);
+* ``star``: a sinusoidal Siemens star with ``cycles`` and ``center_rowcol`` (the PSF).
+
+Simulated captures go through :func:`capssim.simulate.simulate_capture`, rendered ones through
+:func:`capssim.render.render_capture` (the ``calibration-sheet``, ``textured`` and
+``siemens-star`` scenes, planar warp path); both apply the rig with the one camera model.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+import capssim.scenes  # noqa: F401  (registers the calibration-sheet scene with the renderer)
+from capssim.capture import Capture, write_capture
+from capssim.errors import InputError
+from capssim.homography import random_aperture_homographies
+from capssim.imageio import atomic_write_json, check_output_free
+from capssim.render import render_capture
+from capssim.rig import RigModel
+from capssim.sensor import Sensor
+from capssim.simulate import simulate_capture
+
+TARGETS = ("flat", "polarizer", "geometry", "star")
+#: light levels of the uniform targets (each channel; S0 = 2 level): bright, never saturating
+FLAT_LEVEL, POLARIZER_LEVEL = 0.4, 0.45
+#: spokes of the star target
+STAR_CYCLES = 36
+#: the sweep's first angle, so that no sample sits exactly on a nominal polarizer angle
+SWEEP_OFFSET_DEG = 3.75
+MIN_POLARIZER_ANGLES = 3
+
+
+def sweep_angles(count: int) -> list[float]:
+    """``count`` polarizer angles (degrees), evenly over [0, 180), starting at :data:`SWEEP_OFFSET_DEG`."""
+    if not (isinstance(count, (int, np.integer)) and MIN_POLARIZER_ANGLES <= count <= 180):
+        raise InputError("polarizer_angles", count, f"an integer in [{MIN_POLARIZER_ANGLES}, 180]",
+                         "Malus's law has 3 unknowns per aperture and colour; 12 angles are the default.")
+    return [SWEEP_OFFSET_DEG + 180.0 * j / count for j in range(int(count))]
+
+
+def polarized_field(size: int, level: float, polarizer_deg: float, *, dolp: float = 1.0) -> np.ndarray:
+    """``(12, S, S)``: uniform light of level ``level`` through a polarizer at ``polarizer_deg`` (DoLP ``dolp``)."""
+    angles = np.repeat([0.0, 45.0, 90.0, 135.0], 3)
+    values = level * (1.0 + dolp * np.cos(np.radians(2.0 * (angles - polarizer_deg))))
+    return np.broadcast_to(values[:, None, None], (12, size, size)).astype(np.float32).copy()
+
+
+def texture_target(size: int, seed: int) -> np.ndarray:
+    """``(12, S, S)`` unpolarized, neutral texture with detail at every scale (for registration), on [0.1, 0.7]."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 7]))
+    field = sum(gaussian_filter(rng.standard_normal((size, size)), s) * s for s in (0.7, 1.5, 3.0, 6.0, 12.0))
+    field = (field - field.min()) / max(float(np.ptp(field)), 1e-12)
+    return np.broadcast_to((0.1 + 0.6 * field)[None], (12, size, size)).astype(np.float32).copy()
+
+
+def star_target(size: int, cycles: int = STAR_CYCLES) -> tuple[np.ndarray, list[float]]:
+    """``(12, S, S)`` unpolarized sinusoidal Siemens star (mean 0.35, contrast 0.8) and its centre (row, col)."""
+    centre = [(size - 1) / 2.0, (size - 1) / 2.0]
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64)
+    phi = np.arctan2(-(yy - centre[0]), xx - centre[1])
+    r = np.hypot(yy - centre[0], xx - centre[1])
+    star = np.where(r <= 0.48 * size, 0.35 * (1.0 + 0.8 * np.cos(cycles * phi)), 0.35)
+    return np.broadcast_to(star[None], (12, size, size)).astype(np.float32).copy(), centre
+
+
+def _entries(size: int, polarizer_angles: int) -> list[tuple[str, dict]]:
+    """``(folder name, calibration entry)`` of every capture of one set."""
+    out = [("flat", {"target": "flat", "level": FLAT_LEVEL})]
+    out += [(f"polarizer-{phi:06.2f}deg", {"target": "polarizer", "level": POLARIZER_LEVEL, "polarizer_deg": phi})
+            for phi in sweep_angles(polarizer_angles)]
+    out.append(("geometry", {"target": "geometry"}))
+    out.append(("star", {"target": "star", "cycles": STAR_CYCLES}))
+    return out
+
+
+def _simulated(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographies: np.ndarray, seed: int) -> Capture:
+    target = entry["target"]
+    if target in ("flat", "polarizer"):
+        gt = polarized_field(size, entry["level"], entry.get("polarizer_deg", 0.0),
+                             dolp=0.0 if target == "flat" else 1.0)
+    elif target == "geometry":
+        gt = texture_target(size, seed)
+    else:
+        gt, entry["center_rowcol"] = star_target(size, entry["cycles"])
+    return simulate_capture(gt, sensor, seed=seed, rig=rig, aperture_homographies=homographies,
+                            source={"type": "calibration target", "target": target},
+                            extra_meta={"calibration": entry})
+
+
+def _rendered(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographies: np.ndarray, seed: int,
+              spp: int | None) -> Capture:
+    target = entry["target"]
+    options = dict(size=size, spp=spp, seed=seed, sensor=sensor, rig=rig, aperture_homographies=homographies,
+                   planar="on", record_timing=False)
+    if target in ("flat", "polarizer"):
+        params = {"level": entry["level"], "dolp": 0.0 if target == "flat" else 1.0,
+                  "polarizer_deg": entry.get("polarizer_deg", 0.0)}
+        capture = render_capture("calibration-sheet", scene_params=params, **options)
+    elif target == "geometry":
+        capture = render_capture("textured", **options)
+    else:
+        capture = render_capture("siemens-star", scene_params={"cycles": entry["cycles"]}, **options)
+        star = capture.meta.get("scene", {}).get("star") or {}
+        if star.get("center_rowcol") is not None:
+            entry["center_rowcol"] = star["center_rowcol"]
+    capture.meta["calibration"] = entry
+    return capture
+
+
+def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor: Sensor,
+                              renderer: str = "simulate", polarizer_angles: int = 12, seed: int = 0,
+                              aperture_homographies: np.ndarray | None = None, spp: int | None = 64,
+                              overwrite: bool = False) -> dict:
+    """Write one calibration set of ``rig`` under ``out_dir``; returns its index (also ``out_dir/index.json``).
+
+    ``size``: HR pixels (the size of the captures the calibration is for: homographies depend on
+    it); ``renderer``: ``simulate`` or ``mitsuba``; ``aperture_homographies`` ``(4, 3, 3)``
+    (default: a draw of the default pose ranges from ``seed``), shared by every capture.
+    """
+    if renderer not in ("simulate", "mitsuba"):
+        raise InputError("renderer", repr(renderer), "simulate or mitsuba")
+    if not (isinstance(size, (int, np.integer)) and 32 <= size <= 4096 and size % 4 == 0):
+        raise InputError("size", size, "a multiple of 4 in [32, 4096] (HR pixels)")
+    entries = _entries(int(size), polarizer_angles)
+    out = check_output_free(out_dir, overwrite=overwrite)
+    if aperture_homographies is None:
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 2201]))
+        aperture_homographies, _ = random_aperture_homographies(rng, (size, size))
+    index = {"format": "capssim-calibration-set", "version": 1, "renderer": renderer, "size": int(size),
+             "rig": rig.to_dict(), "captures": []}
+    for j, (name, entry) in enumerate(entries):
+        capture_seed = int(seed) * 1000 + j
+        if renderer == "simulate":
+            capture = _simulated(dict(entry), size, sensor, rig, aperture_homographies, capture_seed)
+        else:
+            capture = _rendered(dict(entry), size, sensor, rig, aperture_homographies, capture_seed, spp)
+        write_capture(Path(out) / name, capture, overwrite=overwrite)
+        index["captures"].append({"folder": name, **capture.meta["calibration"]})
+    atomic_write_json(Path(out) / "index.json", index)
+    return index
+
+
+__all__ = ["FLAT_LEVEL", "POLARIZER_LEVEL", "STAR_CYCLES", "TARGETS", "make_calibration_captures", "polarized_field",
+           "star_target", "sweep_angles", "texture_target"]
+

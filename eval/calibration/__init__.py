@@ -1,0 +1,15 @@
+"""``capssim calibrate``: measure an imperfect camera array from calibration captures.
+
+One estimator per module, each with its reference:
+
+* :mod:`~capssim.eval.calibration.flat_field`: gain and vignetting (flat field);
+* :mod:`~capssim.eval.calibration.malus`: polarizer angles and extinction ratios (Malus's law);
+* :mod:`~capssim.eval.calibration.geometry`: aperture homographies (planar target);
+* :mod:`~capssim.eval.calibration.psf`: per-aperture PSF width (Siemens star);
+* :mod:`~capssim.eval.calibration.calibrate`: all of them from a set of captures, into a
+  ``capssim-rig`` file (:func:`capssim.rig.write_rig_json`).
+"""
+
+from capssim.eval.calibration.calibrate import calibrate_captures, load_calibration_set
+
+__all__ = ["calibrate_captures", "load_calibration_set"]
