@@ -26,8 +26,8 @@ from capssim.measurement import CameraArrayMeasurement
 from capssim.operators import Analyzer, BayerMosaic, ChannelMix, Convolve, IntegrateDecimate, Warp
 from capssim.render.geometry import scale_matrix, shift_matrix
 from capssim.render.integrator import stokes_to_twelve
-from capssim.rig import RigModel
 from capssim.render.sampling import to_tensor
+from capssim.rig import RigModel
 
 
 def warp_margin(homographies: np.ndarray, size: int, psf_radius: int) -> int:

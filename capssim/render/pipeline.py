@@ -39,9 +39,9 @@ import numpy as np
 
 from capssim.capture import Capture, build_meta
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
+from capssim.errors import InputError
 from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import PSF
-from capssim.errors import InputError
 from capssim.render.camera_model import aperture_kernels, observe, warp_margin
 from capssim.render.choices import RenderPath, apply_measured, choice_records, measure_savings
 from capssim.render.geometry import ArrayCameras, PinholeCamera, RigTolerances, build_array, parallax_residual
