@@ -13,6 +13,11 @@ pixel integration, decimation; ``capssim.operators.lr_sampling_operator`` for CA
   = sum_j L^H_{j, c} . B_j`` (all 16 observations, each weighted per HR pixel by the
   confidence between its channel and ``c``).
 
+With a calibrated array (``mixing``, the ``(N, C)`` analyzer matrix of
+:meth:`capssim.rig.RigModel.lr_channel_matrix`) observation m sees ``sum_c A[m, c] x_c`` instead
+of ``x_{c(m)}``: ``M_m`` is applied to ``(A x)_m`` and the back-projection is ``A^T`` of the
+residuals (exact adjoint).
+
 Without confidence (``confidence=None``, the ``caps-no-cagf`` ablation) ``L^H`` is the
 identity and ``D = B = -grad f``. With it, ``D = L^H B`` per pixel: the same fixed
 points for the data term alone (``L^H`` has unit diagonal), reached faster because
@@ -69,10 +74,12 @@ def field_of_view_mask(homographies, obs_shape: tuple[int, int], hr_shape: tuple
 class ConfidenceDataTerm:
     """Data fidelity of the observations ``obs`` under ``operator`` ``(N, H, W) -> (N, h, w)``.
 
-    ``confidence`` is ``L^H`` ``(C, C, H, W)`` (symmetric) or ``None`` for the identity.
+    ``confidence`` is ``L^H`` ``(C, C, H, W)`` (symmetric) or ``None`` for the identity;
+    ``mixing`` ``(N, C)`` what each observation sees of the channels, or ``None``: channel ``c(m)``.
     """
 
-    def __init__(self, obs: Observations, operator: LinearOperator, *, confidence: torch.Tensor | None = None):
+    def __init__(self, obs: Observations, operator: LinearOperator, *, confidence: torch.Tensor | None = None,
+                 mixing=None):
         n = obs.count
         if operator.output_shape != tuple(obs.images.shape):
             raise InputError("operator", f"output shape {operator.output_shape}",
@@ -88,6 +95,11 @@ class ConfidenceDataTerm:
             if tuple(confidence.shape) != expected:
                 raise InputError("confidence", f"shape {tuple(confidence.shape)}", f"shape {expected}")
         self.confidence = confidence
+        self.mixing = None
+        if mixing is not None:
+            self.mixing = torch.as_tensor(np.asarray(mixing), dtype=obs.images.dtype, device=obs.images.device)
+            if tuple(self.mixing.shape) != (n, self.n_channels):
+                raise InputError("mixing", f"shape {tuple(self.mixing.shape)}", f"shape ({n}, {self.n_channels})")
         self._weighted_y = obs.images * obs.weights
         self._last: tuple | None = None  # (x, x's version, residual): value(x) then descent_direction(x)
 
@@ -99,6 +111,8 @@ class ConfidenceDataTerm:
         """``(C, H, W)`` sampling density ``sum_{m: c(m)=j} M_m^T w_m`` (the data weights by default)."""
         w = self.obs.weights if weights is None else weights
         bp = self.operator.adjoint(w)
+        if self.mixing is not None:
+            return torch.einsum("mc,mhw->chw", self.mixing.abs().to(bp.dtype), bp)
         return torch.zeros(self.image_shape, dtype=bp.dtype, device=bp.device).index_add_(0, self.obs.channel_of, bp)
 
     def unobserved_mask(self, *, min_relative_density: float = UNOBSERVED_DENSITY,
@@ -126,9 +140,15 @@ class ConfidenceDataTerm:
         last = self._last
         if last is not None and last[0] is x and last[1] == x._version:
             return last[2]
-        r = self._weighted_y - self.obs.weights * self.operator.forward(x.index_select(0, self.obs.channel_of))
+        r = self._weighted_y - self.obs.weights * self.operator.forward(self._observed_channels(x))
         self._last = (x, x._version, r)
         return r
+
+    def _observed_channels(self, x: torch.Tensor) -> torch.Tensor:
+        """``(N, H, W)``: what each observation sees, ``x_{c(m)}`` or ``(A x)_m``."""
+        if self.mixing is None:
+            return x.index_select(0, self.obs.channel_of)
+        return torch.einsum("mc,chw->mhw", self.mixing.to(x.dtype), x)
 
     def value(self, x: torch.Tensor) -> float:
         """``f(x) = 1/2 sum_m ||w_m (y_m - M_m x_c(m))||^2``."""
@@ -138,6 +158,8 @@ class ConfidenceDataTerm:
         """``B`` ``(C, H, W)``: ``B_j = sum_{m: c(m)=j} M_m^T w_m r_m`` (equals ``-grad f``)."""
         r = self.residual(x) if residual is None else residual
         bp = self.operator.adjoint(r * self.obs.weights)
+        if self.mixing is not None:
+            return torch.einsum("mc,mhw->chw", self.mixing.to(bp.dtype), bp)
         return torch.zeros(self.image_shape, dtype=x.dtype, device=x.device).index_add_(0, self.obs.channel_of, bp)
 
     def descent_direction(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:

@@ -57,6 +57,14 @@ def method_psf(capture: Capture, psf_sigma: float) -> tuple[np.ndarray, dict]:
     return psf.kernel(), {"type": "gaussian", "sigma_hr_px": psf_sigma, "source": "option psf_sigma"}
 
 
+def lr_flat_field(capture: Capture, context: RunContext) -> np.ndarray | None:
+    """``(16, H/2, W/2)`` the calibrated flat field at each sub-image's pixels, or ``None`` (ideal array)."""
+    calibration = context.calibration
+    if calibration is None or not calibration.rig.has_flat_field:
+        return None
+    return calibration.rig.lr_flat_field(capture.raw_shape)
+
+
 def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray,
                     saturated: np.ndarray) -> tuple[ArrayGeometry, dict]:
     """The array geometry a method reconstructs with (true or estimated) and a record of it.
@@ -68,10 +76,16 @@ def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray
     the record holds the registration error in HR pixels per sub-image.
     """
     hr_shape = capture.hr_shape
-    if context.true_warps:
+    calibration = context.calibration
+    if calibration is not None and calibration.geometry is not None:
+        geometry = calibration.geometry
+        record = {"source": f"calibration ({calibration.record['source']})"}
+    elif context.true_warps:
         geometry = capture.geometry
         record = {"source": "true (meta.json)"}
     else:
+        if calibration is not None and calibration.rig.has_flat_field:  # register what the scene looks like
+            images = (images / calibration.rig.lr_flat_field(capture.raw_shape)).astype(np.float32)
         mode = context.registration
         aperture, record = stored_or_computed(
             capture.path, lambda: _estimated_aperture_warps(images, saturated, hr_shape, mode, context.device),

@@ -29,6 +29,7 @@ from capssim.capture import Capture, read_capture, write_reconstruction
 from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
 from capssim.physical_validity import project_to_physical
 from capssim.reconstruct import methods as method_modules
+from capssim.reconstruct.calibration_model import CalibrationModel, resolve_calibration
 from capssim.reconstruct.registration_parameters import registration_parameters
 
 log = logging.getLogger(__name__)
@@ -65,6 +66,7 @@ class RunContext:
     registration: str = "local-correlation"  # reconstruct.registration.REGISTRATION_MODES
     reuse_registration: bool = True  # reconstruct.registration_store: False registers again (and re-stores)
     progress: Callable[[int, int, str], None] | None = None
+    calibration: CalibrationModel | None = None  # reconstruct.calibration_model: the array's model (None: ideal)
 
     def report(self, done: int, total: int, message: str = "") -> None:
         if self.progress is not None:
@@ -217,7 +219,8 @@ def check_horizon(capture: Capture) -> None:
 
 def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
                 registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None,
-                physical_projection: bool = True, reuse_registration: bool = True, **options) -> tuple[MethodOutput, dict]:
+                physical_projection: bool = True, reuse_registration: bool = True, calibration=None,
+                **options) -> tuple[MethodOutput, dict]:
     """Run ``method`` on ``capture``; return its output and the record written to ``NAME.json``.
 
     ``physical_projection``: project the output onto physically valid intensities
@@ -225,6 +228,9 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     DoLP <= 1) where all four angles are observed; its time is a stage of the method's.
     ``reuse_registration``: reuse the warps stored with the capture for the same registration
     (:mod:`capssim.reconstruct.registration_store`); False registers again and replaces them.
+    ``calibration``: the model of the array for CAPS methods
+    (:func:`capssim.reconstruct.calibration_model.resolve_calibration`: ``None`` the capture's own
+    calibration file if it names one, ``"ideal"``, ``"truth"`` or a ``capssim-rig`` file).
     """
     spec = get_method(method)
     dev = resolve_device(device)
@@ -234,9 +240,11 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         check_horizon(capture)
     if spec.input_kind == "dofp" and capture.dofp_raw is None:
         raise CaptureFormatError(f"method {method!r} needs dofp_raw.tiff, which this capture lacks.")
+    model = resolve_calibration(capture, calibration) if spec.input_kind == "caps" else None
     timer = StageTimer(dev)
     ctx = RunContext(device=dev, timer=timer, options=dict(options), true_warps=true_warps,
-                     registration=registration, reuse_registration=reuse_registration, progress=progress)
+                     registration=registration, reuse_registration=reuse_registration, progress=progress,
+                     calibration=model)
     t0 = time.perf_counter()
     with torch.no_grad():
         out = spec.function(capture, context=ctx)
@@ -271,6 +279,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         "stages_s": dict(timer.stages),
         "history": out.history,
         "physical_projection": None if projection is None else projection.to_dict(),
+        "calibration": None if model is None else model.record,
         **out.extra,
     }
     unobserved = unobserved_record(method, out.unobserved)

@@ -14,7 +14,8 @@ from capssim.errors import InputError
 COMMAND_FLAGS = {"device": "--device", "true_warps": "--true-warps", "registration": "--registration",
                  "progress": "--progress/--no-progress",
                  "physical_projection": "--physical-projection/--no-physical-projection",
-                 "reuse_registration": "--reuse-registration/--no-reuse-registration"}
+                 "reuse_registration": "--reuse-registration/--no-reuse-registration",
+                 "calibration": "--calibration"}
 
 
 def parse_options(pairs: List[str]) -> dict:
@@ -79,6 +80,11 @@ def reconstruct(
         help="Reuse the warps stored in CAPTURE/registration/ for the same input and mode (estimated once per "
              "capture); --no-reuse-registration registers again and replaces them."),
     threads: Optional[int] = ThreadsOption,
+    calibration: Optional[str] = typer.Option(
+        None, "--calibration",
+        help="Model of the array for CAPS methods: a capssim-rig file (capssim calibrate), 'truth' (the capture's "
+             "true rig, simulated/rendered), or 'ideal'. Default: the capture's meta.json calibration_file if it "
+             "names one, else the ideal array."),
     physical_projection: bool = typer.Option(
         True, "--physical-projection/--no-physical-projection",
         help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1) "
@@ -119,7 +125,7 @@ def reconstruct(
 
             record = run_method(capture, name, device=device, true_warps=true_warps, registration=registration,
                                 progress=report, physical_projection=physical_projection,
-                                reuse_registration=reuse_registration, **method_options)
+                                reuse_registration=reuse_registration, calibration=calibration, **method_options)
         reg = record.get("registration", {})
         err = reg.get("error_hr_px_median")
         rows.append((name, record["wall_time_s"], err))

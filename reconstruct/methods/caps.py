@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -46,7 +46,7 @@ from capssim.reconstruct.init_fusion import fuse_initial_estimate
 from capssim.reconstruct.interfaces import DivergenceError
 from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor
 from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
-from capssim.reconstruct.observation_model import CAPTURE_PSF_SIGMA, method_geometry, method_psf
+from capssim.reconstruct.observation_model import CAPTURE_PSF_SIGMA, lr_flat_field, method_geometry, method_psf
 from capssim.reconstruct.rearrange import observations_from_capture
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
@@ -226,6 +226,23 @@ def explain_divergence(exc: DivergenceError, opts: CapsOptions, defaults: CapsOp
                                ", ".join(f"{k}={base[k]}" for k in changed) + ").")
 
 
+def _operator(capture, context: RunContext, geometry, psf_sigma: float):
+    """The sampling operator ``M``, the analyzer mixing ``(16, 12)`` (``None``: ideal), the PSF record and
+    the flat field ``(16, h, w)`` (``None``: ideal) of the array model (``context.calibration``)."""
+    kernel, psf_record = method_psf(capture, psf_sigma)
+    calibration = context.calibration
+    if calibration is None:
+        return lr_sampling_operator(geometry, kernel), None, psf_record, None
+    rig = calibration.rig
+    kernels = rig.psf_kernels()
+    if kernels is not None:
+        psf_record = {"type": "per aperture", "apertures": [dict(p) for p in rig.psf],
+                      "source": calibration.record["source"]}
+    flat = lr_flat_field(capture, context)
+    operator = lr_sampling_operator(geometry, kernel, psf_kernels=kernels, flat=flat)
+    return operator, rig.lr_channel_matrix(), psf_record, flat
+
+
 def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: bool = True) -> MethodOutput:
     """The joint CAPS reconstruction (and its no-CAGF / no-NLSTR ablations)."""
     opts = CapsOptions.from_options(context.options)
@@ -239,20 +256,21 @@ def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: 
         geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)
         homographies = geometry.lr_homographies
     with timer.stage("operator"):
-        kernel, psf_record = method_psf(capture, opts.psf_sigma)
-        operator = lr_sampling_operator(geometry, kernel)
+        operator, mixing, psf_record, flat = _operator(capture, context, geometry, opts.psf_sigma)
         if opts.fov_mask:
             inside = field_of_view_mask(homographies, tuple(obs.images.shape[-2:]), hr_shape, half_extent=0.125)
             obs.weights = obs.weights * torch.as_tensor(inside, dtype=obs.weights.dtype, device=dev)
+    seen = obs if flat is None else replace(obs, images=obs.images / torch.as_tensor(flat, dtype=obs.images.dtype,
+                                                                                      device=dev))
     confidence = None
     if use_cagf:
         with timer.stage("cagf"):
-            confidence = cagf_confidence(obs.images, homographies, obs.channel_of, obs.n_channels, hr_shape,
+            confidence = cagf_confidence(seen.images, homographies, obs.channel_of, obs.n_channels, hr_shape,
                                          weights=obs.weights, nu=opts.cagf.nu, radius=opts.cagf.radius,
                                          eps=opts.cagf.eps)
     with timer.stage("init"):
-        init = fuse_initial_estimate(obs, homographies, hr_shape)
-    data = ConfidenceDataTerm(obs, operator, confidence=confidence)
+        init = fuse_initial_estimate(seen, homographies, hr_shape)
+    data = ConfidenceDataTerm(obs, operator, confidence=confidence, mixing=mixing)
     nlstr = None
     if use_nlstr:
         with timer.stage("nlstr_setup"):

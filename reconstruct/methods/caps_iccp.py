@@ -61,7 +61,10 @@ def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *,
 
 
 def aperture_sampling_operator(geometry: ArrayGeometry, kernel):
-    """``(4, 2H, 2W) -> (4, H, W)``: warp, PSF, 2x2 integration (the CAPS raw model without CFA)."""
+    """``(4, 2H, 2W) -> (4, H, W)``: warp, PSF, 2x2 integration (the CAPS raw model without CFA).
+
+    ``kernel``: one PSF, or a list of 4 (one per aperture, a calibrated rig's).
+    """
 
     hh, ww = geometry.hr_shape
     n = N_APERTURES
@@ -85,8 +88,11 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     admm_params, nl_params = opts.validated_parameters()
     dev, timer = context.device, context.timer
     hr_shape = capture.hr_shape
+    rig = context.calibration.rig if context.calibration is not None else None
     with timer.stage("demosaic"):
         raw = capture.caps_float()
+        if rig is not None and rig.has_flat_field:  # gain and vignetting divided out before demosaicking
+            raw = (raw / rig.flat_field(capture.raw_shape)).astype(np.float32)
         rgb, weights = demosaic_apertures(raw, capture.caps_saturated(), bayer_method=bayer_method)
         lr_images, lr_saturated = capture.lr_images()
     with timer.stage("registration"):
@@ -94,6 +100,8 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
         raw_h = geometry.raw_homographies   # HR reference -> raw pixel of each aperture
     with timer.stage("operator"):
         kernel, psf_record = method_psf(capture, opts.psf_sigma)
+        if rig is not None and rig.psf is not None:
+            kernel, psf_record = rig.psf_kernels(), {"type": "per aperture", "apertures": [dict(p) for p in rig.psf]}
         operator = aperture_sampling_operator(geometry, kernel)
         inside = field_of_view_mask(raw_h, raw.shape[-2:], hr_shape, half_extent=0.25) if opts.fov_mask else 1.0
         weights = weights * inside
@@ -115,7 +123,9 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
                                    nu=opts.cagf.nu, radius=opts.cagf.radius, eps=opts.cagf.eps)
         with timer.stage("init"):
             init = fuse_initial_estimate(obs, raw_h, hr_shape)
-        data = ConfidenceDataTerm(obs, operator, confidence=conf)
+        # a calibrated analyzer: aperture n sees sum_p A[3n+k, 3p+k] x_p in colour k (exact mixing)
+        mixing = None if rig is None or rig.is_ideal else rig.analyzer_matrix()[k::3, k::3]
+        data = ConfidenceDataTerm(obs, operator, confidence=conf, mixing=mixing)
 
         def progress(done, _total, message, k=k):
             context.report(k * admm_params.iterations + done, total, f"colour {'RGB'[k]}: {message}")

@@ -168,7 +168,10 @@ def demosaic_and_register(capture, context: RunContext, opts: NaiveOptions):
     geometry (true or registered) and the registration record."""
     timer = context.timer
     with timer.stage("demosaic"):
-        rgb = demosaic_apertures(capture.caps_float(), bayer_method=opts.bayer_method)
+        raw = capture.caps_float()
+        if context.calibration is not None and context.calibration.rig.has_flat_field:  # gain and vignetting out
+            raw = (raw / context.calibration.rig.flat_field(capture.raw_shape)).astype(np.float32)
+        rgb = demosaic_apertures(raw, bayer_method=opts.bayer_method)
         rgb = torch.from_numpy(rgb).to(context.device)
     with timer.stage("registration"):
         lr_images, lr_saturated = capture.lr_images()
@@ -188,14 +191,27 @@ def unobserved_pixels(saturated: np.ndarray, geometry, device: torch.device) -> 
     return np.repeat((seen < 0.5).cpu().numpy(), 3, axis=0)
 
 
+def unmix_analyzer(image: torch.Tensor, analyzer: np.ndarray) -> torch.Tensor:
+    """``(12, H, W)`` channels from the ``(12, H, W)`` registered aperture images ``y = A x`` per pixel.
+
+    ``analyzer`` ``(12, 12)``: row ``3n + k`` is aperture n's calibrated polarizer in colour k
+    (:meth:`capssim.rig.RigModel.analyzer_matrix`); its exact inverse undoes the angle offsets and the
+    finite extinction (a 4x4 system per colour, well conditioned for angle errors of a few degrees).
+    """
+    inverse = torch.as_tensor(np.linalg.inv(analyzer), dtype=image.dtype, device=image.device)
+    return torch.einsum("ij,jhw->ihw", inverse, image)
+
+
 def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext, params: dict,
            reg_record: dict, extra: dict | None = None, geometry=None) -> MethodOutput:
     """Clip, flatten to 12 channels ``c = 3 p + k``, copy to the host, record (with the
     :func:`unobserved_pixels` of ``geometry`` when given)."""
     with context.timer.stage("to_host"):
+        image = image.reshape(12, *image.shape[-2:])
+        if context.calibration is not None and not context.calibration.rig.is_ideal:
+            image = unmix_analyzer(image, context.calibration.rig.analyzer_matrix())
         if opts.clip:
             image = image.clamp(0.0, 1.0)
-        image = image.reshape(12, *image.shape[-2:])
         out = {"registration": reg_record, **(extra or {})}
         psnr = mean_psnr(capture, image)
         if psnr is not None:
