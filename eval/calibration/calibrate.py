@@ -153,7 +153,8 @@ def _star(cap: Capture, rig: RigModel, geometry, flat_maps, flat_fit, hr_shape, 
     if geometry is None:
         geometry, res["geometry"] = fit_geometry(cap.caps_float(), cap.caps_saturated(), flat_maps, hr_shape)
     noise = flat_fit.noise_sigma if flat_fit is not None else 0.01
-    sigmas, stds, record = fit_psf_sigmas(cap.gt, cap.caps_float(), geometry, rig, noise_sigma=noise)
+    sigmas, stds, record = fit_psf_sigmas(cap.gt, cap.caps_float(), geometry, rig, noise_sigma=noise,
+                                          physical_warp=cap.meta.get("kind") != "simulated")
     unc["psf_sigma_hr_px"] = stds.tolist()
     res["psf"] = record
     rig = RigModel(angle_offsets_deg=rig.angle_offsets_deg, extinction_ratio=rig.extinction_ratio, gain=rig.gain,
