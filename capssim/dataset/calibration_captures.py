@@ -109,7 +109,8 @@ def _rendered(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographie
                   "polarizer_deg": entry.get("polarizer_deg", 0.0)}
         capture = render_capture("calibration-sheet", scene_params=params, **options)
     elif target == "geometry":
-        capture = render_capture("textured", **options)
+        # the colour slide without its polarizing film: every aperture sees the same intensities
+        capture = render_capture("textured", scene_params={"dolp_min": 0.0, "dolp_max": 0.0}, **options)
     else:
         capture = render_capture("siemens-star", scene_params={"cycles": entry["cycles"]}, **options)
         star = capture.meta.get("scene", {}).get("star") or {}
