@@ -232,11 +232,10 @@ def validate_meta(meta: dict) -> None:
     except (InputError, TypeError, ValueError) as exc:
         raise CaptureFormatError(f"meta.json psf: got {_found(meta.get('psf'))} ({exc}); expected a PSF object "
                                  "such as {\"type\": \"gaussian\", \"sigma_hr_px\": 0.5}.") from None
-    if meta.get("rig") is not None:
-        try:
-            RigModel.from_dict(meta["rig"], where="meta.json rig")
-        except InputError as exc:
-            raise CaptureFormatError(f"{exc} (the true imperfect array; see docs: guides/calibration.md)") from None
+    try:
+        RigModel.from_dict(meta["rig"], where="meta.json rig") if meta.get("rig") is not None else None
+    except InputError as exc:
+        raise CaptureFormatError(f"{exc} (the true imperfect array; see docs: guides/calibration.md)") from None
 
 
 @dataclass
@@ -275,8 +274,7 @@ class Capture:
     @property
     def rig(self) -> RigModel | None:
         """The true imperfect array of a simulated or rendered capture (``meta.json["rig"]``), or ``None``."""
-        entry = self.meta.get("rig")
-        return None if entry is None else RigModel.from_dict(entry, where="meta.json rig")
+        return None if self.meta.get("rig") is None else RigModel.from_dict(self.meta["rig"], where="meta.json rig")
 
     @property
     def geometry(self) -> ArrayGeometry:
@@ -300,7 +298,6 @@ class Capture:
         """``(k, k)`` PSF kernel on the HR grid."""
         return self.psf.kernel()
 
-    # data ------------------------------------------------------------------------------
     def caps_float(self) -> np.ndarray:
         """``(4, H, W)`` float32 raw frames on [0, 1] full scale."""
         return self.sensor.to_float(self.caps_raw)

@@ -20,7 +20,7 @@ from pathlib import Path
 from capssim.capture import Capture
 from capssim.errors import InputError
 from capssim.geometry import ArrayGeometry
-from capssim.rig import RigModel, read_rig_json
+from capssim.rig import RIG_FORMAT_VERSION, RigModel, read_rig_json
 
 IDEAL_NAMES = ("ideal", "none")
 
@@ -43,7 +43,7 @@ def resolve_calibration(capture: Capture, calibration) -> CalibrationModel | Non
         calibration = str(Path(capture.path) / named)
     if isinstance(calibration, str) and calibration.lower() in IDEAL_NAMES:
         return None
-    if calibration == "truth":
+    if isinstance(calibration, str) and calibration.lower() == "truth":
         rig = capture.rig
         if rig is None:
             raise InputError("--calibration", "truth", "a capture with a true rig (meta.json rig)",
@@ -56,7 +56,7 @@ def resolve_calibration(capture: Capture, calibration) -> CalibrationModel | Non
                          f"the capture's HR size {capture.hr_shape[0]}x{capture.hr_shape[1]}",
                          "Calibrate with captures of the same size (capssim calibration-captures --size).")
     return CalibrationModel(loaded.rig, geometry, {"source": str(calibration), "calibrated": list(loaded.calibrated),
-                                                   "format_version": 1})
+                                                   "format_version": RIG_FORMAT_VERSION})
 
 
 __all__ = ["CalibrationModel", "IDEAL_NAMES", "resolve_calibration"]

@@ -16,7 +16,9 @@ pixel integration, decimation; ``capssim.operators.lr_sampling_operator`` for CA
 With a calibrated array (``mixing``, the ``(N, C)`` analyzer matrix of
 :meth:`capssim.rig.RigModel.lr_channel_matrix`) observation m sees ``sum_c A[m, c] x_c`` instead
 of ``x_{c(m)}``: ``M_m`` is applied to ``(A x)_m`` and the back-projection is ``A^T`` of the
-residuals (exact adjoint).
+residuals (exact adjoint; :meth:`ConfidenceDataTerm.forward` / :meth:`ConfidenceDataTerm.adjoint`).
+Without ``mixing`` the channel selection is an ``index_select`` (the ideal array, unchanged and as
+fast as before).
 
 Without confidence (``confidence=None``, the ``caps-no-cagf`` ablation) ``L^H`` is the
 identity and ``D = B = -grad f``. With it, ``D = L^H B`` per pixel: the same fixed
@@ -132,7 +134,7 @@ class ConfidenceDataTerm:
         return (usable < min_relative_density * full.clamp(min=1e-12)).cpu().numpy()
 
     def residual(self, x: torch.Tensor) -> torch.Tensor:
-        """``w_m (y_m - M_m x_{c(m)})`` ``(N, h, w)``.
+        """``w_m (y_m - M_m x_{c(m)})`` ``(N, h, w)`` (:meth:`forward` gives ``M_m x_{c(m)}`` or ``M_m (A x)_m``).
 
         The residual of the last ``x`` is kept (while ``x`` is not modified in place): a solver's
         ``value(x_new)`` followed by ``descent_direction(x_new)`` applies ``M`` once, not twice.
@@ -140,27 +142,33 @@ class ConfidenceDataTerm:
         last = self._last
         if last is not None and last[0] is x and last[1] == x._version:
             return last[2]
-        r = self._weighted_y - self.obs.weights * self.operator.forward(self._observed_channels(x))
+        r = self._weighted_y - self.obs.weights * self.forward(x)
         self._last = (x, x._version, r)
         return r
 
-    def _observed_channels(self, x: torch.Tensor) -> torch.Tensor:
-        """``(N, H, W)``: what each observation sees, ``x_{c(m)}`` or ``(A x)_m``."""
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """The observation model ``(C, H, W) -> (N, h, w)``: ``M_m x_{c(m)}``, or ``M_m (A x)_m`` with ``mixing``."""
         if self.mixing is None:
-            return x.index_select(0, self.obs.channel_of)
-        return torch.einsum("mc,chw->mhw", self.mixing.to(x.dtype), x)
+            return self.operator.forward(x.index_select(0, self.obs.channel_of))
+        return self.operator.forward(torch.einsum("mc,chw->mhw", self.mixing.to(x.dtype), x))
+
+    def adjoint(self, r: torch.Tensor) -> torch.Tensor:
+        """The exact adjoint of :meth:`forward` ``(N, h, w) -> (C, H, W)``: ``sum_{m: c(m)=j} M_m^T r_m``,
+        or ``A^T (M^T r)`` with ``mixing``."""
+        bp = self.operator.adjoint(r)
+        if self.mixing is not None:
+            return torch.einsum("mc,mhw->chw", self.mixing.to(bp.dtype), bp)
+        return torch.zeros(self.image_shape, dtype=bp.dtype, device=bp.device).index_add_(0, self.obs.channel_of, bp)
 
     def value(self, x: torch.Tensor) -> float:
-        """``f(x) = 1/2 sum_m ||w_m (y_m - M_m x_c(m))||^2``."""
+        """``f(x) = 1/2 sum_m ||w_m (y_m - M_m x_c(m))||^2`` (``(A x)_m`` for ``x_c(m)`` with ``mixing``)."""
         return 0.5 * float(self.residual(x).square().sum())
 
     def backprojection(self, x: torch.Tensor, residual: torch.Tensor | None = None) -> torch.Tensor:
-        """``B`` ``(C, H, W)``: ``B_j = sum_{m: c(m)=j} M_m^T w_m r_m`` (equals ``-grad f``)."""
+        """``B`` ``(C, H, W)``: ``B_j = sum_{m: c(m)=j} M_m^T w_m r_m`` (``sum_m A[m, j] M_m^T w_m r_m`` with
+        ``mixing``); equals ``-grad f``."""
         r = self.residual(x) if residual is None else residual
-        bp = self.operator.adjoint(r * self.obs.weights)
-        if self.mixing is not None:
-            return torch.einsum("mc,mhw->chw", self.mixing.to(bp.dtype), bp)
-        return torch.zeros(self.image_shape, dtype=x.dtype, device=x.device).index_add_(0, self.obs.channel_of, bp)
+        return self.adjoint(r * self.obs.weights)
 
     def descent_direction(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:
         """Eq. 16 / 26 data part ``D`` ``(C, H, W)`` and the value ``f(x)`` (from the same residual)."""

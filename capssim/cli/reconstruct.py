@@ -134,6 +134,8 @@ def reconstruct(
         if err is not None:
             typer.echo(f"  registration ({reg.get('source')}): median error {err:.4f} HR px, "
                        f"max {reg.get('error_hr_px_max', float('nan')):.4f}")
+        if record.get("calibration"):
+            typer.echo(f"  array model: calibration {record['calibration'].get('source')}")
     if len(rows) > 1:
         typer.echo("method                    wall time (s)")
         for name, wall, _ in rows:

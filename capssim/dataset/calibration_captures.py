@@ -25,10 +25,11 @@ from scipy.ndimage import gaussian_filter
 import capssim.scenes  # noqa: F401  (registers the calibration-sheet scene with the renderer)
 from capssim.capture import Capture, write_capture
 from capssim.errors import InputError
+from capssim.geometry import ArrayGeometry
 from capssim.homography import random_aperture_homographies
 from capssim.imageio import atomic_write_json, check_output_free
 from capssim.render import render_capture
-from capssim.rig import RigModel
+from capssim.rig import RigModel, write_rig_json
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
 
@@ -150,6 +151,10 @@ def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor
         write_capture(Path(out) / name, capture, overwrite=overwrite)
         index["captures"].append({"folder": name, **capture.meta["calibration"]})
     atomic_write_json(Path(out) / "index.json", index)
+    # the true rig and homographies, as a capssim-rig file: `capssim simulate --rig OUT/rig.json` captures
+    # scenes through the same array
+    write_rig_json(Path(out) / "rig.json", rig, geometry=ArrayGeometry(aperture_homographies, (size, size)),
+                   calibrated=("truth",), source={"calibration_set": str(out)})
     return index
 
 

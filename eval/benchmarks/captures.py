@@ -28,6 +28,13 @@ import capssim.scenes  # noqa: F401  (registers the scene library with the rende
 from capssim.capture import Capture, read_capture, read_meta, write_capture
 from capssim.errors import CapssimError
 from capssim.eval.benchmarks.provenance import REPO_ROOT, code_fingerprint, content_hash, shared_data_dir
+from capssim.eval.benchmarks.rigs import (
+    CALIBRATION_FILE,
+    attach_calibration,
+    calibration_for,
+    rig_from_spec,
+    rig_geometry,
+)
 from capssim.eval.synthetic import synthetic_scene
 from capssim.imageio import atomic_write_json, read_gt_scene
 from capssim.measurement import CameraArrayMeasurement
@@ -96,6 +103,14 @@ def apply_sensor(clean: Capture, sensor, seed: int) -> Capture:
     return Capture(meta=meta, caps_raw=caps, dofp_raw=dofp, gt=clean.gt)
 
 
+def _rig_options(scene: dict, hr_shape) -> dict:
+    """``rig`` and ``aperture_homographies`` of a scene with a ``rig`` entry (:mod:`~capssim.eval.benchmarks.rigs`)."""
+    if not scene.get("rig"):
+        return {}
+    spec = scene["rig"]
+    return {"rig": rig_from_spec(spec), "aperture_homographies": rig_geometry(spec, hr_shape).aperture_homographies}
+
+
 @dataclass
 class CaptureEntry:
     key: str
@@ -140,7 +155,13 @@ class CaptureFactory:
         t0 = time.perf_counter()
         capture, info = self._build(scene, noise, seed)
         info["build_time_s"] = time.perf_counter() - t0
+        if scene.get("rig"):
+            capture.meta["calibration_file"] = CALIBRATION_FILE
         write_capture(path, capture, overwrite=path.exists())
+        if scene.get("rig"):
+            calibration, info["calibration"] = calibration_for(self.cache_dir, scene["rig"], capture.hr_shape,
+                                                               _sensor(noise), noise, seed)
+            attach_calibration(path, calibration)
         atomic_write_json(info_path, info)
         info["cached"] = False
         return CaptureEntry(key, path, scene["name"], info)
@@ -164,7 +185,8 @@ class CaptureFactory:
             gt, crop_info = prepare_ground_truth(gt, crop=scene.get("crop"))
             source.update(crop_info)
         extra = {"scene": {"name": scene["name"], **scene_meta}}
-        capture = simulate_capture(gt, sensor, seed=seed, psf=psf, source=source, extra_meta=extra)
+        rig_options = _rig_options(scene, gt.shape[1:])
+        capture = simulate_capture(gt, sensor, seed=seed, psf=psf, source=source, extra_meta=extra, **rig_options)
         return capture, info
 
     def _render(self, scene: dict, seed: int):
@@ -175,6 +197,8 @@ class CaptureFactory:
             raise Unavailable(f"scene {name!r} is not one of the renderer's scenes ({', '.join(map(str, known))})")
         params = {"scene": name, "size": int(scene.get("size", 256)), "spp": scene.get("spp"), "seed": seed,
                   "variant": scene.get("variant", "auto"), "scene_params": scene.get("scene_params")}
+        if scene.get("rig"):
+            params["rig"] = scene["rig"]
         key = content_hash({"render": params, "code": code_fingerprint(*RENDER_CODE)})[:20]
         path = self.cache_dir / "renders" / key
         if (path / "meta.json").is_file():
@@ -186,6 +210,7 @@ class CaptureFactory:
         self.events("note", message=f"rendering {name} at {params['size']} px (cached afterwards)")
         t0 = time.perf_counter()
         extra = {"scene_params": scene["scene_params"]} if scene.get("scene_params") else {}
+        extra.update(_rig_options(scene, (params["size"], params["size"])))
         try:
             clean = render_capture(name, size=params["size"], spp=params["spp"], seed=seed,
                                      sensor=make_sensor("none"), variant=params["variant"], record_timing=True,

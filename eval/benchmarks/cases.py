@@ -121,6 +121,12 @@ def method_task(rec: dict, method: dict, capture_path: str, capture_key: str, ca
     return rec
 
 
+def method_calibration(method: dict) -> str | None:
+    """The ``calibration`` argument of a suite method (:mod:`capssim.eval.benchmarks.rigs`): ``ideal`` (the
+    default) ignores a capture's calibration file, ``capture`` uses it, ``truth`` the capture's true rig."""
+    return {"ideal": "ideal", "capture": None, "truth": "truth"}[method.get("calibration", "ideal")]
+
+
 def reused_registration_s(record: dict) -> float:
     """The registration time a method saved by reusing a capture's stored warps (0 when it computed them).
 
@@ -140,14 +146,15 @@ def _run_method(rec: dict, method: dict, capture, scorer: CaptureScorer, capture
         raise Unavailable("this capture has no DoFP frame")
     with PeakMemory(device=device) as mem:
         out, record = reconstruct(capture, method["name"], device=device, true_warps=bool(method["true_warps"]),
-                                  registration=method["registration"], **method["options"])
+                                  registration=method["registration"], calibration=method_calibration(method),
+                                  **method["options"])
     write_reconstruction(capture_path, method["label"], out.image, record)
     scored = scorer.score(out.image)
     rec.update(status="ok", metrics=scored.flat(), notes=scored.metrics["notes"],
                metric_settings=scored.metrics["settings"],
                wall_time_s=record["wall_time_s"] + reused_registration_s(record), stages_s=record["stages_s"],
                reused_registration_s=reused_registration_s(record), peak_rss_mb=mem.peak_mb, peak_rss_delta_mb=mem.peak_mb - mem.start_mb,
-               cuda_peak_mb=mem.cuda_peak_mb, params=record.get("params"),
+               cuda_peak_mb=mem.cuda_peak_mb, params=record.get("params"), calibration=record.get("calibration"),
                registration=record.get("registration"), capture_info=capture_info,
                recon=str(Path(capture_path) / "recon" / f"{method['label']}.tiff"))
     if scorer.gt_mtf is not None:

@@ -53,6 +53,7 @@ from capssim.eval.benchmarks.cases import capture_task, forget_captures, method_
 from capssim.eval.benchmarks.executors import check_execution, open_executor
 from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash, environment
 from capssim.eval.benchmarks.results import ResultsLog
+from capssim.eval.benchmarks.rigs import METHOD_CALIBRATIONS, check_rig_spec
 from capssim.eval.metrics import get_convention
 from capssim.reconstruct.registration_parameters import registration_parameters
 from capssim.reconstruct.registry import available_methods, resolve_device
@@ -83,6 +84,9 @@ def _method_entries(methods: list) -> list[dict]:
         entry.setdefault("options", {})
         entry.setdefault("true_warps", False)
         entry.setdefault("registration", "local-correlation")
+        if entry.get("calibration", "ideal") not in METHOD_CALIBRATIONS:
+            raise InputError(f"suite method {entry['label']!r} calibration", repr(entry["calibration"]),
+                             f"one of {METHOD_CALIBRATIONS}")
         registration_parameters(entry["registration"])  # UnknownNameError lists the modes
         entries.append(entry)
     if len({m["label"] for m in entries}) != len(entries):
@@ -98,6 +102,8 @@ def _check_scenes(scenes: list) -> None:
         if sc["name"] in names:
             raise InputError("suite scenes", sc["name"], "unique scene names")
         names.add(sc["name"])
+        if sc.get("rig") is not None:
+            check_rig_spec(sc["rig"], sc["name"])
     for sc in scenes:
         if sc.get("fallback") and sc["fallback"] not in names:
             raise InputError("suite scenes", f"fallback {sc['fallback']!r} of {sc['name']!r}", "a scene of this suite")
@@ -274,7 +280,8 @@ class _SuiteRun:
 
     def registers(self, method: dict) -> bool:
         """Whether ``method`` estimates the warps (and stores them with the capture for the next method)."""
-        return self.registered[method["name"]].input_kind == "caps" and not method["true_warps"]
+        return (self.registered[method["name"]].input_kind == "caps" and not method["true_warps"]
+                and method.get("calibration", "ideal") == "ideal")
 
     def submit_cases(self, executor, g: int, entry, scene: dict) -> None:
         """Every method on the capture of group ``g``: those done in an earlier run are taken from it.

@@ -25,6 +25,12 @@ The sampling operator ``M`` is the shared observation model
 ``capssim.operators.lr_sampling_operator`` with the capture's PSF (the paper uses an
 isotropic Gaussian kernel; simulated captures store a Gaussian PSF, and ``psf_sigma``
 overrides it, e.g. for real captures).
+
+With a calibration (``capssim reconstruct --calibration``; :mod:`capssim.reconstruct.observation_model`)
+``M`` takes the per-aperture PSFs and multiplies each observation by its flat field, the data term
+mixes the channels by the calibrated analyzer (``(16, 12)``, exact adjoint), the geometry is the
+calibration's (when it has one), and CAGF and the initialization work on flat-field-corrected
+observations; the initialization is unmixed per pixel by the inverse analyzer (12x12).
 """
 
 from __future__ import annotations
@@ -46,7 +52,14 @@ from capssim.reconstruct.init_fusion import fuse_initial_estimate
 from capssim.reconstruct.interfaces import DivergenceError
 from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor
 from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
-from capssim.reconstruct.observation_model import CAPTURE_PSF_SIGMA, lr_flat_field, method_geometry, method_psf
+from capssim.reconstruct.observation_model import (
+    CAPTURE_PSF_SIGMA,
+    calibrated_analyzer,
+    lr_flat_field,
+    method_geometry,
+    method_psf_kernels,
+    unmix_analyzer,
+)
 from capssim.reconstruct.rearrange import observations_from_capture
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
@@ -229,18 +242,13 @@ def explain_divergence(exc: DivergenceError, opts: CapsOptions, defaults: CapsOp
 def _operator(capture, context: RunContext, geometry, psf_sigma: float):
     """The sampling operator ``M``, the analyzer mixing ``(16, 12)`` (``None``: ideal), the PSF record and
     the flat field ``(16, h, w)`` (``None``: ideal) of the array model (``context.calibration``)."""
-    kernel, psf_record = method_psf(capture, psf_sigma)
-    calibration = context.calibration
-    if calibration is None:
+    kernel, kernels, psf_record = method_psf_kernels(capture, context, psf_sigma)
+    if context.calibration is None:
         return lr_sampling_operator(geometry, kernel), None, psf_record, None
-    rig = calibration.rig
-    kernels = rig.psf_kernels()
-    if kernels is not None:
-        psf_record = {"type": "per aperture", "apertures": [dict(p) for p in rig.psf],
-                      "source": calibration.record["source"]}
     flat = lr_flat_field(capture, context)
     operator = lr_sampling_operator(geometry, kernel, psf_kernels=kernels, flat=flat)
-    return operator, rig.lr_channel_matrix(), psf_record, flat
+    mixing = None if calibrated_analyzer(context) is None else context.calibration.rig.lr_channel_matrix()
+    return operator, mixing, psf_record, flat
 
 
 def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: bool = True) -> MethodOutput:
@@ -270,6 +278,8 @@ def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: 
                                          eps=opts.cagf.eps)
     with timer.stage("init"):
         init = fuse_initial_estimate(seen, homographies, hr_shape)
+        if mixing is not None:  # the fused channels see the calibrated analyzer: A x per pixel
+            init = unmix_analyzer(init, calibrated_analyzer(context))
     data = ConfidenceDataTerm(obs, operator, confidence=confidence, mixing=mixing)
     nlstr = None
     if use_nlstr:

@@ -19,6 +19,11 @@ employed the joint constraints of (2) and (3)" with ``c1 = 0.001``, ``c2 = 0.01`
    12 channels ``c = 3 p + k``.
 
 A demosaicked pixel gets weight 0 if a saturated raw pixel lies in its 3x3 neighbourhood.
+
+With a calibration (``--calibration``): the raw frames are divided by their flat fields before
+demosaicking, the operator takes the per-aperture PSFs, the geometry is the calibration's (when it
+has one), and colour k's data term mixes its 4 channels by the calibrated analyzer's 4x4 block
+(exact adjoint); the initialization is unmixed per pixel by that block's inverse.
 """
 
 from __future__ import annotations
@@ -38,11 +43,16 @@ from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
 from capssim.reconstruct.init_fusion import fuse_initial_estimate
 from capssim.reconstruct.interfaces import DivergenceError
 from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, explain_divergence, mean_psnr
-from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function
+from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function, flat_corrected_raw
 from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
 from capssim.reconstruct.nlstr import NonlocalSparseTensor
 from capssim.reconstruct.nlstr_prior import NLSTRPrior
-from capssim.reconstruct.observation_model import method_geometry, method_psf
+from capssim.reconstruct.observation_model import (
+    calibrated_analyzer,
+    method_geometry,
+    method_psf_kernels,
+    unmix_analyzer,
+)
 from capssim.reconstruct.rearrange import Observations
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
@@ -50,12 +60,13 @@ from capssim.reconstruct.registry import MethodOutput, RunContext, register_meth
 DEFAULT_BAYER_METHOD = "ri"
 
 
-def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *,
-                       bayer_method: str = DEFAULT_BAYER_METHOD) -> tuple[np.ndarray, np.ndarray]:
-    """``(4, H, W)`` RGGB frames -> ``(4, 3, H, W)`` RGB and ``(4, H, W)`` data weights."""
+def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *, bayer_method: str = DEFAULT_BAYER_METHOD,
+                       clip_max: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(4, H, W)`` RGGB frames -> ``(4, 3, H, W)`` RGB (clipped to [0, ``clip_max``]) and ``(4, H, W)``
+    data weights."""
     from scipy.ndimage import maximum_filter
 
-    rgb = demosaic(raw, bayer_method=bayer_method)
+    rgb = demosaic(raw, bayer_method=bayer_method, clip_max=clip_max)
     near_saturated = np.stack([maximum_filter(saturated[n].astype(np.uint8), size=3) > 0 for n in range(raw.shape[0])])
     return rgb, (~near_saturated).astype(np.float32)
 
@@ -88,21 +99,18 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
     admm_params, nl_params = opts.validated_parameters()
     dev, timer = context.device, context.timer
     hr_shape = capture.hr_shape
-    rig = context.calibration.rig if context.calibration is not None else None
+    analyzer = calibrated_analyzer(context)  # (12, 12) or None (ideal)
     with timer.stage("demosaic"):
-        raw = capture.caps_float()
-        if rig is not None and rig.has_flat_field:  # gain and vignetting divided out before demosaicking
-            raw = (raw / rig.flat_field(capture.raw_shape)).astype(np.float32)
-        rgb, weights = demosaic_apertures(raw, capture.caps_saturated(), bayer_method=bayer_method)
+        raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
+        rgb, weights = demosaic_apertures(raw, capture.caps_saturated(), bayer_method=bayer_method,
+                                          clip_max=clip_max)
         lr_images, lr_saturated = capture.lr_images()
     with timer.stage("registration"):
         geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)
         raw_h = geometry.raw_homographies   # HR reference -> raw pixel of each aperture
     with timer.stage("operator"):
-        kernel, psf_record = method_psf(capture, opts.psf_sigma)
-        if rig is not None and rig.psf is not None:
-            kernel, psf_record = rig.psf_kernels(), {"type": "per aperture", "apertures": [dict(p) for p in rig.psf]}
-        operator = aperture_sampling_operator(geometry, kernel)
+        kernel, kernels, psf_record = method_psf_kernels(capture, context, opts.psf_sigma)
+        operator = aperture_sampling_operator(geometry, kernel if kernels is None else kernels)
         inside = field_of_view_mask(raw_h, raw.shape[-2:], hr_shape, half_extent=0.25) if opts.fov_mask else 1.0
         weights = weights * inside
     nlstr = None
@@ -121,10 +129,12 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
         with timer.stage("cagf"):
             conf = cagf_confidence(obs.images, raw_h, obs.channel_of, N_APERTURES, hr_shape, weights=obs.weights,
                                    nu=opts.cagf.nu, radius=opts.cagf.radius, eps=opts.cagf.eps)
+        # a calibrated analyzer: aperture n sees sum_p A[3n+k, 3p+k] x_p in colour k (exact mixing)
+        mixing = None if analyzer is None else analyzer[k::3, k::3]
         with timer.stage("init"):
             init = fuse_initial_estimate(obs, raw_h, hr_shape)
-        # a calibrated analyzer: aperture n sees sum_p A[3n+k, 3p+k] x_p in colour k (exact mixing)
-        mixing = None if rig is None or rig.is_ideal else rig.analyzer_matrix()[k::3, k::3]
+            if mixing is not None:
+                init = unmix_analyzer(init, mixing)
         data = ConfidenceDataTerm(obs, operator, confidence=conf, mixing=mixing)
 
         def progress(done, _total, message, k=k):

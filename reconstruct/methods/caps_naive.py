@@ -23,6 +23,13 @@ posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
    Pixels of the reference grid outside an aperture's field of view get its border values.
    The result is clipped to [0, 1] (``clip=false`` keeps the bicubic overshoot).
 
+With a calibration (``--calibration``, :mod:`capssim.reconstruct.observation_model`): each aperture's
+raw frame is divided by its flat field ``gain_n V_n`` before step 1 (:func:`flat_corrected_raw`), step 2
+takes the calibration's geometry when it has one, and after step 3 the 12 registered images are
+``y = A x`` per pixel with ``A`` the calibrated analyzer (row ``3n + k``: aperture n's polarizer in
+colour k; one 4x4 block per colour): ``x = A^-1 y`` per pixel, the exact inverse of the mixing
+(:func:`~capssim.reconstruct.observation_model.unmix_analyzer`), before clipping.
+
 Output ``(12, 2H, 2W)`` float32, channel ``c = 3 p + k`` (aperture/polarizer p, colour k).
 Saturated pixels are used as they are (no masking): this is the naive pipeline.
 
@@ -45,7 +52,7 @@ import torch.nn.functional as F
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
 from capssim.reconstruct.methods.caps import CapsOptions, _coerce, mean_psnr
-from capssim.reconstruct.observation_model import method_geometry
+from capssim.reconstruct.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 from capssim.reconstruct.residual_interpolation import ri_bayer_demosaic_frames
 
@@ -117,8 +124,9 @@ class NaiveOptions:
 BAYER_PAD = 6
 
 
-def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007") -> np.ndarray:
-    """``(4, H, W)`` RGGB raw frames on [0, 1] -> ``(4, 3, H, W)`` float32 RGB, clipped to [0, 1].
+def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007", clip_max: float = 1.0) -> np.ndarray:
+    """``(4, H, W)`` RGGB raw frames on [0, 1] -> ``(4, 3, H, W)`` float32 RGB, clipped to [0, ``clip_max``]
+    (above 1 for flat-field-corrected frames, :func:`flat_corrected_raw`).
 
     Each frame is mirror-padded by :data:`BAYER_PAD` pixels (``np.pad`` ``reflect``, an even
     width, so every padded pixel keeps its Bayer colour) and cropped back after demosaicking:
@@ -134,7 +142,19 @@ def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007") -> n
     padded = np.pad(raw.astype(np.float64), ((0, 0), (pad, pad), (pad, pad)), mode="reflect")
     rgb = np.stack([np.moveaxis(np.asarray(fn(padded[n], "RGGB")), -1, 0) for n in range(raw.shape[0])])
     rgb = rgb[..., pad:pad + raw.shape[1], pad:pad + raw.shape[2]]
-    return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, 1.0).astype(np.float32)
+    return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, clip_max).astype(np.float32)
+
+
+def flat_corrected_raw(capture, context: RunContext) -> tuple[np.ndarray, float]:
+    """``(4, H, W)`` raw frames divided by the calibrated flat field ``gain_n V_n`` (unchanged without
+    one) and the largest value they can hold (``1 / min(flat)``: full scale seen through the darkest
+    corner), the clip level of their demosaicking."""
+    raw = capture.caps_float()
+    calibration = context.calibration
+    if calibration is None or not calibration.rig.has_flat_field:
+        return raw, 1.0
+    flat = calibration.rig.flat_field(capture.raw_shape)
+    return (raw / flat).astype(np.float32), float(max(1.0, 1.0 / flat.min()))
 
 
 def sampling_grid(homographies: np.ndarray, out_hw: tuple[int, int], in_hw: tuple[int, int],
@@ -168,10 +188,8 @@ def demosaic_and_register(capture, context: RunContext, opts: NaiveOptions):
     geometry (true or registered) and the registration record."""
     timer = context.timer
     with timer.stage("demosaic"):
-        raw = capture.caps_float()
-        if context.calibration is not None and context.calibration.rig.has_flat_field:  # gain and vignetting out
-            raw = (raw / context.calibration.rig.flat_field(capture.raw_shape)).astype(np.float32)
-        rgb = demosaic_apertures(raw, bayer_method=opts.bayer_method)
+        raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
+        rgb = demosaic_apertures(raw, bayer_method=opts.bayer_method, clip_max=clip_max)
         rgb = torch.from_numpy(rgb).to(context.device)
     with timer.stage("registration"):
         lr_images, lr_saturated = capture.lr_images()
@@ -191,25 +209,15 @@ def unobserved_pixels(saturated: np.ndarray, geometry, device: torch.device) -> 
     return np.repeat((seen < 0.5).cpu().numpy(), 3, axis=0)
 
 
-def unmix_analyzer(image: torch.Tensor, analyzer: np.ndarray) -> torch.Tensor:
-    """``(12, H, W)`` channels from the ``(12, H, W)`` registered aperture images ``y = A x`` per pixel.
-
-    ``analyzer`` ``(12, 12)``: row ``3n + k`` is aperture n's calibrated polarizer in colour k
-    (:meth:`capssim.rig.RigModel.analyzer_matrix`); its exact inverse undoes the angle offsets and the
-    finite extinction (a 4x4 system per colour, well conditioned for angle errors of a few degrees).
-    """
-    inverse = torch.as_tensor(np.linalg.inv(analyzer), dtype=image.dtype, device=image.device)
-    return torch.einsum("ij,jhw->ihw", inverse, image)
-
-
 def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext, params: dict,
            reg_record: dict, extra: dict | None = None, geometry=None) -> MethodOutput:
     """Clip, flatten to 12 channels ``c = 3 p + k``, copy to the host, record (with the
     :func:`unobserved_pixels` of ``geometry`` when given)."""
     with context.timer.stage("to_host"):
         image = image.reshape(12, *image.shape[-2:])
-        if context.calibration is not None and not context.calibration.rig.is_ideal:
-            image = unmix_analyzer(image, context.calibration.rig.analyzer_matrix())
+        analyzer = calibrated_analyzer(context)
+        if analyzer is not None:  # registered aperture images y = A x per pixel: x = A^-1 y, exactly
+            image = unmix_analyzer(image, analyzer)
         if opts.clip:
             image = image.clamp(0.0, 1.0)
         out = {"registration": reg_record, **(extra or {})}
