@@ -229,3 +229,20 @@ def test_rendered_and_simulated_calibrations_agree(tmp_path, rig):
     for result in results.values():
         err = registration_error_hr_px(result.geometry.lr_homographies, truth.true_lr_homographies(), truth.hr_shape)
         assert np.median(err) < 0.05
+
+
+def test_dataset_config_rig_form(tmp_path):
+    from capssim.dataset.config import load_config, rig_model
+
+    gt = tmp_path / "gt.tiff"
+    from capssim.imageio import write_tiff
+
+    write_tiff(gt, polarized_field(32, 0.3, 10.0))
+    text = (f"seed: 1\nsamples: 1\ndefaults: {{rig: {{preset: realistic, seed: 2, gain: [1.05, 0.95, 1.0, 1.0]}}}}\n"
+            f"sources: [{{gt: {gt}, size: 32}}]\n")
+    (tmp_path / "ds.yaml").write_text(text)
+    spec = load_config(tmp_path / "ds.yaml").sample_spec(0)
+    assert np.allclose(rig_model(spec["params"]["rig"]).gain, [1.05, 0.95, 1.0, 1.0])
+    (tmp_path / "bad.yaml").write_text(text.replace("[1.05, 0.95, 1.0, 1.0]", "[1, 2]"))
+    with pytest.raises(InputError, match="gain"):
+        load_config(tmp_path / "bad.yaml").sample_spec(0)

@@ -61,7 +61,9 @@ from capssim.dataset.schema import (
     show,
 )
 from capssim.imageio import GT_IMAGE_SUFFIXES
+from capssim.errors import InputError
 from capssim.psf import DEFAULT_SIGMA_HR_PX
+from capssim.rig import RigModel
 from capssim.render import list_scenes
 from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS, make_sensor
 
@@ -71,7 +73,7 @@ MIN_SIZE = 16
 SIZE_MULTIPLE = 4
 DEFAULT_SCENE_SIZE = 64
 #: keys a source may take over from ``defaults``
-SHARED_KEYS = ("sensor", "dofp_layout", "pose", "psf_sigma_hr_px", "extinction_ratio")
+SHARED_KEYS = ("sensor", "dofp_layout", "pose", "psf_sigma_hr_px", "extinction_ratio", "rig")
 #: shared keys that only ground-truth sources use (render draws its own aperture errors from geometry_params)
 GT_ONLY_KEYS = ("pose",)
 #: shared keys passed to ``render_capture`` (as ``psf=`` / ``extinction_ratio=``) when set
@@ -102,12 +104,25 @@ POSE_SPEC = Mapping({
     "scale_max": Distribution(Number(minimum=0, maximum=0.5)),
 }, what="aperture pose error ranges (shift_max_px, rotation_max_deg, scale_max)")
 
+#: an imperfect array (capssim.rig.RigModel): a preset's draw, then per-quantity overrides (lists as in the CLI)
+RIG_SPEC = Mapping({
+    "preset": Distribution(String(choices=["ideal", "realistic"])),
+    "seed": Distribution(Integer(minimum=0)),
+    "angle_offsets_deg": Anything(),
+    "extinction_ratio": Anything(),
+    "gain": Anything(),
+    "vignetting_corner": Distribution(Number(minimum=0, maximum=0.9)),
+    "psf_sigmas_hr_px": Anything(),
+}, what="an imperfect array (preset, seed, angle_offsets_deg, extinction_ratio, gain, vignetting_corner, "
+        "psf_sigmas_hr_px)")
+
 SHARED_SPECS = {
     "sensor": SENSOR_SPEC,
     "dofp_layout": Distribution(Custom(_dofp, "a DoFP layout")),
     "pose": POSE_SPEC,
     "psf_sigma_hr_px": Distribution(Number(minimum=0)),
     "extinction_ratio": Distribution(Nullable(Number(minimum=1, exclusive_minimum=True))),
+    "rig": RIG_SPEC,
 }
 
 GT_SOURCE_SPEC = Mapping({
@@ -139,7 +154,7 @@ TOP_SPEC = Mapping({
     "seed": Integer(minimum=0),
     "samples": Integer(minimum=1),
     "selection": String(choices=["cycle", "random"]),
-    "defaults": Mapping(SHARED_SPECS, what="default parameters (sensor, dofp_layout, pose, psf_sigma_hr_px, extinction_ratio)"),
+    "defaults": Mapping(SHARED_SPECS, what="default parameters (sensor, dofp_layout, pose, psf_sigma_hr_px, extinction_ratio, rig)"),
     "sources": Sequence(AnyMapping("a source (gt: FOLDER or scene: NAME)"), min_length=1, what="sources"),
 }, required=("seed", "samples", "sources"), what="a dataset config")
 
@@ -219,6 +234,8 @@ class DatasetConfig:
         drawn = {k: draw_tree(v, self.seed, index, shared_path[k]) for k, v in shared.items() if v is not None}
         params["sensor"] = _canonical_sensor(drawn.get("sensor") or {})
         params["dofp_layout"] = drawn.get("dofp_layout", "sony")
+        params["rig"] = drawn.get("rig")
+        rig_model(params["rig"])  # refuses bad values before any sample is made
         resolved: dict = {}
         if src.kind == "gt":
             fields = draw_tree({k: v for k, v in src.spec.items() if k in ("size", "crop_position", "augment")},
@@ -255,6 +272,21 @@ class DatasetConfig:
             }
         return {"index": index, "name": self.sample_name(index), "seed": capture_seed, "dataset": self.name,
                 "master_seed": self.seed, "params": params, "resolved": resolved}
+
+
+def rig_model(spec: dict | None) -> RigModel | None:
+    """The :class:`~capssim.rig.RigModel` of a drawn ``rig`` entry (``None``: the ideal array)."""
+    if not spec:
+        return None
+    try:
+        rig = RigModel.preset(spec.get("preset", "realistic"), seed=int(spec.get("seed", 0)))
+        overrides = {k: spec[k] for k in ("angle_offsets_deg", "extinction_ratio", "gain", "vignetting_corner",
+                                          "psf_sigmas_hr_px") if spec.get(k) is not None}
+        return rig.with_overrides(**overrides) if overrides else rig
+    except InputError as exc:
+        raise ConfigError(f"rig.{exc.argument}", exc.received, exc.valid, exc.fix) from None
+    except (TypeError, ValueError) as exc:
+        raise ConfigError("rig", repr(spec)[:80], f"numbers or lists of numbers ({exc})") from None
 
 
 def _canonical_sensor(drawn: dict) -> dict:

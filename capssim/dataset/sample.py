@@ -24,7 +24,7 @@ import torch
 import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
 from capssim.capture import write_capture
 from capssim.dataset.augment import rotate_flip_twelve
-from capssim.dataset.config import make_sample_sensor
+from capssim.dataset.config import make_sample_sensor, rig_model
 from capssim.errors import InputError
 from capssim.imageio import read_gt_scene
 from capssim.psf import PSF
@@ -160,7 +160,7 @@ def build_capture(spec: dict):
         t = time.perf_counter()
         capture = simulate_capture(gt, sensor, seed=spec["seed"], psf=PSF.gaussian(params["psf_sigma_hr_px"]), dofp_layout=params["dofp_layout"],
                                    extinction_ratio=params["extinction_ratio"], pose_ranges=PoseRanges(**params["pose"]),
-                                   source=source, extra_meta={"dataset": dataset_meta})
+                                   source=source, extra_meta={"dataset": dataset_meta}, rig=rig_model(params.get("rig")))
         timing["simulate_s"] = time.perf_counter() - t
     else:
         _apply_render_threads()
@@ -180,6 +180,7 @@ def _render_options(spec: dict, sensor) -> dict:
         optics["psf"] = PSF.gaussian(params["psf_sigma_hr_px"])
     if params.get("extinction_ratio") is not None:
         optics["extinction_ratio"] = params["extinction_ratio"]
+    optics["rig"] = rig_model(params.get("rig"))
     return dict(size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]), sensor=sensor,
                 variant=src["variant"], dofp_layout=params["dofp_layout"], scene_params=src["scene_params"] or None,
                 geometry_params=src["geometry_params"] or None, target_noise=src["target_noise"],
