@@ -60,11 +60,11 @@ from capssim.dataset.schema import (
     join,
     show,
 )
-from capssim.imageio import GT_IMAGE_SUFFIXES
 from capssim.errors import InputError
+from capssim.imageio import GT_IMAGE_SUFFIXES
 from capssim.psf import DEFAULT_SIGMA_HR_PX
-from capssim.rig import RigModel
 from capssim.render import list_scenes
+from capssim.rig import RigModel
 from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS, make_sensor
 
 log = logging.getLogger(__name__)
