@@ -25,11 +25,12 @@ from capssim.cli._options import (
     ThreadsOption,
     VignettingOption,
     apply_threads,
+    check_rig_psfs,
     rig_from_options,
+    rig_homographies,
     sensor_from_options,
 )
 from capssim.design import DesignInputs, system_design
-from capssim.errors import InputError
 from capssim.imageio import atomic_write_json, check_output_file, check_output_free, read_gt_scene
 from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 
@@ -49,7 +50,8 @@ def simulate(
     rotation_max: float = typer.Option(0.5, "--rotation-max", help="Max random aperture rotation, degrees."),
     scale_max: float = typer.Option(0.005, "--scale-max", help="Max random relative scale error."),
     extinction_ratio: Optional[float] = typer.Option(None, "--extinction-ratio",
-                                                     help="Polarizer extinction ratio (default: ideal)."),
+                                                     help="Polarizer extinction ratio (default: ideal); with "
+                                                          "--rig realistic or a rig file, the DoFP camera's only."),
     rig: Optional[str] = RigOption,
     rig_seed: int = RigSeedOption,
     angle_offsets: Optional[str] = AngleOffsetsOption,
@@ -64,7 +66,8 @@ def simulate(
     apply_threads(threads)
     rig_model, rig_geometry = rig_from_options(rig, rig_seed, angle_offsets=angle_offsets,
                                                extinction_ratios=extinction_ratios, gains=gains,
-                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas)
+                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas,
+                                               extinction_ratio=extinction_ratio)
     # these pull torch and the operators: loaded when the command runs (start-up time)
     from capssim.capture import write_capture
     from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
@@ -75,13 +78,8 @@ def simulate(
     image, crop_info = prepare_ground_truth(image, crop=crop)
     source.update(crop_info)
     psf = PSF.gaussian(psf_sigma)
-    homographies = None
-    if rig_geometry is not None:
-        if tuple(rig_geometry.hr_shape) != tuple(image.shape[1:]):
-            raise InputError("--rig", f"geometry for {rig_geometry.hr_shape[0]}x{rig_geometry.hr_shape[1]} HR px",
-                             f"the ground truth's size {image.shape[1]}x{image.shape[2]}",
-                             "Calibrate at the capture's size, or --crop the ground truth to it.")
-        homographies = rig_geometry.aperture_homographies
+    check_rig_psfs(rig_model, image.shape[1:], aperture_psf_sigmas=aperture_psf_sigmas)
+    homographies = rig_homographies(rig_geometry, image.shape[1:], fix="--crop the ground truth to it")
     capture = simulate_capture(
         image, sensor_from_options(noise, sigma, sensor), seed=seed, psf=psf, dofp_layout=dofp_layout,
         extinction_ratio=extinction_ratio, pose_ranges=PoseRanges(shift_max, rotation_max, scale_max), source=source,

@@ -27,8 +27,10 @@ from capssim.cli._options import (
     ThreadsOption,
     VignettingOption,
     apply_threads,
+    check_rig_psfs,
     number_in,
     rig_from_options,
+    rig_homographies,
     sensor_from_options,
 )
 from capssim.errors import InputError
@@ -62,6 +64,20 @@ def _psf(psf: str, sigma: float, f_number: float, wavelength_nm: float, pixel_um
     if kind == "none":
         return PSF.none()
     raise InputError("--psf", psf, "gaussian, airy or none")
+
+
+def _render_with_rig(scene: str, **options):
+    """``render_capture``; the array geometry of a ``--rig`` file is refused by that flag's name."""
+    from capssim.render import render_capture
+
+    try:
+        return render_capture(scene, **options)
+    except InputError as exc:
+        if exc.argument != "aperture_homographies":
+            raise
+        raise InputError("--rig", "a capssim-rig file with an array geometry, for a scene rendered per aperture",
+                         "a rig file's geometry only on the planar warp path",
+                         "Use a planar scene or --planar on, or a rig file without geometry.") from None
 
 
 def render(
@@ -98,7 +114,8 @@ def render(
     oversample: Optional[int] = typer.Option(None, "--oversample",
                                              help="Render grid factor for the planar warp (default 4, 2 above 512 px)."),
     extinction_ratio: Optional[float] = typer.Option(None, "--extinction-ratio",
-                                                     help="Polarizer extinction ratio (default: ideal)."),
+                                                     help="Polarizer extinction ratio (default: ideal); with "
+                                                          "--rig realistic or a rig file, the DoFP camera's only."),
     camera: str = typer.Option("Nikon 5100 (NPL)", "--camera", help="Camera sensitivities (colour-science)."),
     no_timing: bool = typer.Option(False, "--no-timing", help="Keep wall times out of meta.json (reproducible bytes)."),
     measure_savings: bool = typer.Option(False, "--measure-savings",
@@ -124,11 +141,13 @@ def render(
     apply_threads(threads, renderer=True)
     rig_model, rig_geometry = rig_from_options(rig, rig_seed, angle_offsets=angle_offsets,
                                                extinction_ratios=extinction_ratios, gains=gains,
-                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas)
+                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas,
+                                               extinction_ratio=extinction_ratio)
+    check_rig_psfs(rig_model, (size, size), aperture_psf_sigmas=aperture_psf_sigmas)
+    homographies = rig_homographies(rig_geometry, (size, size), fix="render at that --size")
     # these pull torch, the operators and the scene library: loaded when the command runs (start-up time)
     import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
     from capssim.capture import write_capture
-    from capssim.render import render_capture
 
     t0 = time.perf_counter()
     check_output_free(output, overwrite=overwrite)
@@ -144,13 +163,12 @@ def render(
                 tasks[stage] = bar.add_task(stage, total=max(total, 1))
             bar.update(tasks[stage], completed=done)
 
-        capture = render_capture(
+        capture = _render_with_rig(
             scene, size=size, spp=spp, seed=seed, sensor=sens, variant=variant, dofp_layout=dofp_layout,
             scene_params=_parse_pairs(param, "--param"), geometry_params=_parse_pairs(geometry, "--geometry"),
             target_noise=target_noise, record_timing=not no_timing, progress=progress, psf=psf_value,
             extinction_ratio=extinction_ratio, planar=planar, oversample=oversample, camera=camera,
-            max_spp=max_spp, measure_savings=measure_savings, rig=rig_model,
-            aperture_homographies=None if rig_geometry is None else rig_geometry.aperture_homographies)
+            max_spp=max_spp, measure_savings=measure_savings, rig=rig_model, aperture_homographies=homographies)
     write_capture(output, capture, overwrite=overwrite)
     r = capture.meta["render"]
     timing = capture.render_timing["timing_s"]

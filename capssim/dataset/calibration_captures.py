@@ -7,6 +7,8 @@ set, all through the same rig and the same aperture homographies:
 * ``flat``: uniform unpolarized light, every channel ``L`` (gain and vignetting);
 * ``polarizer-<phi>deg`` (``K >= 3``): uniform light through an ideal linear polarizer at ``phi``,
   channel ``I(a) = L (1 + cos 2(a - phi))`` (polarizer angles and extinction ratios, Malus's law);
+  with ``frames > 1`` each uniform target is captured ``frames`` times (``flat-frame01`` ...), with
+  independent noise, as a person averages frames on a real rig;
 * ``geometry``: a planar target textured at every scale (the aperture homographies);
 * ``star``: a sinusoidal Siemens star with ``cycles`` and ``center_rowcol`` (the PSF).
 
@@ -17,6 +19,8 @@ Simulated captures go through :func:`capssim.simulate.simulate_capture`, rendere
 
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +45,8 @@ STAR_CYCLES = 36
 #: the sweep's first angle, so that no sample sits exactly on a nominal polarizer angle
 SWEEP_OFFSET_DEG = 3.75
 MIN_POLARIZER_ANGLES = 3
+#: most frames per uniform target: capture seeds are ``1000 seed + index``, so a set holds < 1000 captures
+MAX_FRAMES = 5
 
 
 def sweep_angles(count: int) -> list[float]:
@@ -76,14 +82,48 @@ def star_target(size: int, cycles: int = STAR_CYCLES) -> tuple[np.ndarray, list[
     return np.broadcast_to(star[None], (12, size, size)).astype(np.float32).copy(), centre
 
 
-def _entries(size: int, polarizer_angles: int) -> list[tuple[str, dict]]:
+def _frames(name: str, entry: dict, frames: int) -> list[tuple[str, dict]]:
+    """``frames`` captures of one uniform target: ``name``, then ``name-frame01`` ... (each with ``"frame": j``)."""
+    return [(name if j == 0 else f"{name}-frame{j:02d}", {**entry, "frame": j} if frames > 1 else dict(entry))
+            for j in range(frames)]
+
+
+def _entries(size: int, polarizer_angles: int, frames: int = 1) -> list[tuple[str, dict]]:
     """``(folder name, calibration entry)`` of every capture of one set."""
-    out = [("flat", {"target": "flat", "level": FLAT_LEVEL})]
-    out += [(f"polarizer-{phi:06.2f}deg", {"target": "polarizer", "level": POLARIZER_LEVEL, "polarizer_deg": phi})
-            for phi in sweep_angles(polarizer_angles)]
+    if not (isinstance(frames, (int, np.integer)) and 1 <= frames <= MAX_FRAMES):
+        raise InputError("frames", frames, f"an integer in [1, {MAX_FRAMES}] (captures per uniform target)",
+                         "calibrate averages the frames of a target; more than a few add little at sigma 0.01.")
+    out = _frames("flat", {"target": "flat", "level": FLAT_LEVEL}, int(frames))
+    for phi in sweep_angles(polarizer_angles):
+        out += _frames(f"polarizer-{phi:06.2f}deg",
+                       {"target": "polarizer", "level": POLARIZER_LEVEL, "polarizer_deg": phi}, int(frames))
     out.append(("geometry", {"target": "geometry"}))
     out.append(("star", {"target": "star", "cycles": STAR_CYCLES}))
     return out
+
+
+def _check_homographies(homographies) -> np.ndarray:
+    """``(4, 3, 3)`` finite, invertible aperture homographies (HR reference -> aperture, x=col, y=row)."""
+    h = np.asarray(homographies, dtype=np.float64)
+    if h.shape != (4, 3, 3) or not np.all(np.isfinite(h)) or np.any(np.abs(np.linalg.det(h)) < 1e-12):
+        raise InputError("aperture_homographies", f"array of shape {h.shape}",
+                         "(4, 3, 3) finite, invertible homographies (HR reference -> aperture, x=col, y=row)",
+                         "Pass a rig file's geometry, or leave it out for a seeded random draw.")
+    return h
+
+
+def _remove_stale_captures(out: Path, keep: set[str]) -> None:
+    """With ``overwrite``: delete the capture folders that ``out/index.json`` of an earlier set lists
+    and this set does not write (``calibrate OUT`` reads every capture folder under ``OUT``)."""
+    try:
+        old = json.loads((out / "index.json").read_text())
+        names = [c["folder"] for c in old.get("captures", [])]
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return
+    for name in names:
+        folder = out / str(name)
+        if str(name) not in keep and folder.parent == out and (folder / "meta.json").is_file():
+            shutil.rmtree(folder)
 
 
 def _simulated(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographies: np.ndarray, seed: int) -> Capture:
@@ -123,23 +163,28 @@ def _rendered(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographie
 
 def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor: Sensor,
                               renderer: str = "simulate", polarizer_angles: int = 12, seed: int = 0,
-                              aperture_homographies: np.ndarray | None = None, spp: int | None = 64,
-                              overwrite: bool = False) -> dict:
+                              aperture_homographies: np.ndarray | None = None, frames: int = 1,
+                              spp: int | None = 64, overwrite: bool = False) -> dict:
     """Write one calibration set of ``rig`` under ``out_dir``; returns its index (also ``out_dir/index.json``).
 
     ``size``: HR pixels (the size of the captures the calibration is for: homographies depend on
     it); ``renderer``: ``simulate`` or ``mitsuba``; ``aperture_homographies`` ``(4, 3, 3)``
-    (default: a draw of the default pose ranges from ``seed``), shared by every capture.
+    (default: a draw of the default pose ranges from ``seed``), shared by every capture;
+    ``frames``: captures of each uniform target (flat, every sweep angle); ``spp``: samples per
+    HR pixel (``mitsuba``). Also writes ``out_dir/rig.json``, the true rig and homographies.
     """
     if renderer not in ("simulate", "mitsuba"):
         raise InputError("renderer", repr(renderer), "simulate or mitsuba")
     if not (isinstance(size, (int, np.integer)) and 32 <= size <= 4096 and size % 4 == 0):
         raise InputError("size", size, "a multiple of 4 in [32, 4096] (HR pixels)")
-    entries = _entries(int(size), polarizer_angles)
-    out = check_output_free(out_dir, overwrite=overwrite)
+    entries = _entries(int(size), polarizer_angles, frames)
+    out = check_output_free(out_dir, overwrite=overwrite, argument="OUTPUT")
     if aperture_homographies is None:
         rng = np.random.default_rng(np.random.SeedSequence([seed, 2201]))
         aperture_homographies, _ = random_aperture_homographies(rng, (size, size))
+    aperture_homographies = _check_homographies(aperture_homographies)
+    if overwrite:
+        _remove_stale_captures(Path(out), {name for name, _ in entries})
     index = {"format": "capssim-calibration-set", "version": 1, "renderer": renderer, "size": int(size),
              "rig": rig.to_dict(), "captures": []}
     for j, (name, entry) in enumerate(entries):
@@ -158,6 +203,6 @@ def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor
     return index
 
 
-__all__ = ["FLAT_LEVEL", "POLARIZER_LEVEL", "STAR_CYCLES", "TARGETS", "make_calibration_captures", "polarized_field",
-           "star_target", "sweep_angles", "texture_target"]
+__all__ = ["FLAT_LEVEL", "MAX_FRAMES", "POLARIZER_LEVEL", "STAR_CYCLES", "TARGETS", "make_calibration_captures",
+           "polarized_field", "star_target", "sweep_angles", "texture_target"]
 

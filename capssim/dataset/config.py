@@ -12,6 +12,7 @@ Format (docs: guides/datasets.md; ``examples/dataset-small.yaml``)::
       pose: {shift_max_px: {uniform: [0.5, 2.0]}, rotation_max_deg: 0.5, scale_max: 0.005}   # gt sources
       psf_sigma_hr_px: 0.5                                                                # gt sources
       extinction_ratio: null                                                              # gt sources
+      rig: {preset: realistic, seed: 2, gain: [1.05, 0.95, 1, 1]}   # imperfect array (guides/calibration.md)
     sources:
       - gt: ../shared/data/gt/qiu-kettle     # folder of 0/45/90/135.png, a 12-channel TIFF, or a glob
         size: 64                             # HR crop (multiple of 4); null = whole image
@@ -65,7 +66,7 @@ from capssim.imageio import GT_IMAGE_SUFFIXES
 from capssim.psf import DEFAULT_SIGMA_HR_PX
 from capssim.render import list_scenes
 from capssim.rig import RigModel
-from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS, make_sensor
+from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS
 
 log = logging.getLogger(__name__)
 
@@ -104,15 +105,17 @@ POSE_SPEC = Mapping({
     "scale_max": Distribution(Number(minimum=0, maximum=0.5)),
 }, what="aperture pose error ranges (shift_max_px, rotation_max_deg, scale_max)")
 
+_ER = Distribution(Number(minimum=1, exclusive_minimum=True))
 #: an imperfect array (capssim.rig.RigModel): a preset's draw, then per-quantity overrides (lists as in the CLI)
 RIG_SPEC = Mapping({
     "preset": Distribution(String(choices=["ideal", "realistic"])),
     "seed": Distribution(Integer(minimum=0)),
-    "angle_offsets_deg": Anything(),
-    "extinction_ratio": Anything(),
-    "gain": Anything(),
+    "angle_offsets_deg": Sequence(Distribution(Number(minimum=-20, maximum=20)), lengths=(4,), what="degrees"),
+    "extinction_ratio": Sequence(_ER, lengths=(1, 3, 12), what="extinction ratios (all, R G B, or 4 x R G B)",
+                                 bare=_ER),
+    "gain": Sequence(Distribution(Number(minimum=1e-3)), lengths=(4,), what="gains (1 = nominal)"),
     "vignetting_corner": Distribution(Number(minimum=0, maximum=0.9)),
-    "psf_sigmas_hr_px": Anything(),
+    "psf_sigmas_hr_px": Sequence(Distribution(Number(minimum=0)), lengths=(4,), what="Gaussian PSF stds (HR px)"),
 }, what="an imperfect array (preset, seed, angle_offsets_deg, extinction_ratio, gain, vignetting_corner, "
         "psf_sigmas_hr_px)")
 
@@ -161,11 +164,7 @@ TOP_SPEC = Mapping({
 
 def _possible_values(dist: Dist) -> list | None:
     """Every value a discrete distribution can draw (None for a continuous one)."""
-    if isinstance(dist, Const):
-        return [dist.value]
-    if isinstance(dist, Choice):
-        return list(dist.values)
-    return None
+    return [dist.value] if isinstance(dist, Const) else list(dist.values) if isinstance(dist, Choice) else None
 
 
 # -- the parsed config ------------------------------------------------------------------------
@@ -235,7 +234,8 @@ class DatasetConfig:
         params["sensor"] = _canonical_sensor(drawn.get("sensor") or {})
         params["dofp_layout"] = drawn.get("dofp_layout", "sony")
         params["rig"] = drawn.get("rig")
-        rig_model(params["rig"])  # refuses bad values before any sample is made
+        # refuses bad values before any sample is made
+        rig_model(params["rig"], key_path=join(src.key, "rig") if "rig" in src.spec else "defaults.rig")
         resolved: dict = {}
         if src.kind == "gt":
             fields = draw_tree({k: v for k, v in src.spec.items() if k in ("size", "crop_position", "augment")},
@@ -274,8 +274,9 @@ class DatasetConfig:
                 "master_seed": self.seed, "params": params, "resolved": resolved}
 
 
-def rig_model(spec: dict | None) -> RigModel | None:
-    """The :class:`~capssim.rig.RigModel` of a drawn ``rig`` entry (``None``: the ideal array)."""
+def rig_model(spec: dict | None, *, key_path: str = "rig") -> RigModel | None:
+    """The :class:`~capssim.rig.RigModel` of a drawn ``rig`` entry (``None``: the ideal array);
+    errors name ``key_path`` and the quantity."""
     if not spec:
         return None
     try:
@@ -284,9 +285,7 @@ def rig_model(spec: dict | None) -> RigModel | None:
                                           "psf_sigmas_hr_px") if spec.get(k) is not None}
         return rig.with_overrides(**overrides) if overrides else rig
     except InputError as exc:
-        raise ConfigError(f"rig.{exc.argument}", exc.received, exc.valid, exc.fix) from None
-    except (TypeError, ValueError) as exc:
-        raise ConfigError("rig", repr(spec)[:80], f"numbers or lists of numbers ({exc})") from None
+        raise ConfigError(join(key_path, exc.argument), exc.received, exc.valid, exc.fix) from None
 
 
 def _canonical_sensor(drawn: dict) -> dict:
@@ -303,17 +302,6 @@ def _canonical_sensor(drawn: dict) -> dict:
             if key in drawn:
                 out[key] = drawn[key]
     return out
-
-
-def make_sample_sensor(sensor_params: dict):
-    """A :class:`capssim.sensor.Sensor` from a sample's canonical sensor parameters."""
-    p = dict(sensor_params)
-    noise = p.pop("noise")
-    if noise == "none":
-        return make_sensor("none")
-    if noise == "gaussian":
-        return make_sensor("gaussian", sigma=p.pop("sigma"), **p)
-    return make_sensor("poisson-gaussian", preset=p.pop("preset"), **p)
 
 
 # -- reading and checking -----------------------------------------------------------------------

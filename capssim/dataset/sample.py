@@ -24,12 +24,13 @@ import torch
 import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
 from capssim.capture import write_capture
 from capssim.dataset.augment import rotate_flip_twelve
-from capssim.dataset.config import make_sample_sensor, rig_model
+from capssim.dataset.config import rig_model
 from capssim.errors import InputError
 from capssim.imageio import read_gt_scene
 from capssim.psf import PSF
 from capssim.render import render_capture
 from capssim.render.pipeline import check_render
+from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
 from capssim.threads import set_threads
 
@@ -141,6 +142,17 @@ def fsync_folder(folder: Path) -> None:
             os.close(fd)
 
 
+def make_sample_sensor(sensor_params: dict):
+    """A :class:`capssim.sensor.Sensor` from a sample's canonical sensor parameters."""
+    p = dict(sensor_params)
+    noise = p.pop("noise")
+    if noise == "none":
+        return make_sensor("none")
+    if noise == "gaussian":
+        return make_sensor("gaussian", sigma=p.pop("sigma"), **p)
+    return make_sensor("poisson-gaussian", preset=p.pop("preset"), **p)
+
+
 def build_capture(spec: dict):
     """The :class:`~capssim.capture.Capture` of a sample spec, and a timing dict (seconds)."""
     params = spec["params"]
@@ -180,7 +192,8 @@ def _render_options(spec: dict, sensor) -> dict:
         optics["psf"] = PSF.gaussian(params["psf_sigma_hr_px"])
     if params.get("extinction_ratio") is not None:
         optics["extinction_ratio"] = params["extinction_ratio"]
-    optics["rig"] = rig_model(params.get("rig"))
+    if params.get("rig"):
+        optics["rig"] = rig_model(params["rig"])
     return dict(size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]), sensor=sensor,
                 variant=src["variant"], dofp_layout=params["dofp_layout"], scene_params=src["scene_params"] or None,
                 geometry_params=src["geometry_params"] or None, target_noise=src["target_noise"],
@@ -206,6 +219,10 @@ def check_sample(spec: dict) -> None:
         _check_crop_size(src, *_gt_shape(spec["resolved"]["gt_path"]))
         PoseRanges(**params["pose"])
         PSF.gaussian(params["psf_sigma_hr_px"])
+        rig = rig_model(params.get("rig"))
+        hr_shape = (src["size"], src["size"]) if src.get("size") else _gt_shape(spec["resolved"]["gt_path"])
+        for n, aperture_psf in enumerate((rig.psf_objects() if rig is not None else None) or []):
+            aperture_psf.check_extent(hr_shape, option=f"rig psf_sigmas_hr_px[{n}]", memory=False)
     else:
         check_render(src["scene"], **_render_options(spec, sensor))
 

@@ -190,15 +190,24 @@ class Nullable(Spec):
 
 
 class Sequence(Spec):
-    def __init__(self, item: Spec, *, min_length: int = 0, what: str = "items"):
-        self.item, self.min_length, self.what = item, min_length, what
-        self.description = f"a list of {what}"
+    """A list of ``item`` values: at least ``min_length``, or exactly one of ``lengths`` when given;
+    with ``bare`` (a spec), a value that is not a list is checked by ``bare`` instead."""
+
+    def __init__(self, item: Spec, *, min_length: int = 0, what: str = "items",
+                 lengths: tuple[int, ...] | None = None, bare: Spec | None = None):
+        self.item, self.min_length, self.what, self.lengths, self.bare = item, min_length, what, lengths, bare
+        counts = "" if lengths is None else " or ".join(map(str, lengths)) + " "
+        self.description = f"a list of {counts}{what}" + (f", or {bare.description}" if bare is not None else "")
 
     def check(self, value, path):
+        if self.bare is not None and not isinstance(value, list):
+            return self.bare.check(value, path)
         if not isinstance(value, list):
             raise ConfigError(path, show(value), self.description)
         if len(value) < self.min_length:
             raise ConfigError(path, f"{len(value)} {self.what}", f"at least {self.min_length} {self.what}")
+        if self.lengths is not None and len(value) not in self.lengths:
+            raise ConfigError(path, f"{len(value)} {self.what}", self.description)
         return [self.item.check(v, join(path, i)) for i, v in enumerate(value)]
 
 

@@ -11,6 +11,12 @@ ground truth and with a margin, and each aperture's view is the exact plane homo
 (bilinear on the finer grid, then box-integrated back). Otherwise apertures 1-3 are rendered
 from their own positions, each only through its own polarizer angle, and aperture 0's view is
 the ground-truth render itself.
+
+An imperfect array (:class:`capssim.rig.RigModel`) goes through the same operators as
+:func:`capssim.operators.camera.caps_raw_operator`: its analyzer rows (``ChannelMix``; on the
+per-aperture path apertures 1-3 are rendered through polarizers at the rig's angles and
+per-colour extinction ratios), one PSF per aperture (then the ground truth has none), and the
+flat field (``Multiply``) on the raw irradiance after the Bayer mosaic.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import torch
 
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.measurement import CameraArrayMeasurement
-from capssim.operators import Analyzer, BayerMosaic, ChannelMix, Convolve, IntegrateDecimate, Warp
+from capssim.operators import Analyzer, BayerMosaic, ChannelMix, Convolve, IntegrateDecimate, Multiply, Warp
 from capssim.render.geometry import scale_matrix, shift_matrix
 from capssim.render.integrator import stokes_to_twelve
 from capssim.render.sampling import to_tensor
@@ -92,6 +98,24 @@ def _warped_apertures(twelve: torch.Tensor, homographies: np.ndarray, *, fine: i
     return torch.stack(apertures)
 
 
+def _rendered_apertures(twelve: torch.Tensor, gt: torch.Tensor, aperture_views: dict[int, np.ndarray], *,
+                        kernel: np.ndarray, margin: int, size: int, extinction_ratio: float | None,
+                        rig: RigModel | None) -> torch.Tensor:
+    """``(4, 3, S, S)`` of the per-aperture path: aperture 0 analyzes the reference render, 1-3 were
+    rendered through their own polarizers (the rig's angle and per-colour extinction: the pipeline
+    passes them to the renderer); each gets its own PSF."""
+    kernels = aperture_kernels(kernel, rig)
+    if rig is None or rig.is_ideal:
+        ref = Analyzer(size, size, angles_deg=(POLARIZER_ANGLES_DEG[0],), extinction_ratio=extinction_ratio)(gt)[0]
+    else:
+        source = gt if rig.psf is None else blur_crop(twelve, kernels[0], margin)
+        ref = ChannelMix(rig.analyzer_matrix()[0:3], size, size)(source)
+    apertures = [ref]
+    for n in range(1, N_APERTURES):
+        apertures.append(blur_crop(to_tensor(aperture_views[n]), kernels[n], margin))
+    return torch.stack(apertures)
+
+
 def observe(reference_stokes: np.ndarray, aperture_views: dict[int, np.ndarray], homographies: np.ndarray, *,
             measurement: CameraArrayMeasurement, kernel: np.ndarray, size: int, fine: int, margin: int,
             use_warp: bool, rig: RigModel | None = None) -> Irradiance:
@@ -101,27 +125,27 @@ def observe(reference_stokes: np.ndarray, aperture_views: dict[int, np.ndarray],
     HR pixels around); ``aperture_views``: ``n -> (3, S + 2 margin, S + 2 margin)`` analyzed
     renders of apertures 1-3 (per-aperture path only); ``homographies`` ``(4, 3, 3)`` HR
     reference -> aperture; ``kernel``: the optical PSF; ``measurement``: its DoFP operator (no
-    PSF: the ground truth has it) and extinction ratio.
+    PSF: the ground truth has it) and extinction ratio. ``rig``: an imperfect array, applied
+    with the operators of :func:`capssim.operators.camera.caps_raw_operator` (its analyzer
+    rows, per-aperture PSFs, and the flat field multiplying the raw irradiance after the mosaic).
     """
     extinction_ratio = measurement.extinction_ratio
     with torch.no_grad():
         twelve = to_tensor(stokes_to_twelve(reference_stokes))  # (12, Hm, Wm) on the render grid
+        # with per-aperture PSFs they are the whole optical blur: the ground truth has none
+        gt_kernel = np.ones((1, 1)) if rig is not None and rig.psf is not None else kernel
         if use_warp:
-            gt_kernel = np.ones((1, 1)) if rig is not None and rig.psf is not None else kernel
             gt = blur_crop(IntegrateDecimate(fine, tuple(twelve.shape))(twelve), gt_kernel, margin)
             aperture_hr = _warped_apertures(twelve, homographies, fine=fine, margin=margin, size=size, kernel=kernel,
                                             extinction_ratio=extinction_ratio, rig=rig)
         else:
-            gt = blur_crop(twelve, kernel, margin)
-            ref = Analyzer(size, size, angles_deg=(POLARIZER_ANGLES_DEG[0],), extinction_ratio=extinction_ratio)(gt)[0]
-            apertures = [ref]
-            for n in range(1, N_APERTURES):
-                apertures.append(blur_crop(to_tensor(aperture_views[n]), kernel, margin))
-            aperture_hr = torch.stack(apertures)
+            gt = blur_crop(twelve, gt_kernel, margin)
+            aperture_hr = _rendered_apertures(twelve, gt, aperture_views, kernel=kernel, margin=margin, size=size,
+                                              extinction_ratio=extinction_ratio, rig=rig)
         caps = BayerMosaic((N_APERTURES, 3, size // 2, size // 2))(
             IntegrateDecimate(2, tuple(aperture_hr.shape))(aperture_hr))
         if rig is not None and rig.has_flat_field:
-            caps = caps * torch.as_tensor(rig.flat_field((size // 2, size // 2)), dtype=caps.dtype)
+            caps = Multiply(rig.flat_field((size // 2, size // 2)))(caps)
         dofp = measurement.dofp_operator((size, size))(gt)
     return Irradiance(gt, caps, dofp)
 

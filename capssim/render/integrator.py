@@ -226,15 +226,25 @@ def _trace_chunk(scene, integrator, response: CameraResponse, camera: PinholeCam
     return arrays
 
 
+def _diattenuation(extinction_ratio) -> list[float]:
+    """``(ER - 1) / (ER + 1)`` per colour R, G, B of one value or 3 (``None`` / inf: 1, an ideal polarizer)."""
+    values = np.atleast_1d(np.asarray(math.inf if extinction_ratio is None else extinction_ratio, dtype=np.float64))
+    if values.shape not in ((1,), (3,)) or np.any(np.isnan(values)) or np.any(values < 1.0):
+        raise InputError("extinction_ratio", values.tolist(), "one value or 3 (R, G, B), each >= 1 (inf: ideal)")
+    return [1.0 if math.isinf(er) else (er - 1.0) / (er + 1.0) for er in np.broadcast_to(values, (3,)).tolist()]
+
+
 def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: CameraResponse,
-                mode: str = "stokes", analyzer_deg: float = 0.0, extinction_ratio: float | None = None,
+                mode: str = "stokes", analyzer_deg: float = 0.0, extinction_ratio=None,
                 max_lanes: int = DEFAULT_MAX_LANES, progress: Callable[[int], None] | None = None,
                 group: int = 1) -> ViewRender:
     """Render one view of ``scene`` (loaded in the active variant) through ``camera``.
 
     ``mode="stokes"``: 9 channels ``S0, S1, S2`` x ``R, G, B`` (camera RGB, D65 white
     balance, camera frame). ``mode="analyzer"``: 3 channels, RGB through an analyzer at
-    ``analyzer_deg`` in the camera frame. ``progress(n)`` is called with the number of
+    ``analyzer_deg`` in the camera frame, with ``extinction_ratio`` (``None`` / inf: ideal; one
+    value, or 3 per colour R, G, B: ``I = (S0 + d (S1 cos 2a + S2 sin 2a)) / 2`` with
+    ``d = (ER - 1) / (ER + 1)``, as :func:`capssim.rig.analyzer_row`). ``progress(n)`` is called with the number of
     lanes finished after each chunk. ``group``: the render is ``group`` times finer than the
     ground truth; wavelengths are then stratified per ``group x group`` block. Returns means
     in float64 ``(C, H, W)``.
@@ -247,8 +257,7 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
         raise InputError("spp", spp, "a perfect square >= 1 (the multijitter sampler stratifies on a grid)")
     if response.white_balance is None or response.variant != mi.variant():
         response.calibrate()
-    er = extinction_ratio
-    diattenuation = 1.0 if er is None or np.isinf(er) else (er - 1.0) / (er + 1.0)
+    diattenuation = _diattenuation(extinction_ratio)
     integrator = scene.integrator()
     height, width = camera.height, camera.width
     if group < 1 or width % group or height % group:
@@ -261,7 +270,8 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
     nonfinite = 0
     t0 = time.perf_counter()
     if mode == "analyzer":
-        ca, sa = diattenuation * np.cos(np.deg2rad(2 * analyzer_deg)), diattenuation * np.sin(np.deg2rad(2 * analyzer_deg))
+        ca = [float(d) * np.cos(np.deg2rad(2 * analyzer_deg)) for d in diattenuation]
+        sa = [float(d) * np.sin(np.deg2rad(2 * analyzer_deg)) for d in diattenuation]
     for chunk, row0 in enumerate(range(0, height, rows_per_chunk)):
         rows = min(rows_per_chunk, height - row0)
         lanes = _trace_chunk(scene, integrator, response, camera, row0=row0, rows=rows, spp=int(spp),
@@ -281,7 +291,7 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
             zero = np.zeros_like(per[0])
             per[3:] = [zero] * 6
         if mode == "analyzer":
-            per = [0.5 * (per[k] + ca * per[3 + k] + sa * per[6 + k]) for k in range(3)]
+            per = [0.5 * (per[k] + ca[k] * per[3 + k] + sa[k] * per[6 + k]) for k in range(3)]
         for c, a in enumerate(per):
             sums[c, row0:row0 + rows] = a.sum(axis=2)
         if mode == "stokes":

@@ -149,11 +149,6 @@ def _choose_path(loaded: _Loaded, info, settings: RenderSettings, timer: _Timer)
     if not use_warp and settings.aperture_homographies is not None:
         raise InputError("aperture_homographies", "given for a scene rendered per aperture",
                          "explicit homographies only on the planar warp path", "Use a planar scene or --planar on.")
-    if not use_warp and settings.rig is not None and (settings.rig.psf is not None or np.any(settings.rig.angle_offsets_deg)
-                                                      or not np.all(np.isinf(settings.rig.extinction_ratio))):
-        raise InputError("rig", "angle, extinction or PSF imperfections on a scene rendered per aperture",
-                         "a rig with only gain and vignetting there, or a planar scene (the planar warp path "
-                         "applies every imperfection)", "Use a planar scene or --planar on.")
     psf_radius = max(k.shape[0] // 2 for k in aperture_kernels(settings.psf.kernel(), settings.rig))
     psf_radius = max(psf_radius, settings.psf.kernel().shape[0] // 2)
     margin = warp_margin(_homographies(loaded, settings), settings.size, psf_radius) if use_warp else psf_radius
@@ -178,13 +173,23 @@ def _render_apertures(loaded: _Loaded, path: RenderPath, spp: int, settings: Ren
     for n in range(1, N_APERTURES):
         t1 = time.perf_counter()
         cam = loaded.array.cameras[n].expanded(path.margin)
+        angle_deg, extinction_ratio = _aperture_polarizer(settings, n)
         views[n] = render_view(loaded.mscene, cam, spp=spp, seed=derive_seed("aperture", settings.render_seed, n),
-                               response=loaded.response, mode="analyzer", analyzer_deg=POLARIZER_ANGLES_DEG[n],
-                               extinction_ratio=settings.extinction_ratio,
+                               response=loaded.response, mode="analyzer", analyzer_deg=angle_deg,
+                               extinction_ratio=extinction_ratio,
                                progress=say(f"aperture {n} ({POLARIZER_ANGLES_DEG[n]} deg)",
                                             cam.width * cam.height * spp))
         timer.add(f"render_aperture_{n}_s", time.perf_counter() - t1)
     return views
+
+
+def _aperture_polarizer(settings: RenderSettings, n: int) -> tuple[float, object]:
+    """Aperture n's polarizer for the renderer: its angle in the camera frame (degrees; nominal plus
+    the rig's offset) and extinction ratio (the rig's 3 per colour, else the settings' one value)."""
+    rig = settings.rig
+    if rig is None or rig.is_ideal:
+        return POLARIZER_ANGLES_DEG[n], settings.extinction_ratio
+    return POLARIZER_ANGLES_DEG[n] + float(rig.angle_offsets_deg[n]), rig.extinction_ratio[n].tolist()
 
 
 def _rig_meta(rig, extra: dict) -> dict:

@@ -58,9 +58,13 @@ class RenderSettings:
     ``progress(stage, done, total)`` is called as rays finish. With ``record_timing=False``
     ``meta.json`` holds no wall times (byte-identical regeneration). ``measure_savings`` also
     renders the alternatives each choice avoided and records the measured times (slow).
-    ``rig``: an imperfect array (:class:`capssim.rig.RigModel`; planar warp path);
-    ``aperture_homographies`` ``(4, 3, 3)``: replaces the array's drawn homographies (planar
-    warp path only; e.g. a calibrated rig's geometry, at ``size``).
+    ``rig``: an imperfect array (:class:`capssim.rig.RigModel`), on both paths: the planar warp
+    path applies its analyzer rows, PSFs and flat field to the warped reference render; the
+    per-aperture path renders apertures 1-3 through polarizers at the rig's angles and
+    per-colour extinction ratios, then applies the PSFs and flat field. A non-ideal rig's
+    extinction ratios replace ``extinction_ratio`` for the CAPS frames (the DoFP camera keeps
+    it). ``aperture_homographies`` ``(4, 3, 3)``: replaces the array's drawn homographies
+    (planar warp path only; e.g. a calibrated rig's geometry, at ``size``).
     """
 
     size: int = 256
@@ -114,6 +118,8 @@ class RenderSettings:
             raise InputError("max_spp", self.max_spp, "an integer in [1, 65536] (samples per HR pixel)")
         if self.rig is not None and not isinstance(self.rig, RigModel):
             raise InputError("rig", type(self.rig).__name__, "a capssim.rig.RigModel or None")
+        for n, aperture_psf in enumerate((self.rig.psf_objects() if self.rig is not None else None) or []):
+            aperture_psf.check_extent((size, size), option=f"rig psf[{n}]", memory=False)
         if self.aperture_homographies is not None:
             ArrayGeometry(self.aperture_homographies, (size, size))  # refuses a bad stack, naming it
         render_seed = self.seed if self.render_seed is None else int(self.render_seed)
