@@ -133,6 +133,10 @@ def _flat_vignetting() -> np.ndarray:
     return coef
 
 
+#: the keyword arguments of :meth:`RigModel.with_overrides`
+OVERRIDE_KEYS = ("angle_offsets_deg", "extinction_ratio", "gain", "vignetting_corner", "psf_sigmas_hr_px")
+
+
 # -- the rig -----------------------------------------------------------------------------------------
 def _array(value, shape: tuple, where: str, *, minimum: float | None = None, allow_inf: bool = False) -> np.ndarray:
     try:
@@ -205,6 +209,14 @@ class RigModel:
                    extinction_ratio=er, gain=1.0 + rng.uniform(-1, 1, N_APERTURES) * REALISTIC_RANGES["gain"][0],
                    vignetting=vignetting,
                    psf=tuple(PSF.gaussian(float(rng.uniform(slo, shi))).to_spec() for _ in range(N_APERTURES)))
+
+    @classmethod
+    def from_spec(cls, spec: dict) -> "RigModel":
+        """The rig of a ``{preset, seed, <override>...}`` mapping (dataset configs, bench suites): the preset's
+        draw (default ``realistic``, seed 0), then the quantities it names (:meth:`with_overrides`)."""
+        rig = cls.preset(spec.get("preset", "realistic"), seed=int(spec.get("seed", 0)))
+        overrides = {k: spec[k] for k in OVERRIDE_KEYS if spec.get(k) is not None}
+        return rig.with_overrides(**overrides) if overrides else rig
 
     def with_overrides(self, *, angle_offsets_deg=None, extinction_ratio=None, gain=None,
                        vignetting_corner: float | None = None, psf_sigmas_hr_px=None) -> "RigModel":
@@ -387,6 +399,6 @@ def read_rig_json(path, *, argument: str = "rig") -> RigFile:
                    data.get("residuals") or {}, data.get("source") or {}, path)
 
 
-__all__ = ["REALISTIC_RANGES", "RIG_FORMAT", "RIG_FORMAT_VERSION", "VIGNETTING_MONOMIALS", "RigFile", "RigModel",
+__all__ = ["OVERRIDE_KEYS", "REALISTIC_RANGES", "RIG_FORMAT", "RIG_FORMAT_VERSION", "VIGNETTING_MONOMIALS", "RigFile", "RigModel",
            "analyzer_row", "geometry_entry", "normalised_raw_coordinates", "polarizer_reading", "radial_vignetting", "read_rig_json",
            "vignetting_design", "write_rig_json"]

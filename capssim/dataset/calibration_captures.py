@@ -49,6 +49,13 @@ MIN_POLARIZER_ANGLES = 3
 MAX_FRAMES = 5
 
 
+def seeded_aperture_homographies(seed: int, hr_shape) -> np.ndarray:
+    """``(4, 3, 3)``: the default pose ranges' aperture homographies, drawn reproducibly from ``seed``."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), 2201]))
+    homographies, _ = random_aperture_homographies(rng, tuple(hr_shape))
+    return homographies
+
+
 def sweep_angles(count: int) -> list[float]:
     """``count`` polarizer angles (degrees), evenly over [0, 180), starting at :data:`SWEEP_OFFSET_DEG`."""
     if not (isinstance(count, (int, np.integer)) and MIN_POLARIZER_ANGLES <= count <= 180):
@@ -180,8 +187,7 @@ def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor
     entries = _entries(int(size), polarizer_angles, frames)
     out = check_output_free(out_dir, overwrite=overwrite, argument="OUTPUT")
     if aperture_homographies is None:
-        rng = np.random.default_rng(np.random.SeedSequence([seed, 2201]))
-        aperture_homographies, _ = random_aperture_homographies(rng, (size, size))
+        aperture_homographies = seeded_aperture_homographies(seed, (size, size))
     aperture_homographies = _check_homographies(aperture_homographies)
     if overwrite:
         _remove_stale_captures(Path(out), {name for name, _ in entries})
@@ -203,6 +209,6 @@ def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor
     return index
 
 
-__all__ = ["FLAT_LEVEL", "MAX_FRAMES", "POLARIZER_LEVEL", "STAR_CYCLES", "TARGETS", "make_calibration_captures",
+__all__ = ["seeded_aperture_homographies", "FLAT_LEVEL", "MAX_FRAMES", "POLARIZER_LEVEL", "STAR_CYCLES", "TARGETS", "make_calibration_captures",
            "polarized_field", "star_target", "sweep_angles", "texture_target"]
 

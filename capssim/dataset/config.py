@@ -280,10 +280,7 @@ def rig_model(spec: dict | None, *, key_path: str = "rig") -> RigModel | None:
     if not spec:
         return None
     try:
-        rig = RigModel.preset(spec.get("preset", "realistic"), seed=int(spec.get("seed", 0)))
-        overrides = {k: spec[k] for k in ("angle_offsets_deg", "extinction_ratio", "gain", "vignetting_corner",
-                                          "psf_sigmas_hr_px") if spec.get(k) is not None}
-        return rig.with_overrides(**overrides) if overrides else rig
+        return RigModel.from_spec(spec)
     except InputError as exc:
         raise ConfigError(join(key_path, exc.argument), exc.received, exc.valid, exc.fix) from None
 

@@ -32,7 +32,6 @@ from capssim.eval.benchmarks.rigs import (
     CALIBRATION_FILE,
     attach_calibration,
     calibration_for,
-    rig_from_spec,
     rig_geometry,
 )
 from capssim.eval.synthetic import synthetic_scene
@@ -40,6 +39,7 @@ from capssim.imageio import atomic_write_json, read_gt_scene
 from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 from capssim.render import list_scenes, render_capture
+from capssim.rig import RigModel
 from capssim.sensor import make_sensor
 from capssim.simulate import prepare_ground_truth, simulate_capture
 
@@ -108,7 +108,7 @@ def _rig_options(scene: dict, hr_shape) -> dict:
     if not scene.get("rig"):
         return {}
     spec = scene["rig"]
-    return {"rig": rig_from_spec(spec), "aperture_homographies": rig_geometry(spec, hr_shape).aperture_homographies}
+    return {"rig": RigModel.from_spec(spec), "aperture_homographies": rig_geometry(spec, hr_shape).aperture_homographies}
 
 
 @dataclass

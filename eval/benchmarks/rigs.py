@@ -20,16 +20,13 @@ import shutil
 import time
 from pathlib import Path
 
-import numpy as np
-
-from capssim.dataset.calibration_captures import make_calibration_captures
+from capssim.dataset.calibration_captures import make_calibration_captures, seeded_aperture_homographies
 from capssim.errors import InputError
 from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash
 from capssim.eval.calibration import calibrate_captures
 from capssim.geometry import ArrayGeometry
-from capssim.homography import random_aperture_homographies
 from capssim.imageio import atomic_write_json
-from capssim.rig import RigModel, write_rig_json
+from capssim.rig import RigModel
 
 log = logging.getLogger(__name__)
 
@@ -50,22 +47,12 @@ def check_rig_spec(spec, scene_name: str) -> None:
     unknown = set(spec) - set(RIG_KEYS)
     if unknown:
         raise InputError(f"suite scene {scene_name!r} rig", f"keys {sorted(unknown)}", f"keys among {RIG_KEYS}")
-    rig_from_spec(spec)
-
-
-def rig_from_spec(spec: dict) -> RigModel:
-    """The :class:`RigModel` of a scene's ``rig`` entry: the preset's draw, then the overrides."""
-    rig = RigModel.preset(spec.get("preset", "realistic"), seed=int(spec.get("seed", 0)))
-    overrides = {k: spec[k] for k in ("angle_offsets_deg", "extinction_ratio", "gain", "vignetting_corner",
-                                      "psf_sigmas_hr_px") if k in spec}
-    return rig.with_overrides(**overrides) if overrides else rig
+    RigModel.from_spec(spec)
 
 
 def rig_geometry(spec: dict, hr_shape) -> ArrayGeometry:
     """The rig's aperture homographies at ``hr_shape``: the default pose ranges, drawn from ``geometry_seed``."""
-    rng = np.random.default_rng(np.random.SeedSequence([int(spec.get("geometry_seed", 0)), 2201]))
-    homographies, _ = random_aperture_homographies(rng, tuple(hr_shape))
-    return ArrayGeometry(homographies, tuple(hr_shape))
+    return ArrayGeometry(seeded_aperture_homographies(int(spec.get("geometry_seed", 0)), hr_shape), tuple(hr_shape))
 
 
 def calibration_for(cache_dir: Path, spec: dict, hr_shape, sensor, noise: dict, seed: int) -> tuple[Path, dict]:
@@ -85,7 +72,7 @@ def calibration_for(cache_dir: Path, spec: dict, hr_shape, sensor, noise: dict, 
     if folder.exists():
         shutil.rmtree(folder)
     t0 = time.perf_counter()
-    rig, geometry = rig_from_spec(spec), rig_geometry(spec, hr_shape)
+    rig, geometry = RigModel.from_spec(spec), rig_geometry(spec, hr_shape)
     make_calibration_captures(folder / "captures", rig=rig, size=int(hr_shape[0]), sensor=sensor,
                               polarizer_angles=int(spec.get("polarizer_angles", 12)), seed=seed + 1000,
                               aperture_homographies=geometry.aperture_homographies)
@@ -104,11 +91,5 @@ def attach_calibration(capture_path: Path, calibration: Path) -> None:
     atomic_write_json(Path(capture_path) / CALIBRATION_FILE, data)
 
 
-def write_true_rig(path: Path, spec: dict, hr_shape) -> Path:
-    """The rig ``spec``'s true values as a ``capssim-rig`` file (with its geometry)."""
-    return write_rig_json(path, rig_from_spec(spec), geometry=rig_geometry(spec, hr_shape),
-                          calibrated=("truth",), source={"suite_rig": spec})
-
-
 __all__ = ["CALIBRATION_FILE", "METHOD_CALIBRATIONS", "RIG_KEYS", "attach_calibration", "calibration_for",
-           "check_rig_spec", "rig_from_spec", "rig_geometry", "write_true_rig"]
+           "check_rig_spec", "rig_geometry"]

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -113,7 +114,7 @@ def calibrate_captures(paths, output, *, source: dict | None = None) -> RigFile:
     rig, calibrated, unc, res = RigModel.ideal(), [], {}, {}
     flat_fit, absolute = _flat(groups)
     if flat_fit is not None:
-        rig = RigModel(gain=flat_fit.gain, vignetting=flat_fit.vignetting)
+        rig = replace(rig, gain=flat_fit.gain, vignetting=flat_fit.vignetting)
         calibrated += ["gain", "vignetting"]
         unc["gain"] = flat_fit.gain_std.tolist()
         res["flat_field"] = {"relative_rms": flat_fit.residual_rms.tolist(), "noise_sigma": flat_fit.noise_sigma,
@@ -121,8 +122,7 @@ def calibrate_captures(paths, output, *, source: dict | None = None) -> RigFile:
                              else "relative (mean gain 1: the flat's light level is unknown)"}
     malus = _sweep(groups, flat_fit, raw_shape)
     if malus is not None:
-        rig = RigModel(angle_offsets_deg=malus.angle_offsets_deg, extinction_ratio=malus.extinction_ratio,
-                       gain=rig.gain, vignetting=rig.vignetting)
+        rig = replace(rig, angle_offsets_deg=malus.angle_offsets_deg, extinction_ratio=malus.extinction_ratio)
         calibrated += ["angle_offsets_deg", "extinction_ratio"]
         unc.update({"angle_offsets_deg": malus.angle_std.tolist(), "extinction_ratio": malus.er_std.tolist(),
                     "theta_deg_per_colour": malus.theta_std.tolist()})
@@ -157,8 +157,7 @@ def _star(cap: Capture, rig: RigModel, geometry, flat_maps, flat_fit, hr_shape, 
                                           physical_warp=cap.meta.get("kind") != "simulated")
     unc["psf_sigma_hr_px"] = stds.tolist()
     res["psf"] = record
-    rig = RigModel(angle_offsets_deg=rig.angle_offsets_deg, extinction_ratio=rig.extinction_ratio, gain=rig.gain,
-                   vignetting=rig.vignetting, psf=tuple(PSF.gaussian(float(s)).to_spec() for s in sigmas))
+    rig = replace(rig, psf=tuple(PSF.gaussian(float(s)).to_spec() for s in sigmas))
     return rig, geometry
 
 
