@@ -16,7 +16,7 @@ from capssim.errors import InputError, UnknownNameError
 from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
 from capssim.physical_validity import project_to_physical
 
-DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2")
+DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2", "dofp-jcpd", "cpdnet")
 
 
 def read_raw_mosaic(path: Path, *, white_level: Optional[float] = None, black_level: float = 0.0,

@@ -1,0 +1,1 @@
+"""Training of the learned baselines (``capssim train``): config, in-memory pairs, the trainer."""

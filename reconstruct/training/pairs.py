@@ -1,0 +1,164 @@
+"""Training pairs of the learned baselines, held in memory: network inputs and targets from captures.
+
+Two kinds of input (``input:`` in a training config), each a :class:`PairSet` over the samples of a
+capssim dataset (:class:`capssim.dataset.torch.CaptureDataset`, whole captures):
+
+* ``dofp``: the DoFP mosaic ``(H, W)`` as CPDNet reads it, ``(sparse, bilinear)`` ``(12, H, W)``
+  each (:func:`capssim.reconstruct.networks.cpdnet.dofp_network_input`); target the ground truth
+  ``(12, H, W)``. Crops start on multiples of 4 (the mosaic period).
+* ``aperture``: each aperture's raw frame demosaicked as ``caps-sisr`` does (Menon 2007,
+  :func:`capssim.reconstruct.methods.caps_naive.demosaic_apertures`), ``(3, h, w)``; target the
+  ground truth of that aperture's polarizer angle resampled onto the aperture-HR grid
+  ``(3, 2h, 2w)`` (bicubic, through the inverse of the aperture's homography ``H_n``), which is
+  where ``caps-sisr`` puts the network's output. Pixels whose source lies within
+  :data:`BORDER_HR_PX` of the ground truth's border are masked out of the loss.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from capssim.errors import InputError
+from capssim.reconstruct.methods.caps_naive import bicubic_warp, demosaic_apertures, sampling_grid
+from capssim.reconstruct.networks.cpdnet import cpdnet_loss, dofp_network_input
+
+INPUT_KINDS = ("dofp", "aperture")
+#: aperture targets read the ground truth at least this far (HR px) inside its border
+BORDER_HR_PX = 3.0
+
+
+class PairSet:
+    """Inputs, targets and loss masks of one input kind, as tensors ``(S, C, H, W)`` (S samples)."""
+
+    kind = ""
+
+    def __init__(self, inputs: tuple[torch.Tensor, ...], target: torch.Tensor, mask: torch.Tensor, scale: int):
+        self.inputs, self.target, self.mask, self.scale = inputs, target, mask, scale
+
+    def __len__(self) -> int:
+        return self.target.shape[0]
+
+    def crops(self, index: torch.Tensor, top: torch.Tensor, left: torch.Tensor, size: int):
+        """Inputs, target and mask of the crops ``size`` (input pixels) at (``top``, ``left``) of samples ``index``."""
+        s = self.scale
+        def cut(t, f):
+            return torch.stack([t[i, :, a * f:(a + size) * f, b * f:(b + size) * f]
+                                for i, a, b in zip(index.tolist(), top.tolist(), left.tolist())])
+        return tuple(cut(t, 1) for t in self.inputs), cut(self.target, s), cut(self.mask, s)
+
+    def draw(self, batch: int, size: int, generator: torch.Generator):
+        """A random batch of crops (samples, then offsets on the crop lattice, from ``generator``)."""
+        h, w = self.inputs[0].shape[-2:]
+        step = self.crop_step
+        if size > min(h, w):
+            raise InputError("data.crop", size * self.scale, f"at most the captures' size {h * self.scale}",
+                             "Use a smaller crop or larger dataset samples.")
+        index = torch.randint(len(self), (batch,), generator=generator)
+        top = step * torch.randint((h - size) // step + 1, (batch,), generator=generator)
+        left = step * torch.randint((w - size) // step + 1, (batch,), generator=generator)
+        return self.crops(index, top, left, size)
+
+    def full(self, i: int):
+        """Inputs, target and mask of the whole sample ``i`` (a batch of one)."""
+        return tuple(t[i:i + 1] for t in self.inputs), self.target[i:i + 1], self.mask[i:i + 1]
+
+    def to(self, device: torch.device) -> "PairSet":
+        self.inputs = tuple(t.to(device) for t in self.inputs)
+        self.target, self.mask = self.target.to(device), self.mask.to(device)
+        return self
+
+
+class DofpPairs(PairSet):
+    kind, crop_step = "dofp", 4
+
+    @staticmethod
+    def predict(model, inputs):
+        return model(*inputs)
+
+    @staticmethod
+    def image(outputs):
+        return outputs[0]
+
+    def loss(self, outputs, target, mask, loss_params: dict):
+        return cpdnet_loss(outputs, target, **loss_params)
+
+    @staticmethod
+    def baseline(inputs):
+        """What the network refines: the bilinear demosaicking (``dofp-bilinear``)."""
+        return inputs[1]
+
+
+class AperturePairs(PairSet):
+    kind, crop_step = "aperture", 1
+
+    @staticmethod
+    def predict(model, inputs):
+        return model(*inputs)
+
+    @staticmethod
+    def image(outputs):
+        return outputs
+
+    def loss(self, outputs, target, mask, loss_params: dict):
+        return (torch.abs(outputs - target) * mask).sum() / (mask.sum() * target.shape[1]).clamp_min(1)
+
+    @staticmethod
+    def baseline(inputs):
+        """What the network refines: bicubic x2 interpolation (``caps-sisr -O model=bicubic``)."""
+        return F.interpolate(inputs[0], scale_factor=2, mode="bicubic", align_corners=False)
+
+
+def dofp_pairs(items: list[dict]) -> DofpPairs:
+    """:class:`DofpPairs` of CaptureDataset items (whole captures with ``dofp_raw`` and ``gt``)."""
+    sparse, bilinear = [], []
+    for item in items:
+        if "dofp_raw" not in item:
+            raise InputError("input", "dofp", "captures with a DoFP mosaic (dofp_raw.tiff)",
+                             "Generate the dataset with its DoFP captures, or use input: aperture.")
+        s, b = dofp_network_input(item["dofp_raw"][None], [r.tolist() for r in item["dofp_layout"]])
+        sparse.append(s[0])
+        bilinear.append(b[0])
+    target = torch.stack([item["gt"] for item in items])
+    return DofpPairs((torch.stack(sparse), torch.stack(bilinear)), target, torch.ones_like(target[:, :1]), 1)
+
+
+def aperture_targets(gt: torch.Tensor, homographies: np.ndarray, hr_shape) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(4, 3, H, W)`` targets on the aperture-HR grids and ``(4, 1, H, W)`` masks of a ``(12, H, W)`` GT."""
+    inverse = np.linalg.inv(np.asarray(homographies, dtype=np.float64))
+    per_angle = gt.reshape(4, 3, *gt.shape[-2:]).to(torch.float32)
+    target = bicubic_warp(per_angle, inverse, tuple(hr_shape))
+    grid = sampling_grid(inverse, tuple(hr_shape), tuple(gt.shape[-2:]), gt.device)  # normalized, align_corners
+    h, w = gt.shape[-2:]
+    margin = torch.tensor([2 * BORDER_HR_PX / max(w - 1, 1), 2 * BORDER_HR_PX / max(h - 1, 1)])
+    inside = (grid.abs() <= 1 - margin).all(dim=-1)
+    return target, inside[:, None].to(torch.float32)
+
+
+def aperture_pairs(items: list[dict]) -> AperturePairs:
+    """:class:`AperturePairs` of CaptureDataset items: 4 pairs per capture."""
+    inputs, targets, masks = [], [], []
+    for item in items:
+        raw = item["caps_raw"].numpy()
+        inputs.append(torch.from_numpy(demosaic_apertures(raw, bayer_method="menon2007")))
+        t, m = aperture_targets(item["gt"], item["aperture_homographies"].numpy(), item["gt"].shape[-2:])
+        targets.append(t)
+        masks.append(m)
+    return AperturePairs((torch.cat(inputs),), torch.cat(targets), torch.cat(masks), 2)
+
+
+def build_pairs(kind: str, items: list[dict]) -> PairSet:
+    if kind not in INPUT_KINDS:
+        raise InputError("input", kind, " or ".join(INPUT_KINDS))
+    return dofp_pairs(items) if kind == "dofp" else aperture_pairs(items)
+
+
+def masked_psnr(image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> float:
+    """PSNR (dB, peak 1) over the pixels of ``mask`` (broadcast over channels)."""
+    weight = mask.expand_as(target)
+    mse = float(((image.clamp(0, 1) - target) ** 2 * weight).sum() / weight.sum().clamp_min(1))
+    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
+
+
+__all__ = ["INPUT_KINDS", "PairSet", "build_pairs", "masked_psnr"]
