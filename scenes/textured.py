@@ -24,7 +24,8 @@ from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern,
 from capssim.render.scene_registry import register
 from capssim.scenes._targets import FacingCardScene, rectangle, view_half_width
 
-IMAGES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field")
+IMAGES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field", "retina",
+          "brick", "grass", "gravel", "camera", "moon")  # the last five are grey (shown neutral)
 CARD = 1.15  # card half-size / view half-width
 
 
@@ -34,7 +35,8 @@ def load_image(name: str) -> np.ndarray:
 
     if name not in IMAGES:
         raise InputError("scene_params.image", name, f"one of {', '.join(IMAGES)}")
-    img = getattr(skimage.data, name)()[..., :3].astype(np.float64) / 255.0
+    img = np.asarray(getattr(skimage.data, name)())
+    img = (np.repeat(img[..., None], 3, axis=-1) if img.ndim == 2 else img[..., :3]).astype(np.float64) / 255.0
     h, w = img.shape[:2]
     s = min(h, w)
     img = img[(h - s) // 2:(h - s) // 2 + s, (w - s) // 2:(w - s) // 2 + s]

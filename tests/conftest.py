@@ -51,3 +51,15 @@ def write_png_gt(folder: Path, scene: np.ndarray) -> Path:
 @pytest.fixture
 def scene64() -> np.ndarray:
     return smooth_random_scene(64)
+
+
+def natural_scene() -> np.ndarray:
+    """A 64 px crop of skimage's astronaut (linearized) under smooth AoP/DoLP ramps, ``(12, 64, 64)``:
+    natural colour texture that no training set of the shipped models holds."""
+    import skimage.data
+
+    img = (skimage.data.astronaut()[100:164, 180:244].astype(np.float64) / 255) ** 2.2
+    yy, xx = np.mgrid[0:64, 0:64] / 64
+    aop, dolp = np.pi * (0.3 + 0.5 * xx), 0.2 + 0.4 * yy
+    return np.stack([0.5 * img[..., k] * (1 + dolp * np.cos(2 * (a - aop)))
+                     for a in np.deg2rad([0, 45, 90, 135]) for k in range(3)])

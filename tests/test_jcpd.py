@@ -24,7 +24,7 @@ from capssim.reconstruct.sparse_coding import (
     omp,
     representation_error,
 )
-from tests.conftest import smooth_random_scene
+from tests.conftest import natural_scene, smooth_random_scene
 
 LAYOUTS = ("sony", "0-45-135-90")
 
@@ -141,17 +141,6 @@ def test_reference_values_against_bilinear_analytic_dictionary():
     assert jcpd_noisy > bil_noisy + 1.5 and jcpd_noisy > 38.9, (jcpd_noisy, bil_noisy)
     jcpd_clean, bil_clean = psnr(demosaic_dofp_jcpd(clean, dictionary="analytic"), gt), psnr(demosaic_dofp_bilinear(clean), gt)
     assert jcpd_clean > bil_clean - 6.0 and jcpd_clean > 50.7, (jcpd_clean, bil_clean)
-
-
-def natural_scene() -> np.ndarray:
-    """A 64 px crop of skimage's astronaut (linearized) under smooth AoP/DoLP ramps, ``(12, 64, 64)``."""
-    import skimage.data
-
-    img = (skimage.data.astronaut()[100:164, 180:244].astype(np.float64) / 255) ** 2.2
-    yy, xx = np.mgrid[0:64, 0:64] / 64
-    aop, dolp = np.pi * (0.3 + 0.5 * xx), 0.2 + 0.4 * yy
-    return np.stack([0.5 * img[..., k] * (1 + dolp * np.cos(2 * (a - aop)))
-                     for a in np.deg2rad([0, 45, 90, 135]) for k in range(3)])
 
 
 def test_reference_values_learned_dictionary_on_natural_texture():

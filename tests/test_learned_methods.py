@@ -13,12 +13,13 @@ from capssim.reconstruct.networks import build_network, save_model
 from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
-from tests.conftest import smooth_random_scene
+from tests.conftest import natural_scene, smooth_random_scene
 
 
-def _capture(size=48, sigma=0.0, seed=0):
+def _capture(size=48, sigma=0.0, seed=0, gt=None):
     sensor = make_sensor("gaussian", sigma=sigma) if sigma else make_sensor("none")
-    return simulate_capture(smooth_random_scene(size, seed=seed), sensor, seed=seed, psf={"type": "none"})
+    gt = smooth_random_scene(size, seed=seed) if gt is None else gt
+    return simulate_capture(gt, sensor, seed=seed, psf={"type": "none"})
 
 
 def _psnr(a, b):
@@ -61,7 +62,7 @@ def test_shipped_models_run_offline_and_beat_their_interpolation(monkeypatch):
         raise AssertionError("a code path tried to open a network connection")
 
     monkeypatch.setattr(socket.socket, "connect", refuse)
-    capture = _capture(64, sigma=0.01, seed=3)
+    capture = _capture(sigma=0.01, seed=3, gt=natural_scene().astype(np.float32))
     cpd, record = reconstruct(capture, "cpdnet")
     assert record["params"]["weights"].endswith("cpdnet-small.pt")
     bilinear, _ = reconstruct(capture, "dofp-bilinear")
@@ -70,3 +71,17 @@ def test_shipped_models_run_offline_and_beat_their_interpolation(monkeypatch):
     assert record["params"]["upsampler"].startswith("capssim-model:edsr-small.pt")
     bicubic, _ = reconstruct(capture, "caps-sisr", true_warps=True, model="bicubic")
     assert _psnr(sisr.image, capture.gt) > _psnr(bicubic.image, capture.gt)
+
+
+@pytest.mark.parametrize("fill", [0.0, 1e-6, 1.0, "noise"])
+def test_cpdnet_hard_inputs_stay_finite_and_in_range(fill):
+    """Black, near-black, saturated and pure-noise mosaics, at the smallest size (12 px) and an odd multiple of 2."""
+    from capssim.reconstruct.methods.cpdnet import demosaic_dofp_cpdnet
+
+    for shape in ((12, 12), (26, 38)):
+        mosaic = (np.random.default_rng(0).random(shape) if fill == "noise" else np.full(shape, fill)).astype(np.float32)
+        out = demosaic_dofp_cpdnet(mosaic)
+        assert out.shape == (12, *shape) and np.isfinite(out).all()
+        assert out.min() >= 0 and out.max() <= 1
+        if fill != "noise":
+            assert np.abs(out - fill).max() < 0.1  # a network is not exact on constants; it stays close

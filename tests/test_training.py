@@ -96,6 +96,19 @@ def test_resume_is_exact_in_process(tmp_path):
     assert all(logged[h["step"]] == h["loss"] for h in straight.history)
 
 
+def test_finished_dataset_is_shared_while_another_run_holds_its_lock(tmp_path):
+    from capssim.dataset.manifest import DatasetLock
+
+    config = load_train_config(tiny_config(tmp_path, steps=2))
+    train(config, tmp_path / "first")  # generates the dataset
+    with DatasetLock(config.dataset_root):  # e.g. a second training that is checking it
+        second = train(config, tmp_path / "second")
+    assert second.steps == 2
+    (tmp_path / "stopped").mkdir()  # a run stopped before its first checkpoint reruns in its folder
+    (tmp_path / "stopped" / "train-config.json").write_text((tmp_path / "first" / "train-config.json").read_text())
+    assert train(config, tmp_path / "stopped").steps == 2
+
+
 def test_sigkill_then_rerun_equals_uninterrupted(tmp_path):
     config_path = tiny_config(tmp_path, steps=150)
     threads = torch.get_num_threads()

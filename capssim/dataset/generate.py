@@ -38,6 +38,7 @@ from capssim.dataset.manifest import (
     ManifestWriter,
     is_leftover_name,
     is_sample_name,
+    read_dataset_json,
     read_manifest,
     rewrite_manifest,
     write_dataset_json,
@@ -171,6 +172,20 @@ def open_dask_client(*, workers: int | None = None, scheduler: str | None = None
         cluster, compute_threads = None, compute_threads or 1
     client.register_plugin(ThreadLimitPlugin(compute_threads), name=ThreadLimitPlugin.name)
     return cluster, client, compute_threads
+
+
+def dataset_is_finished(config: DatasetConfig, out) -> bool:
+    """True when folder ``out`` holds every sample of ``config``: read-only, takes no lock.
+
+    Readers (training, scoring) call it first so that any number of them can share a finished
+    dataset while :func:`generate_dataset` keeps one writer per folder.
+    """
+    out = Path(out)
+    info = read_dataset_json(out) if out.is_dir() else None
+    if info is None or info.get("fingerprint") != config.fingerprint() or info.get("samples") != config.samples:
+        return False
+    records = read_manifest(out / MANIFEST).records
+    return all(i in records and (out / SAMPLES_DIR / records[i]["name"]).is_dir() for i in range(config.samples))
 
 
 def generate_dataset(config: DatasetConfig, out, *, workers: int | None = None, scheduler: str | None = None,

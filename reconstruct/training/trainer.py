@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from capssim.dataset.config import load_config
-from capssim.dataset.generate import generate_dataset
+from capssim.dataset.generate import dataset_is_finished, generate_dataset
 from capssim.dataset.torch import CaptureDataset
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_bytes, atomic_write_json, atomic_write_text
@@ -65,6 +65,9 @@ def ensure_dataset(config: TrainConfig, *, dataset_workers: int = 0, say: Callab
     if dataset.samples <= config.validation:
         raise InputError("data.validation", config.validation,
                          f"fewer than the dataset's {dataset.samples} samples", "Hold out fewer samples.")
+    if dataset_is_finished(dataset, config.dataset_root):
+        say(f"dataset {config.dataset_root}: {dataset.samples} samples (finished, reused)")
+        return
     result = generate_dataset(dataset, config.dataset_root, workers=dataset_workers)
     if not result.complete:
         raise InputError("data.dataset", str(config.dataset_config), "a dataset whose samples all generate",
@@ -117,6 +120,14 @@ def _save_checkpoint(run: Path, state: dict) -> None:
     atomic_write_text(run / HISTORY, "".join(json.dumps(h) + "\n" for h in state["history"]))
 
 
+def _same_config(config: TrainConfig, run: Path) -> bool:
+    """True when ``run`` holds the config copy of ``config`` (a run stopped before its first checkpoint)."""
+    try:
+        return json.loads((run / CONFIG_COPY).read_text()) == json.loads(json.dumps(config.to_dict()))
+    except (OSError, ValueError):
+        return False
+
+
 def _open_run(config: TrainConfig, run: Path, *, overwrite: bool) -> dict | None:
     """The checkpoint to resume from (None: a new run); refuses a run folder of another config."""
     if run.exists() and not run.is_dir():
@@ -125,7 +136,7 @@ def _open_run(config: TrainConfig, run: Path, *, overwrite: bool) -> dict | None
     if overwrite:
         for name in (CHECKPOINT, MODEL, HISTORY, PLOT, CONFIG_COPY):
             (run / name).unlink(missing_ok=True)
-    elif run.is_dir() and any(run.iterdir()) and not checkpoint.is_file():
+    elif run.is_dir() and any(run.iterdir()) and not checkpoint.is_file() and not _same_config(config, run):
         raise InputError("-o/--output", str(run), "a new folder, or a run folder of this config to resume",
                          "Pass --overwrite to start again there, or choose another -o.")
     run.mkdir(parents=True, exist_ok=True)
