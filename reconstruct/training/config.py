@@ -8,7 +8,7 @@
     input: dofp                                  # dofp (DoFP mosaic) | aperture (demosaicked LR images)
                                                  # | gt-patches (jcpd-dictionary)
     data:
-      dataset: dataset-train.yaml                # a capssim dataset config, relative to this file
+      dataset: dataset-train-textures.yaml       # a capssim dataset config, relative to this file
       root: runs/datasets/train                  # where it is generated or read (relative to the working dir)
       validation: 8                              # the last N samples are held out for validation
       crop: 64                                   # crop side in input pixels (dofp: a multiple of 4)
