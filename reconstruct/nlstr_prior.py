@@ -13,9 +13,9 @@ matches ``n_similar`` blocks; each matching lowers the count by ``n_similar_step
 (at least ``rematch_min_gap``, at most ``rematch_max_gap``).
 
 Dictionaries (eq. 21): Algorithm 1 recomputes them at every iteration (``dictionary_gap = 1``).
-With ``dictionary_gap = g`` (default 3) they are recomputed at every matching and then every ``g``
+With ``dictionary_gap = g`` (default 5) they are recomputed at every matching and then every ``g``
 iterations, and reused in between: the groups are the same and ``Z`` has changed little. This
-saves about a third of the NLSTR time at no measurable cost (+-0.03 dB mean and DoLP PSNR on
+saves about 40 % of the NLSTR time at no measurable cost (-0.002 to +0.08 dB mean and DoLP PSNR on
 qiu-kettle and a rendered ``textured`` scene at 512 px, docs/notes/reconstruction-speed.md).
 
 The thresholds of eq. 23 are ratios ``lambda_k / mu`` and ``eta_k / mu`` derived from the
@@ -44,7 +44,7 @@ class MatchSchedule:
     rematch_change: float = 0.02
     rematch_min_gap: int = 2
     rematch_max_gap: int = 10
-    dictionary_gap: int = 3
+    dictionary_gap: int = 5
 
     def validate(self) -> None:
         if isinstance(self.dictionary_gap, bool) or not isinstance(self.dictionary_gap, int) \

@@ -192,7 +192,7 @@ def test_preset_fast_sets_its_options_and_explicit_options_win():
     assert (fast.admm.iterations, fast.matching.dictionary_gap, fast.nlstr.stride, fast.preset) == (8, 4, 5, "fast")
     assert CapsOptions.from_options({"preset": "fast", "iterations": "12"}).admm.iterations == 12
     default = CapsOptions.from_options({})
-    assert (default.admm.iterations, default.matching.dictionary_gap, default.preset) == (25, 3, "default")
+    assert (default.admm.iterations, default.matching.dictionary_gap, default.preset) == (25, 5, "default")
     assert CapsOptions.from_options({"preset": "literal"}).matching.dictionary_gap == 1
     assert CapsOptions.from_options({"preset": "fast"}, c1=0.001).nlstr.c1 == 0.001  # a method's own defaults stay
     with pytest.raises(UnknownNameError):
