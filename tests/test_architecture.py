@@ -22,7 +22,7 @@ ROOTS = {"capssim": "capssim", "capssim.reconstruct": "reconstruct", "capssim.ev
 PHYSICS = ("capssim", "capssim.errors", "capssim.conventions", "capssim.homography", "capssim.geometry",
            "capssim.psf", "capssim.measurement", "capssim.imageio", "capssim.sensor", "capssim.capture",
            "capssim.polarization", "capssim.physical_validity", "capssim.design", "capssim.visualize", "capssim.operators", "capssim.resources", "capssim.rig",
-           "capssim.threads")
+           "capssim.threads", "capssim.allocator")
 #: (floor name, module prefixes), lowest floor first
 FLOORS = (
     ("physics", PHYSICS),

@@ -42,6 +42,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 import torch
 
+from capssim.allocator import reuse_freed_memory
 from capssim.errors import InputError, UnknownNameError
 from capssim.operators.camera import lr_sampling_operator
 from capssim.reconstruct.admm import ADMMParameters, admm
@@ -271,30 +272,32 @@ def run_caps(capture, context: RunContext, *, use_cagf: bool = True, use_nlstr: 
             obs.weights = obs.weights * torch.as_tensor(inside, dtype=obs.weights.dtype, device=dev)
     seen = obs if flat is None else replace(obs, images=obs.images / torch.as_tensor(flat, dtype=obs.images.dtype,
                                                                                       device=dev))
-    confidence = None
-    if use_cagf:
-        with timer.stage("cagf"):
-            confidence = cagf_confidence(seen.images, homographies, obs.channel_of, obs.n_channels, hr_shape,
-                                         weights=obs.weights, nu=opts.cagf.nu, radius=opts.cagf.radius,
-                                         eps=opts.cagf.eps)
-    with timer.stage("init"):
-        init = fuse_initial_estimate(seen, homographies, hr_shape)
-        if mixing is not None:  # the fused channels see the calibrated analyzer: A x per pixel
-            init = unmix_analyzer(init, calibrated_analyzer(context))
-    data = ConfidenceDataTerm(obs, operator, confidence=confidence, mixing=mixing)
-    nlstr = None
-    if use_nlstr:
-        with timer.stage("nlstr_setup"):
-            nlstr = NonlocalSparseTensor((obs.n_channels, *hr_shape), nl_params, device=dev)
-    observer = psnr_observer(capture, dev) if opts.track_psnr else None
-    solver_hooks = {"stage": timer.stage, "progress": context.report, "observer": observer}
-    try:
-        if nlstr is None:  # the data term alone (eq. 16)
-            image, history = steepest_descent(data, init, admm_params, **solver_hooks)
-        else:
-            image, history = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, **solver_hooks)
-    except DivergenceError as exc:
-        raise explain_divergence(exc, opts, CapsOptions()) from None
+    # the iterations allocate the same large temporaries again and again: keep freed memory for reuse
+    with reuse_freed_memory(enabled=dev.type == "cpu"):
+        confidence = None
+        if use_cagf:
+            with timer.stage("cagf"):
+                confidence = cagf_confidence(seen.images, homographies, obs.channel_of, obs.n_channels, hr_shape,
+                                             weights=obs.weights, nu=opts.cagf.nu, radius=opts.cagf.radius,
+                                             eps=opts.cagf.eps)
+        with timer.stage("init"):
+            init = fuse_initial_estimate(seen, homographies, hr_shape)
+            if mixing is not None:  # the fused channels see the calibrated analyzer: A x per pixel
+                init = unmix_analyzer(init, calibrated_analyzer(context))
+        data = ConfidenceDataTerm(obs, operator, confidence=confidence, mixing=mixing)
+        nlstr = None
+        if use_nlstr:
+            with timer.stage("nlstr_setup"):
+                nlstr = NonlocalSparseTensor((obs.n_channels, *hr_shape), nl_params, device=dev)
+        observer = psnr_observer(capture, dev) if opts.track_psnr else None
+        solver_hooks = {"stage": timer.stage, "progress": context.report, "observer": observer}
+        try:
+            if nlstr is None:  # the data term alone (eq. 16)
+                image, history = steepest_descent(data, init, admm_params, **solver_hooks)
+            else:
+                image, history = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, **solver_hooks)
+        except DivergenceError as exc:
+            raise explain_divergence(exc, opts, CapsOptions()) from None
     params = opts.to_dict()
     params.update({"psf": psf_record, "use_cagf": use_cagf, "use_nlstr": use_nlstr, "channels": obs.n_channels,
                    "reference_image": 0, "n_groups": nlstr.n_ref if nlstr else 0,
