@@ -185,7 +185,12 @@ def dataset_is_finished(config: DatasetConfig, out) -> bool:
     if info is None or info.get("fingerprint") != config.fingerprint() or info.get("samples") != config.samples:
         return False
     records = read_manifest(out / MANIFEST).records
-    return all(i in records and (out / SAMPLES_DIR / records[i]["name"]).is_dir() for i in range(config.samples))
+    return len(finished_records(records, out / SAMPLES_DIR, config.samples)) == config.samples
+
+
+def finished_records(records: dict[int, dict], samples_dir: Path, samples: int) -> dict[int, dict]:
+    """The manifest records of samples ``0 .. samples-1`` whose folder exists: the finished samples."""
+    return {i: r for i, r in records.items() if i < samples and (samples_dir / r["name"]).is_dir()}
 
 
 def generate_dataset(config: DatasetConfig, out, *, workers: int | None = None, scheduler: str | None = None,
@@ -226,8 +231,7 @@ def generate_dataset(config: DatasetConfig, out, *, workers: int | None = None, 
                 log.warning("manifest %s: dropped invalid lines %s; their samples will be redone",
                             manifest_path, contents.bad_lines)
             rewrite_manifest(manifest_path, contents.lines)
-        finished = {i: r for i, r in contents.records.items()
-                    if i < config.samples and (samples_dir / r["name"]).is_dir()}
+        finished = finished_records(contents.records, samples_dir, config.samples)
         missing = sorted(set(contents.records) - set(finished))
         missing = [i for i in missing if i < config.samples]
         if missing:
