@@ -194,6 +194,11 @@ class NonlocalSparseTensor:
         count.index_add_(0, idx, torch.ones(idx.numel(), dtype=dtype, device=self.device))
         self.inv_count = (1.0 / count).reshape(h, w)
         self._tri_c = _triu(c, self.device)
+        # reference grid 0, s, 2s, ... ending at the border with s dividing b: blocks of every (b/s)-th
+        # row and column tile the image, so aggregation and reference gathers need no index lists
+        self.tiled = b % params.stride == 0 and all(
+            bool(torch.equal(pos, torch.arange(pos.numel(), device=self.device) * params.stride))
+            for pos in (self.ref_y, self.ref_x))
         self._bases_cache: tuple | None = None  # (matches, per-strip bases) of the last estimate
         self._groups_cache: tuple | None = None  # (matches, sparse group weights)
 
@@ -335,6 +340,28 @@ class NonlocalSparseTensor:
         bases_hw = orthonormal_bases(gram_hw)
         return bases_hw[:k], bases_hw[k:], orthonormal_bases(gram_c)
 
+    def _reference_blocks(self, z_pixels: torch.Tensor, strip: _Strip) -> torch.Tensor:
+        """The strip's reference blocks ``(rows, Nx, b, b, C)`` as a strided view of ``z_pixels`` (tiled grid)."""
+        c, _, w = self.shape
+        b, s = self.params.block, self.params.stride
+        y0, rows, nx = int(self.ref_y[strip.ref_rows[0]]), strip.ref_rows.numel(), self.ref_x.numel()
+        return z_pixels.as_strided((rows, nx, b, b, c), (s * w * c, s * c, w * c, c, 1), y0 * w * c)
+
+    def _add_tiles(self, num: torch.Tensor, blocks: torch.Tensor, strip: _Strip) -> None:
+        """``num`` ``(H, W, C)`` += the strip's ``blocks`` ``(k, b, b, C)`` at their grid positions (eq. 29's
+        ``sum_k R_k^T``): the blocks of every ``(b/s)``-th row and column do not overlap, so each of the
+        ``(b/s)^2`` phases is one reshaped image added into a slice."""
+        c = self.shape[0]
+        b, s = self.params.block, self.params.stride
+        r, y0 = b // s, int(self.ref_y[strip.ref_rows[0]])
+        grid = blocks.view(strip.ref_rows.numel(), self.ref_x.numel(), b, b, c)
+        for p in range(min(r, grid.shape[0])):
+            for q in range(min(r, grid.shape[1])):
+                tiles = grid[p::r, q::r]
+                ny, nx = tiles.shape[:2]
+                top, left = y0 + p * s, q * s
+                num[top:top + ny * b, left:left + nx * b] += tiles.permute(0, 2, 1, 3, 4).reshape(ny * b, nx * b, c)
+
     def estimate(self, z: torch.Tensor, matches: BlockMatches, *, reuse_bases: bool = False,
                  terms: bool = False) -> tuple[torch.Tensor, dict]:
         """Steps 1-2 of section 4 and eq. 29: the aggregated sparse estimate ``X`` ``(C, H, W)``.
@@ -369,7 +396,10 @@ class NonlocalSparseTensor:
                 ph, pw, pc = self._strip_bases(z, strip, py, px)
                 self._bases_cache[1].append((ph, pw, pc))
             pair = z.new_empty(k, b, 2, b * c)  # the reference block R and U = S x4 w (eq. 19), stacked
-            pair[:, :, 0] = gather_blocks(segments, ry * w + rx, row_starts)
+            if self.tiled:
+                pair[:, :, 0] = self._reference_blocks(z_pixels, strip).reshape(k, b, b * c)
+            else:
+                pair[:, :, 0] = gather_blocks(segments, ry * w + rx, row_starts)
             pair[:, :, 1] = u_all.index_select(0, groups)
             coeffs = mode_products(pair.view(k, b, 2, b, c), ph, pw, pc, transpose=True)
             alpha, beta = coeffs[:, :, 0].reshape(k, -1), coeffs[:, :, 1].reshape(k, -1)
@@ -377,8 +407,11 @@ class NonlocalSparseTensor:
             for key, value in parts.items():
                 acc[key] = acc.get(key, 0.0) + value
             blocks = mode_products(core.view(k, b, b, c), ph, pw, pc, transpose=False)
-            idx = ((ry * w + rx)[:, None] + self.block_offsets[None, :]).reshape(-1)
-            num.index_add_(0, idx, blocks.reshape(-1, c))
+            if self.tiled:
+                self._add_tiles(num.view(h, w, c), blocks, strip)
+            else:
+                idx = ((ry * w + rx)[:, None] + self.block_offsets[None, :]).reshape(-1)
+                num.index_add_(0, idx, blocks.reshape(-1, c))
         x = num.reshape(h, w, c).permute(2, 0, 1) * self.inv_count
         stats = {key: float(v) for key, v in acc.items()}
         stats["zero_fraction"] = stats.pop("zeros") / max(self.n_ref * b * b * c, 1)

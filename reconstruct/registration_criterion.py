@@ -17,7 +17,8 @@ angles, other colours). Two terms:
   constrains (S0 texture fixes ``d90 - d45 - d135``, S1 texture ``d90``, S2 texture
   ``d45 - d135``).
 
-:func:`minimize` runs L-BFGS (strong Wolfe) through autograd, all moving images in one batch.
+:func:`minimize` runs L-BFGS (strong Wolfe, :mod:`~capssim.reconstruct.lbfgs`) through autograd, all moving
+images in one batch.
 All coordinates are ``(x=col, y=row)`` with pixel centres on integers.
 """
 
@@ -27,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
+from capssim.reconstruct.lbfgs import minimize_lbfgs
 from capssim.reconstruct.registration_filters import box_sum
 from capssim.reconstruct.registration_warp import params_to_matrices, spline_coefficients, spline_sample
 
@@ -143,22 +145,16 @@ TOLERANCE_GRAD, TOLERANCE_CHANGE = 1e-7, 1e-9
 def minimize(criterion: LevelCriterion, p0: torch.Tensor, *, max_iterations: int) -> tuple[torch.Tensor, int, int]:
     """L-BFGS (strong Wolfe) from ``p0`` with the weights frozen at ``p0``; returns ``(p, iterations, evaluations)``."""
     criterion.fix_weights(p0)
-    p = p0.clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([p], lr=1.0, max_iter=max_iterations, tolerance_grad=TOLERANCE_GRAD,
-                            tolerance_change=TOLERANCE_CHANGE, history_size=20, line_search_fn="strong_wolfe")
-    evaluations = 0
 
-    def closure():
-        nonlocal evaluations
-        evaluations += 1
-        opt.zero_grad()
-        loss = criterion.objective(p)
-        loss.backward()
-        return loss
+    def value_and_gradient(p: torch.Tensor) -> tuple[float, torch.Tensor]:
+        with torch.enable_grad():  # callers may run under torch.no_grad()
+            p = p.detach().requires_grad_(True)
+            value = criterion.objective(p)
+            (gradient,) = torch.autograd.grad(value, p)
+        return float(value.detach()), gradient
 
-    opt.step(closure)
-    iterations = int(opt.state[opt._params[0]].get("n_iter", 0))
-    return p.detach(), iterations, evaluations
+    return minimize_lbfgs(value_and_gradient, p0, max_iterations=max_iterations, tolerance_grad=TOLERANCE_GRAD,
+                          tolerance_change=TOLERANCE_CHANGE, history_size=20)
 
 
 def final_fit(criterion, p: torch.Tensor, *, stokes: bool = False) -> tuple[torch.Tensor, float | None]:

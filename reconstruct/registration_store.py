@@ -57,7 +57,7 @@ def registration_code_sha256() -> str:
     """SHA-256 of the registration's source files (read once per process)."""
     folder = Path(__file__).resolve().parent
     files = sorted(p for p in folder.glob("registration*.py") if p.name != Path(__file__).name)
-    files += [Path(geometry.__file__), Path(homography.__file__)]
+    files += [folder / "lbfgs.py", Path(geometry.__file__), Path(homography.__file__)]
     digest = hashlib.sha256()
     for path in files:
         digest.update(path.name.encode())

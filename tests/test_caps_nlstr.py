@@ -253,3 +253,21 @@ def test_window_sums_at_a_stride_aligned_grid_equal_the_sliding_sums():
                    torch.tensor([0, 4, 8, 10])):
         expected = sliding_window_sum(x, 8, dim=1).index_select(1, starts)
         assert torch.allclose(window_sums_at(x, 8, starts, dim=1), expected)
+
+
+@pytest.mark.parametrize("shape,stride", [((12, 40, 48), 4), ((3, 24, 16), 2), ((2, 26, 18), 2), ((3, 40, 48), 8)])
+def test_tiled_grid_gives_the_same_estimate_as_index_lists(shape, stride):
+    gen = torch.Generator().manual_seed(2)
+    z = torch.rand(shape, generator=gen, dtype=torch.float64)
+    nl = NonlocalSparseTensor(shape, NLSTRParameters(stride=stride, strip_mb=2.0**-20), dtype=torch.float64)
+    assert nl.tiled and len(nl.strips) > 1
+    matches = nl.match(z, 10)
+    x_tiled, _ = nl.estimate(z, matches)
+    nl.tiled = False
+    x_index, _ = nl.estimate(z, matches)
+    torch.testing.assert_close(x_tiled, x_index, rtol=0, atol=1e-12)
+
+
+def test_irregular_grids_are_not_tiled():
+    assert not NonlocalSparseTensor((3, 42, 40), NLSTRParameters()).tiled   # 42 - 8 not a multiple of 4
+    assert not NonlocalSparseTensor((3, 40, 40), NLSTRParameters(stride=3)).tiled  # 3 does not divide 8

@@ -14,6 +14,7 @@ from capssim.operators import (
     Analyzer,
     BayerMosaic,
     BayerSplit,
+    BlurIntegrateDecimate,
     ChannelMix,
     ChannelSelect,
     Composition,
@@ -64,6 +65,11 @@ def _operators():
         "decimation_shared": Decimation(2, (3, 2, *HR), (1, 0)),
         "decimation_per_batch": Decimation(2, (4, 1, *HR), [(0, 0), (0, 1), (1, 0), (1, 1)]),
         "integrate_decimate": IntegrateDecimate(2, (4, 3, *HR)),
+        "blur_integrate_decimate": BlurIntegrateDecimate(
+            [k, np.random.default_rng(2).random((3, 5)), airy_psf_kernel(2.8, 550, 1.2), np.ones((1, 1))],
+            (8, 1, *HR), integrate=2, decimate=2, offsets=[(0, 0), (0, 1), (1, 0), (1, 1)] * 2),
+        "blur_integrate_decimate_3": BlurIntegrateDecimate(k, (2, 3, 18, 36), integrate=3, decimate=2,
+                                                           offsets=(1, 0)),
         "bayer_mosaic": BayerMosaic((4, 3, *HR)),
         "bayer_split": BayerSplit((4, *HR)),
         "dofp_mosaic": DoFPMosaic(*HR, layout="sony"),
@@ -98,6 +104,29 @@ def test_integrate_decimate_equals_integration_then_decimation():
     fast = IntegrateDecimate(2, x.shape)(x)
     slow = Decimation(2, x.shape)(PixelIntegration(2, x.shape)(x))
     torch.testing.assert_close(fast, slow, rtol=0, atol=1e-14)
+
+
+@pytest.mark.parametrize("integrate,decimate,shape", [(2, 2, (8, 1, *HR)), (3, 2, (2, 2, 18, 30)),
+                                                     (1, 4, (4, 1, 16, 8)), (2, 1, (4, 1, 6, 10))])
+def test_blur_integrate_decimate_equals_the_three_operators(integrate, decimate, shape):
+    rng = np.random.default_rng(4)
+    kernels = [rng.random((5, 5)), rng.random((3, 7)), gaussian_psf_kernel(0.8), np.ones((1, 1))]
+    offsets = [(int(a), int(b)) for a, b in rng.integers(0, decimate, size=(shape[0], 2))]
+    fused = BlurIntegrateDecimate(kernels, shape, integrate=integrate, decimate=decimate, offsets=offsets)
+    mid = (*shape[:-2], shape[-2] // integrate, shape[-1] // integrate)
+    slow = Composition([Convolve(kernels, shape), IntegrateDecimate(integrate, shape),
+                        Decimation(decimate, mid, offsets)])
+    x = torch.rand(shape, dtype=torch.float64)
+    y = torch.rand(fused.output_shape, dtype=torch.float64)
+    torch.testing.assert_close(fused(x), slow(x), rtol=0, atol=1e-13)
+    torch.testing.assert_close(fused.adjoint(y), slow.adjoint(y), rtol=0, atol=1e-13)
+
+
+def test_blur_integrate_decimate_rejects_bad_offsets_and_sizes():
+    with pytest.raises(InputError, match="offsets"):
+        BlurIntegrateDecimate(np.ones((3, 3)), (2, 1, 8, 8), integrate=2, decimate=2, offsets=[(0, 2), (0, 0)])
+    with pytest.raises(InputError, match="divisible"):
+        BlurIntegrateDecimate(np.ones((3, 3)), (2, 1, 10, 8), integrate=2, decimate=2)
 
 
 def test_warp_identity_and_integer_shift():

@@ -12,6 +12,7 @@ from capssim.operators.base import (
     operator_norm_estimate,
 )
 from capssim.operators.blur import Convolve
+from capssim.operators.blur_sample import BlurIntegrateDecimate
 from capssim.operators.camera import (
     caps_raw_operator,
     dofp_raw_operator,
@@ -24,7 +25,7 @@ from capssim.operators.sampling import Decimation, IntegrateDecimate, PixelInteg
 from capssim.operators.warp import Warp, warp_image
 
 __all__ = [
-    "Adjoint", "Analyzer", "BayerMosaic", "BayerSplit", "ChannelMix", "ChannelSample", "ChannelSelect",
+    "Adjoint", "Analyzer", "BayerMosaic", "BayerSplit", "BlurIntegrateDecimate", "ChannelMix", "ChannelSample", "ChannelSelect",
     "Composition", "Convolve", "Decimation", "DoFPMosaic", "IntegrateDecimate", "LinearOperator", "Multiply",
     "PixelIntegration", "Reshape", "Stack", "Warp", "adjointness_error", "analyzer_matrix",
     "caps_raw_operator", "dofp_raw_operator", "lr_channel_matrix",

@@ -39,8 +39,9 @@ from capssim.geometry import ArrayGeometry
 from capssim.operators.analyzer import Analyzer, ChannelMix, analyzer_matrix
 from capssim.operators.base import Composition, Multiply, Reshape
 from capssim.operators.blur import Convolve
+from capssim.operators.blur_sample import BlurIntegrateDecimate
 from capssim.operators.cfa import BayerMosaic, DoFPMosaic
-from capssim.operators.sampling import Decimation, IntegrateDecimate
+from capssim.operators.sampling import IntegrateDecimate
 from capssim.operators.warp import Warp
 from capssim.rig import RigModel
 
@@ -101,9 +102,9 @@ def lr_sampling_operator(geometry: ArrayGeometry, psf_kernel, *, psf_kernels=Non
     ops = [
         Reshape((N_LR_IMAGES, hh, ww), (N_LR_IMAGES, 1, hh, ww)),
         Warp(geometry.lr_aperture_warps, 1, (hh, ww)),
-        Convolve(psf_kernel if psf_kernels is None else list(psf_kernels), (N_LR_IMAGES, 1, hh, ww)),
-        IntegrateDecimate(2, (N_LR_IMAGES, 1, hh, ww)),
-        Decimation(2, (N_LR_IMAGES, 1, hh // 2, ww // 2), offsets),
+        # PSF, 2x2 integration and the Bayer site's decimation as one stride-4 convolution
+        BlurIntegrateDecimate(psf_kernel if psf_kernels is None else list(psf_kernels), (N_LR_IMAGES, 1, hh, ww),
+                              integrate=2, decimate=2, offsets=offsets),
         Reshape((N_LR_IMAGES, 1, hh // 4, ww // 4), (N_LR_IMAGES, hh // 4, ww // 4)),
     ]
     if flat is not None:

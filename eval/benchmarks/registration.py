@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from capssim.capture import Capture, read_capture
 from capssim.conventions import N_APERTURES
@@ -140,8 +139,6 @@ def run_registration_bench(captures, *, mode: str = "local-correlation", content
     if record is not None:
         for capture, label in labelled:
             check_alignment_record(record, capture, label)
-    # torch.optim imports torch._dynamo on first use (about 2 s, once per process): not the first row's cost
-    torch.optim.LBFGS([torch.zeros(1, requires_grad=True)])
     matrices = None if record is None else record["alignment_matrices"]
     rows = [_bench_row(capture, label, parameters, device=device, matrices=matrices) for capture, label in labelled]
     return {"mode": mode, "device": str(device), "parameters": dataclasses.asdict(parameters), "rows": rows}
