@@ -16,10 +16,28 @@ from capssim.reconstruct.filters import box_sum as separable_box_sum
 
 def box_sum(x: torch.Tensor, radius: int) -> torch.Tensor:
     """``(..., H, W)`` sums over ``(2r+1)^2`` windows, zero padded (exact pairwise sums,
-    :func:`capssim.reconstruct.filters.box_sum`: about 2 log2(2r+1) additions per pixel)."""
+    :func:`capssim.reconstruct.filters.box_sum`: about 2 log2(2r+1) additions per pixel).
+
+    Differentiable: the zero-padded symmetric window sum is its own adjoint, so the backward pass
+    is one more window sum (autograd through the pairwise sums' slices would allocate and fill a
+    full-size zero gradient for each of them: most of a registration's backward time).
+    """
     if radius <= 0:
         return x
+    if x.requires_grad and torch.is_grad_enabled():
+        return _SelfAdjointBoxSum.apply(x, radius)
     return separable_box_sum(x, radius, radius)
+
+
+class _SelfAdjointBoxSum(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, radius: int) -> torch.Tensor:
+        ctx.radius = radius
+        return separable_box_sum(x, radius, radius)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        return separable_box_sum(grad, ctx.radius, ctx.radius), None
 
 
 def noise_sigma(img: torch.Tensor) -> torch.Tensor:

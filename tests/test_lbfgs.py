@@ -108,3 +108,11 @@ def test_registration_runs_under_no_grad():
     # moving(x + 1) = ref(x): reference pixel x maps to moving pixel x + 1
     assert abs(reg.matrices[:, 0, 2] - 1.0).max() < 0.02
     assert abs(reg.matrices[:, 1, 2]).max() < 0.02
+
+
+def test_registration_box_sum_gradient_is_exact():
+    from capssim.reconstruct.registration_filters import box_sum
+
+    x = torch.rand(2, 7, 9, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda t: box_sum(t, 2), (x,))
+    assert torch.autograd.gradcheck(lambda t: box_sum(t, 4), (x,))  # window larger than the image
