@@ -168,6 +168,16 @@ def test_results_log_appends_whole_lines_and_drops_a_torn_tail(tmp_path):
     assert ResultsLog(path, fresh=True).previous == {} and path.read_text() == ""
 
 
+def test_results_log_drops_superseded_records_of_the_same_case(tmp_path):
+    path = tmp_path / "results.jsonl"
+    log = ResultsLog(path)
+    log.append({"case_id": "old", "key": "kettle/caps", "status": "ok"})
+    log.append({"case_id": "other", "key": "kettle/caps-naive", "status": "ok"})
+    log = ResultsLog(path)  # code changed: the same case now has another hash
+    log.finish([{"case_id": "new", "key": "kettle/caps", "status": "ok"}])
+    assert [json.loads(line)["case_id"] for line in path.read_text().splitlines()] == ["new", "other"]
+
+
 def test_workers_and_scheduler_exclude_each_other(suite, tmp_path):
     r = _bench(suite, tmp_path / "o", "--workers", 2, "--scheduler", "tcp://127.0.0.1:1")
     assert isinstance(r.exception, InputError) and "--scheduler" in str(r.exception)  # the CLI: exit 2, one line

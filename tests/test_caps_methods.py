@@ -189,7 +189,7 @@ def test_options_compose_the_parameter_objects_under_the_same_names():
 
 def test_preset_fast_sets_its_options_and_explicit_options_win():
     fast = CapsOptions.from_options({"preset": "fast"})
-    assert (fast.admm.iterations, fast.matching.dictionary_gap, fast.nlstr.stride, fast.preset) == (8, 4, 5, "fast")
+    assert (fast.admm.iterations, fast.matching.dictionary_gap, fast.nlstr.stride, fast.preset) == (7, 4, 6, "fast")
     assert CapsOptions.from_options({"preset": "fast", "iterations": "12"}).admm.iterations == 12
     default = CapsOptions.from_options({})
     assert (default.admm.iterations, default.matching.dictionary_gap, default.preset) == (25, 5, "default")

@@ -70,7 +70,10 @@ class ResultsLog:
 
     def finish(self, records: list[dict]) -> None:
         """Rewrite the file atomically: ``records`` (this plan's, in its order), then the previous
-        run's ``ok`` records of cases outside this plan (another subset of the suite)."""
-        keep = {r["case_id"] for r in records}
-        extra = [r for cid, r in self.previous.items() if cid not in keep and r.get("status") == "ok"]
+        run's ``ok`` records of cases outside this plan (another subset of the suite). A previous
+        record of a case this plan ran again (same ``key``, another hash: changed code or options)
+        is superseded and dropped."""
+        keep, keys = {r["case_id"] for r in records}, {r.get("key") for r in records}
+        extra = [r for cid, r in self.previous.items()
+                 if cid not in keep and r.get("status") == "ok" and (r.get("key") is None or r.get("key") not in keys)]
         atomic_write_text(self.path, results_text(records + extra))
