@@ -284,14 +284,15 @@ class NonlocalSparseTensor:
             rows = yb + b - ya
             a = z[:, ya:ya + rows, :]
             ref_rows_rel = self.ref_y[strip.ref_rows] - ya
-            sq = torch.empty(rows, n_off, w, dtype=z.dtype, device=z.device)
-            for t in range(n_off):  # whole-image ops per offset, no loop over blocks
+            sq = torch.empty(n_off, rows, w, dtype=z.dtype, device=z.device)
+            diff = torch.empty_like(a)
+            for t in range(n_off):  # whole-image ops per offset into reused buffers, no loop over blocks
                 dy, dx = divmod(t, 2 * r + 1)
-                diff = a - zpad[:, ya + dy:ya + dy + rows, dx:dx + w]
-                sq[:, t] = diff.square_().sum(0)
-            box = window_sums_at(sq, b, self.ref_x, dim=2)                            # (rows, n_off, nx)
-            box = window_sums_at(box, b, ref_rows_rel, dim=0)                         # (nrows, n_off, nx)
-            dist = box.permute(0, 2, 1)                                                # (nrows, nx, n_off)
+                torch.sub(a, zpad[:, ya + dy:ya + dy + rows, dx:dx + w], out=diff)
+                torch.sum(diff.square_(), 0, out=sq[t])
+            box = window_sums_at(sq, b, self.ref_x, dim=2)                            # (n_off, rows, nx)
+            box = window_sums_at(box, b, ref_rows_rel, dim=1)                         # (n_off, nrows, nx)
+            dist = box.permute(1, 2, 0)                                                # (nrows, nx, n_off)
             dist = dist.reshape(-1, n_off) / float(b * b * c)
             cy = ry[:, None] + dys[None, :]
             cx = rx[:, None] + dxs[None, :]
@@ -402,11 +403,11 @@ class NonlocalSparseTensor:
                 pair[:, :, 0] = gather_blocks(segments, ry * w + rx, row_starts)
             pair[:, :, 1] = u_all.index_select(0, groups)
             coeffs = mode_products(pair.view(k, b, 2, b, c), ph, pw, pc, transpose=True)
-            alpha, beta = coeffs[:, :, 0].reshape(k, -1), coeffs[:, :, 1].reshape(k, -1)
+            alpha, beta = coeffs[:, :, 0], coeffs[:, :, 1]  # (k, b, b, C) views, no copies
             core, parts = shrink_core(alpha, beta, prm.c1, prm.c2, adaptive=prm.adaptive, eps=prm.eps, terms=terms)
             for key, value in parts.items():
                 acc[key] = acc.get(key, 0.0) + value
-            blocks = mode_products(core.view(k, b, b, c), ph, pw, pc, transpose=False)
+            blocks = mode_products(core.reshape(k, b, b, c), ph, pw, pc, transpose=False)
             if self.tiled:
                 self._add_tiles(num.view(h, w, c), blocks, strip)
             else:

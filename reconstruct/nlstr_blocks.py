@@ -87,11 +87,10 @@ def mode_products(t: torch.Tensor, ph: torch.Tensor, pw: torch.Tensor, pc: torch
         pc = pc.transpose(1, 2)
     # mode 1 (height): out[a, ...] = sum_i Ph[a, i] t[i, ...]
     x = torch.bmm(ph, t.reshape(k, b, -1))                                      # (k, b_a, S*b*C)
-    # mode 2 (width): bring the width index forward
-    x = x.view(k, b * s, b, c).transpose(1, 2).reshape(k, b, b * s * c)          # (k, b_j, (a, S), C)
-    x = torch.bmm(pw, x).view(k, b, b * s, c).transpose(1, 2)                    # (k, (a, S), b_j', C)
+    # mode 2 (width): Pw applied to every (a, S) slice in place, broadcast over them (no transposed copies)
+    x = torch.matmul(pw[:, None], x.view(k, b * s, b, c))                        # (k, (a, S), b_j', C)
     # mode 3 (channel): out[..., d] = sum_c x[..., c] Pc[c, d]
-    x = torch.bmm(x.reshape(k, b * s * b, c), pc)
+    x = torch.bmm(x.view(k, b * s * b, c), pc)
     return x.view(k, b, s, b, c) if stacked else x.view(k, b, b, c)
 
 
@@ -142,7 +141,8 @@ def weighted_block_sums(z_pixels: torch.Tensor, group_weights: torch.Tensor, blo
 
 def shrink_core(alpha: torch.Tensor, beta: torch.Tensor, c1: float, c2: float, *, adaptive: str = "element",
                 eps: float = 1e-8, terms: bool = True) -> tuple[torch.Tensor, dict]:
-    """Eq. 23 with the adaptive ``lambda_k/mu`` and ``eta_k/mu`` of section 4, for cores ``(k, n)``.
+    """Eq. 23 with the adaptive ``lambda_k/mu`` and ``eta_k/mu`` of section 4, for cores ``(k, ...)``
+    (one group per index of the first axis; ``alpha`` and ``beta`` may be strided views).
 
     ``C = soft((2 t beta + alpha) / (1 + 2 t), (lambda/mu) / (1 + 2 t))``, ``t = eta/mu``.
     Returns the core and the summed terms ``zeros`` (count of zero coefficients) and, when
@@ -150,16 +150,18 @@ def shrink_core(alpha: torch.Tensor, beta: torch.Tensor, c1: float, c2: float, *
     (``eta/mu |beta - C|^2``).
     """
     if adaptive == "element":
-        lam = c1 / (alpha.abs() + eps)
-        t = c2 / ((alpha - beta).square_().add_(eps))
+        lam = alpha.abs().add_(eps).reciprocal_().mul_(c1)
+        t = (alpha - beta).square_().add_(eps).reciprocal_().mul_(c2)
     elif adaptive == "block":
-        lam = (c1 / (alpha.abs().sum(1, keepdim=True) + eps)).expand_as(alpha)
-        t = (c2 / ((alpha - beta).square().sum(1, keepdim=True) + eps)).expand_as(alpha)
+        dims = tuple(range(1, alpha.dim()))
+        lam = (c1 / (alpha.abs().sum(dims, keepdim=True) + eps)).expand_as(alpha)
+        t = (c2 / ((alpha - beta).square().sum(dims, keepdim=True) + eps)).expand_as(alpha)
     else:
         raise InputError("adaptive", adaptive, "'element' or 'block'")
-    denom = 2.0 * t + 1.0
+    denom = t.mul(2.0).add_(1.0)
     v = torch.addcmul(alpha, t, beta, value=2.0).div_(denom)
-    core = torch.sign(v).mul_((v.abs_() - lam / denom).clamp_(min=0))
+    core = torch.sign(v)
+    core.mul_(v.abs_().sub_(lam / denom).clamp_(min=0))
     parts = {"zeros": (core == 0).sum().to(alpha.dtype)}
     if terms:
         parts.update({"l1": (lam * core.abs()).sum(), "fit": (alpha - core).square().sum(),
