@@ -76,14 +76,19 @@ def splat(values: torch.Tensor, positions: torch.Tensor, target: torch.Tensor, n
     return out.reshape(n_planes, hh, ww)
 
 
+def _gaussian_kernel(sigma: float, like: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """The normalised 1-D Gaussian of :func:`gaussian_blur` and its radius ``ceil(3 sigma)``."""
+    radius = max(1, int(math.ceil(3 * sigma)))
+    t = torch.arange(-radius, radius + 1, dtype=like.dtype, device=like.device)
+    k = torch.exp(-0.5 * (t / sigma) ** 2)
+    return k / k.sum(), radius
+
+
 def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of ``(..., H, W)`` with zero padding (for normalized convolution)."""
     if sigma <= 0:
         return x.clone()
-    radius = max(1, int(math.ceil(3 * sigma)))
-    t = torch.arange(-radius, radius + 1, dtype=x.dtype, device=x.device)
-    k = torch.exp(-0.5 * (t / sigma) ** 2)
-    k = k / k.sum()
+    k, radius = _gaussian_kernel(sigma, x)
     shape = x.shape
     n = max(1, x.numel() // (shape[-2] * shape[-1]))
     flat = x.reshape(1, n, shape[-2], shape[-1])  # planes as groups: one fast grouped conv
@@ -92,33 +97,65 @@ def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     return flat.reshape(shape)
 
 
+#: at most this many gathered values per chunk of :func:`_gaussian_blur_at` (float32: 64 MB)
+_BLUR_AT_CHUNK = 2**24
+
+
+def _gaussian_blur_at(x: torch.Tensor, pixels: torch.Tensor, sigma: float) -> torch.Tensor | None:
+    """:func:`gaussian_blur` of ``x`` ``(P, H, W)`` at ``pixels`` ``(N, 2)`` (row, col) only: ``(P, N)``.
+
+    Each value is the kernel-weighted sum of its own ``(2r+1)^2`` zero-padded window. None when the
+    windows would hold more values than the whole-image blur touches (then blur the image)."""
+    k, radius = _gaussian_kernel(sigma, x)
+    planes, (hh, ww), width = x.shape[0], x.shape[-2:], 2 * radius + 1
+    if pixels.shape[0] * width * width > 4 * hh * ww:
+        return None
+    padded = F.pad(x, (radius, radius, radius, radius))
+    offsets = torch.arange(width, device=x.device)
+    kernel = k[:, None] * k[None, :]
+    out = x.new_empty(planes, pixels.shape[0])
+    step = max(1, _BLUR_AT_CHUNK // (planes * width * width))
+    for start in range(0, pixels.shape[0], step):
+        rows = pixels[start:start + step, 0, None] + offsets                          # (n, w)
+        cols = pixels[start:start + step, 1, None] + offsets
+        windows = padded[:, rows[:, :, None], cols[:, None, :]]                      # (P, n, w, w)
+        out[:, start:start + step] = (windows * kernel).sum((-2, -1))
+    return out
+
+
 def normalized_convolution(num: torch.Tensor, den: torch.Tensor, sigma: float, *, min_density: float = 1e-3,
                            max_doublings: int = 6) -> torch.Tensor:
     """Scattered-data interpolation ``blur(num) / blur(den)``; where the local density of
     samples is below ``min_density`` (holes from saturation or image borders) the kernel
-    is doubled until it is not."""
-    out = None
-    missing = None
+    is doubled until it is not. The doubled kernels are evaluated at the pixels still missing
+    only (a few border pixels, usually), unless those are too many."""
+    shape = num.shape
+    num, den = num.reshape(-1, *shape[-2:]), den.reshape(-1, *shape[-2:])
+    bn, bd = gaussian_blur(num, sigma), gaussian_blur(den, sigma)
+    ok = bd > min_density
+    out = torch.where(ok, bn / bd.clamp(min=1e-12), torch.zeros_like(bn))
+    missing = ~ok
     s = sigma
-    for _ in range(max_doublings + 1):
-        bn, bd = gaussian_blur(num, s), gaussian_blur(den, s)
-        est = bn / bd.clamp(min=1e-12)
-        ok = bd > min_density
-        if out is None:
-            out, missing = torch.where(ok, est, torch.zeros_like(est)), ~ok
-        else:
-            out = torch.where(missing & ok, est, out)
-            missing = missing & ~ok
+    for _ in range(max_doublings):
         if not bool(missing.any()):
             break
         s *= 2
-    if missing is not None and bool(missing.any()):
+        pixels = missing.any(0).nonzero()                                             # (N, 2)
+        bn_at, bd_at = _gaussian_blur_at(num, pixels, s), _gaussian_blur_at(den, pixels, s)
+        if bn_at is None:  # too many: the whole image at once
+            bn_at, bd_at = (gaussian_blur(t, s)[:, pixels[:, 0], pixels[:, 1]] for t in (num, den))
+        still = missing[:, pixels[:, 0], pixels[:, 1]]                                # (P, N)
+        ok_at = bd_at > min_density
+        current = out[:, pixels[:, 0], pixels[:, 1]]
+        out[:, pixels[:, 0], pixels[:, 1]] = torch.where(still & ok_at, bn_at / bd_at.clamp(min=1e-12), current)
+        missing[:, pixels[:, 0], pixels[:, 1]] = still & ~ok_at
+    if bool(missing.any()):
         # no sample at all in a whole plane (every pixel saturated): fall back to the plane mean
         total_w = den.sum(dim=(-2, -1), keepdim=True)
         mean = torch.where(total_w > 0, num.sum(dim=(-2, -1), keepdim=True) / total_w.clamp(min=1e-12),
                            torch.zeros_like(total_w))
         out = torch.where(missing, mean.expand_as(out), out)
-    return out
+    return out.reshape(shape)
 
 
 def sample_maps(maps: torch.Tensor, positions: torch.Tensor, plane: torch.Tensor) -> torch.Tensor:

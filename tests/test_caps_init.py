@@ -1,6 +1,7 @@
 """Initialization fusing all 16 observations on the HR grid (the SCSR step)."""
 
 import numpy as np
+import pytest
 import torch
 
 from capssim.geometry import raw_matrix
@@ -103,3 +104,32 @@ def test_fusion_hard_cases():
     obs.weights.zero_()
     init = fuse_initial_estimate(obs, cap.true_lr_homographies(), cap.hr_shape)
     assert torch.isfinite(init).all()
+
+
+def _normalized_convolution_whole_image(num, den, sigma, min_density=1e-3, max_doublings=6):
+    """The definition: every doubled kernel applied to the whole image."""
+    from capssim.reconstruct.init_fusion import gaussian_blur
+
+    out, missing, s = None, None, sigma
+    for _ in range(max_doublings + 1):
+        bn, bd = gaussian_blur(num, s), gaussian_blur(den, s)
+        est, ok = bn / bd.clamp(min=1e-12), bd > min_density
+        out = torch.where(ok, est, torch.zeros_like(est)) if out is None else torch.where(missing & ok, est, out)
+        missing = ~ok if missing is None else missing & ~ok
+        if not bool(missing.any()):
+            break
+        s *= 2
+    return out, missing
+
+
+@pytest.mark.parametrize("hole", [(0, 12), (30, 64), (0, 64)])
+def test_normalized_convolution_fills_holes_as_the_whole_image_doubling(hole):
+    gen = torch.Generator().manual_seed(3)
+    den = (torch.rand(3, 64, 48, generator=gen, dtype=torch.float64) < 0.3).double()
+    den[:, hole[0]:hole[1], :20] = 0  # a hole, a band, or whole planes' left part
+    den[2, :, :] = 0 if hole == (0, 64) else den[2]  # one plane without any sample
+    num = den * torch.rand(3, 64, 48, generator=gen, dtype=torch.float64)
+    expected, missing = _normalized_convolution_whole_image(num, den, 1.5)
+    got = normalized_convolution(num, den, 1.5)
+    keep = ~missing
+    torch.testing.assert_close(got[keep], expected[keep], rtol=1e-9, atol=1e-12)
