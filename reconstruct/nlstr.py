@@ -75,7 +75,7 @@ class NLSTRParameters:
     adaptive: str = "element"
     weight_bandwidth: float = 1.0
     eps: float = 1e-8
-    strip_mb: float = 48.0  # working-set bound of one strip of reference rows (MiB)
+    strip_mb: float = 96.0  # working-set bound of one strip of reference rows (MiB)
 
     @property
     def strip_bytes(self) -> int:
