@@ -1,26 +1,30 @@
 """How many CPU threads capssim's computations use (torch intra-op, OpenMP/MKL, OpenCV).
 
 Every compute command takes ``--threads N``; without it the ``CAPSSIM_THREADS`` environment
-variable, and without that :data:`DEFAULT_THREADS` (1), decide. :func:`set_threads` applies the
-count to torch (``torch.set_num_threads``: its OpenMP and MKL pools) and OpenCV, and exports it in
-``CAPSSIM_THREADS`` and ``OMP_NUM_THREADS``/``MKL_NUM_THREADS`` so that the processes a command
-starts (benchmark runs, Dask workers) inherit it.
+variable (a count, or ``auto``), and without that the default, ``auto``, decide. :func:`set_threads`
+applies the count to torch (``torch.set_num_threads``: its OpenMP and MKL pools) and OpenCV, and
+exports it in ``CAPSSIM_THREADS`` and ``OMP_NUM_THREADS``/``MKL_NUM_THREADS`` so that the processes a
+command starts (benchmark runs, Dask workers) inherit it.
 
-Why one thread by default: torch's OpenMP threads spin while they wait, so when another process
-holds a core every parallel region waits for a descheduled thread. On 2 cores, ``caps`` with 2
-threads is about 1.6x faster than with 1 on a quiet machine and 7-20x slower as soon as one other
-CPU-bound process runs; with ``OMP_WAIT_POLICY=PASSIVE`` or a short ``GOMP_SPINCOUNT`` it is no faster
-than 1 thread when quiet, or still 2x slower when busy. ``--threads N`` (N = the cores) is for a
-machine nothing else uses. Phases of small tensors (the registration's L-BFGS on raw-size images)
-gain nothing from a second thread and lose the most when the machine is busy (16x): they run inside
-:func:`small_tensor_threads`, one thread whatever the count. Measurements:
-``docs/notes/reconstruction-speed.md`` ("Threads on a shared machine").
+Why the count matters: torch's OpenMP threads spin while they wait, so when another process holds a
+core every parallel region waits for a descheduled thread. On 2 cores, ``caps`` with 2 threads is
+about 1.5x faster than with 1 on a quiet machine and 3-20x slower as soon as one other CPU-bound
+process runs; ``OMP_WAIT_POLICY=PASSIVE`` or a short ``GOMP_SPINCOUNT`` lose the quiet gain or keep
+the busy loss. So ``auto`` starts every command on one thread, and a reconstruction re-decides at
+each of its stages (:func:`adapt_threads`, called by the methods' stage timer): all the cores this
+process may use while the other processes used less than half a core since the last decision, one
+fewer for each further core they use. An explicit count is kept as given. Phases of small tensors
+(the registration's L-BFGS on raw-size images) lose the most when the machine is busy (16x): they
+run inside :func:`small_tensor_threads`, one thread whatever the count. Measurements:
+``docs/notes/reconstruction-speed.md`` ("Threads on a shared machine", "Adaptive threads").
 """
 
 from __future__ import annotations
 
+import math
 import operator
 import os
+import time
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -31,8 +35,11 @@ from capssim.resources import check_range
 
 #: the environment variable read when no ``--threads`` is given
 ENV_VAR = "CAPSSIM_THREADS"
-#: threads when neither ``--threads`` nor ``CAPSSIM_THREADS`` says: steady on a shared machine
+#: threads when neither ``--threads`` nor ``CAPSSIM_THREADS`` gives a count (``auto``): the count every
+#: command starts with, steady on a shared machine; reconstructions then adapt (:func:`adapt_threads`)
 DEFAULT_THREADS = 1
+#: the value of ``CAPSSIM_THREADS`` (and the default) that lets reconstructions adapt their count
+AUTO = "auto"
 #: the largest thread count accepted: ``max(MAX_THREADS, 4 x available cores)`` (more only adds idle threads)
 MAX_THREADS = 256
 #: the thread variables child processes read at start-up (OpenMP, MKL, OpenBLAS)
@@ -74,9 +81,15 @@ def resolve_threads(threads: int | None = None) -> int:
     if threads is not None:
         return _checked(threads, "--threads")
     env = os.environ.get(ENV_VAR, "").strip()
-    if env:
+    if env and env.lower() != AUTO:
         return _checked(env, ENV_VAR)
     return DEFAULT_THREADS
+
+
+def is_adaptive(threads: int | None = None) -> bool:
+    """True when neither ``threads`` nor ``$CAPSSIM_THREADS`` gives a count (the default, ``auto``)."""
+    env = os.environ.get(ENV_VAR, "").strip()
+    return threads is None and (not env or env.lower() == AUTO)
 
 
 def set_threads(threads: int | None = None, *, renderer: bool = False) -> int:
@@ -84,16 +97,19 @@ def set_threads(threads: int | None = None, *, renderer: bool = False) -> int:
 
     ``renderer``: also to Dr.Jit's thread pool (Mitsuba's LLVM variants), for the rendering commands.
     """
+    global _governor
     count = resolve_threads(threads)
+    adaptive = is_adaptive(threads)
     torch.set_num_threads(count)
     _set_opencv_threads(count)
     if renderer:
         import drjit  # not a project module: the renderer's JIT loads only for the rendering commands
 
         drjit.set_thread_count(count)
-    os.environ[ENV_VAR] = str(count)
+    os.environ[ENV_VAR] = AUTO if adaptive else str(count)
     for var in CHILD_ENV_VARS:
         os.environ[var] = str(count)
+    _governor = ThreadGovernor(available_cores()) if adaptive else None
     return count
 
 
@@ -120,3 +136,81 @@ def small_tensor_threads(threads: int = 1) -> Iterator[int]:
     finally:
         if torch.get_num_threads() != before:
             torch.set_num_threads(before)
+
+
+def busy_cpu_seconds(cpus, *, stat_path: str = "/proc/stat") -> float | None:
+    """Seconds the CPUs ``cpus`` spent busy since boot (``/proc/stat``: user, nice, system, irq, softirq,
+    steal), or None where that file cannot be read."""
+    wanted = {f"cpu{c}" for c in cpus}
+    try:
+        with open(stat_path) as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return None
+    ticks = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    total = 0
+    for line in lines:
+        parts = line.split()
+        if parts and parts[0] in wanted and len(parts) >= 9:
+            user, nice, system, _idle, _iowait, irq, softirq, steal = (int(v) for v in parts[1:9])
+            total += user + nice + system + irq + softirq + steal
+    return total / ticks
+
+
+def adaptive_count(other_cores: float, max_threads: int) -> int:
+    """Threads for a process that may use ``max_threads`` cores while others keep ``other_cores`` busy:
+    all of them under half a busy core, one fewer per further core, at least one."""
+    return max(1, min(max_threads, max_threads - math.floor(other_cores + 0.5)))
+
+
+class ThreadGovernor:
+    """Adapts torch's thread count to what the other processes leave free (the ``auto`` default).
+
+    :meth:`update` measures, since its last decision, the busy time of this process's CPUs from
+    ``/proc/stat`` minus this process's own CPU time (``time.process_time``): the cores the others
+    used. Decisions at least ``interval_s`` apart; none where ``/proc/stat`` is unreadable.
+    """
+
+    def __init__(self, max_threads: int, *, interval_s: float = 0.25, stat_path: str = "/proc/stat"):
+        self.max_threads = max(1, int(max_threads))
+        self.interval_s = interval_s
+        self.stat_path = stat_path
+        try:
+            self.cpus = sorted(os.sched_getaffinity(0))
+        except AttributeError:  # not Linux
+            self.cpus = list(range(os.cpu_count() or 1))
+        self.last = self._sample()
+        self.decisions: list[tuple[float, int]] = []  # (others' cores, threads chosen)
+
+    def _sample(self) -> tuple[float, float | None, float]:
+        return time.monotonic(), busy_cpu_seconds(self.cpus, stat_path=self.stat_path), time.process_time()
+
+    def update(self) -> int:
+        """Re-decide the thread count if ``interval_s`` has passed; return the count in use."""
+        now = self._sample()
+        wall, busy, own = (a - b if a is not None and b is not None else None for a, b in zip(now, self.last))
+        if busy is None or wall < self.interval_s:
+            return torch.get_num_threads()
+        self.last = now
+        others = max(0.0, (busy - own) / wall)
+        count = adaptive_count(others, self.max_threads)
+        self.decisions.append((round(others, 2), count))
+        if count != torch.get_num_threads():
+            torch.set_num_threads(count)
+        return count
+
+
+_governor: ThreadGovernor | None = None
+
+
+def adaptive_decisions() -> list[tuple[float, int]]:
+    """The ``(other processes' cores, threads chosen)`` decisions of this process so far (``auto`` only)."""
+    return list(_governor.decisions) if _governor is not None else []
+
+
+def adapt_threads() -> int:
+    """With the ``auto`` default, let the :class:`ThreadGovernor` re-decide the count (called at each stage
+    of a reconstruction); otherwise nothing. Returns torch's thread count."""
+    if _governor is not None:
+        return _governor.update()
+    return torch.get_num_threads()

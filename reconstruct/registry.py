@@ -31,6 +31,7 @@ from capssim.physical_validity import project_to_physical
 from capssim.reconstruct import methods as method_modules
 from capssim.reconstruct.calibration_model import CalibrationModel, resolve_calibration
 from capssim.reconstruct.registration_parameters import registration_parameters
+from capssim.threads import adapt_threads
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +47,8 @@ class StageTimer:
     def stage(self, name: str) -> Iterator[None]:
         if self.device.type == "cuda":
             torch.cuda.synchronize(self.device)
+        else:
+            adapt_threads()  # the default 'auto' thread count follows the machine's load, stage by stage
         t0 = time.perf_counter()
         try:
             yield

@@ -93,3 +93,54 @@ def test_threads_zero_is_refused_by_the_cli(tmp_path):
 
     result = CliRunner().invoke(app, ["reconstruct", str(tmp_path), "--threads", "0"])
     assert result.exit_code == 2 and "--threads" in result.output
+
+
+@pytest.mark.parametrize("others,cores,expected", [(0.0, 2, 2), (0.49, 2, 2), (0.5, 2, 1), (1.0, 2, 1), (3.0, 2, 1),
+                                                   (0.6, 4, 3), (1.6, 4, 2), (0.2, 1, 1)])
+def test_adaptive_count_leaves_the_others_their_cores(others, cores, expected):
+    assert threads.adaptive_count(others, cores) == expected
+
+
+def test_auto_is_the_default_and_is_exported_to_children(monkeypatch):
+    assert threads.is_adaptive() and threads.set_threads() == 1 and torch.get_num_threads() == 1
+    assert os.environ[threads.ENV_VAR] == threads.AUTO and os.environ["OMP_NUM_THREADS"] == "1"
+    monkeypatch.setenv(threads.ENV_VAR, "AUTO")
+    assert threads.is_adaptive() and threads.resolve_threads() == 1
+    assert not threads.is_adaptive(2)
+    threads.set_threads(2)  # an explicit count is kept: no governor
+    assert os.environ[threads.ENV_VAR] == "2" and threads.adapt_threads() == 2 and threads.adaptive_decisions() == []
+
+
+def test_governor_follows_the_other_processes(tmp_path, monkeypatch):
+    stat = tmp_path / "stat"
+    clock = {"wall": 100.0, "own": 5.0, "busy": 0}  # busy: jiffies of the two CPUs together
+
+    def write_stat():
+        half = clock["busy"] // 2
+        stat.write_text(f"cpu  {clock['busy']} 0 0 0 0 0 0 0 0 0\ncpu0 {half} 0 0 9 0 0 0 0 0 0\n"
+                        f"cpu1 {clock['busy'] - half} 0 0 9 0 0 0 0 0 0\ncpu7 5000 0 0 0 0 0 0 0 0 0\n")
+
+    def advance(seconds, own_cpu, others_cpu):
+        ticks = os.sysconf("SC_CLK_TCK")
+        clock["wall"] += seconds
+        clock["own"] += own_cpu
+        clock["busy"] += round((own_cpu + others_cpu) * ticks)
+        write_stat()
+
+    write_stat()
+    monkeypatch.setattr(threads.time, "monotonic", lambda: clock["wall"])
+    monkeypatch.setattr(threads.time, "process_time", lambda: clock["own"])
+    governor = threads.ThreadGovernor(2, stat_path=str(stat))
+    governor.cpus = [0, 1]  # cpu7 belongs to someone else's affinity mask
+    advance(1.0, own_cpu=1.0, others_cpu=0.1)
+    assert governor.update() == 2 and torch.get_num_threads() == 2  # quiet: both cores
+    advance(0.1, own_cpu=0.2, others_cpu=1.0)
+    assert governor.update() == 2  # too soon to decide again
+    advance(1.0, own_cpu=1.0, others_cpu=0.9)
+    assert governor.update() == 1 and torch.get_num_threads() == 1  # a competitor: one core left
+    advance(1.0, own_cpu=1.0, others_cpu=0.0)
+    assert governor.update() == 2
+    assert [count for _, count in governor.decisions] == [2, 1, 2]
+    missing = threads.ThreadGovernor(2, stat_path=str(tmp_path / "absent"))
+    assert missing.update() == torch.get_num_threads()  # no /proc/stat: no decision
+    assert missing.decisions == []

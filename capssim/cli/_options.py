@@ -95,8 +95,8 @@ DofpLayoutOption = typer.Option("sony", "--dofp-layout",
                                 help="DoFP 2x2 polarizer cell: sony ([[90,45],[135,0]]) | 0-45-135-90.")
 
 ThreadsOption = typer.Option(None, "--threads", min=1,
-                             help="CPU threads for torch/OpenMP/OpenCV (default: $CAPSSIM_THREADS, else 1, steady "
-                                  "on a shared machine; the core count is faster where nothing else runs).")
+                             help="CPU threads for torch/OpenMP/OpenCV (default: $CAPSSIM_THREADS, else 'auto': one "
+                                  "thread, and a reconstruction takes every core while no other process is busy).")
 
 
 def apply_threads(threads: Optional[int], *, renderer: bool = False) -> int:

@@ -51,8 +51,13 @@ def _names(csv: Optional[str]) -> list[str] | None:
     return [t.strip() for t in csv.split(",") if t.strip()] if csv else None
 
 
-def _set_threads(threads: Optional[int]) -> None:
-    apply_threads(threads)  # --threads, else $CAPSSIM_THREADS, else capssim.threads' default; inherited by workers
+def _set_threads(threads: Optional[int], *, adaptive: bool = False) -> None:
+    """--threads, else $CAPSSIM_THREADS, else capssim.threads' default; inherited by workers. Benchmarks
+    other than ``reconstruct`` (the default's own benchmark) keep one fixed count, so that their timings
+    compare within a run: the default ``auto`` is then its starting count."""
+    from capssim.threads import resolve_threads  # start-up time: pulls torch
+
+    apply_threads(threads if adaptive or threads is not None else resolve_threads(None))
 
 
 def _write_json(path: Optional[Path], obj) -> None:
@@ -192,7 +197,7 @@ def reconstruct(
     as_json: Optional[Path] = JsonOption,
 ) -> None:
     """Wall time and peak memory per stage of 'caps' at the paper's defaults, each run in a fresh process."""
-    _set_threads(threads)
+    _set_threads(threads, adaptive=True)
     from capssim.eval.benchmarks.reconstruct import format_tables, run_benchmark
 
     results = run_benchmark(sizes=sizes, devices=devices, iterations=iterations, repeats=repeats, gt=gt,

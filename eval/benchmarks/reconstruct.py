@@ -35,6 +35,7 @@ from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registry import RunContext, StageTimer, get_method, resolve_device
 from capssim.sensor import make_sensor
 from capssim.simulate import prepare_ground_truth, simulate_capture
+from capssim.threads import adaptive_decisions, is_adaptive, set_threads
 
 #: the worker's module, run in a fresh subprocess per timed run
 WORKER_MODULE = "capssim.eval.benchmarks.reconstruct"
@@ -129,11 +130,21 @@ def _synthetic_scene(size: int, seed: int) -> np.ndarray:
     return twelve_from_stokes(np.stack([s0, s0 * d * np.cos(2 * a), s0 * d * np.sin(2 * a)])).astype(np.float32)
 
 
+def _thread_range(decisions: list[tuple[float, int]]) -> str:
+    counts = sorted({count for _, count in decisions})
+    if not counts:
+        return "1 thread"
+    return f"{counts[0]} thread{'s' if counts[0] > 1 else ''}" if len(counts) == 1 else f"{counts[0]}-{counts[-1]} threads"
+
+
 def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, method: str = "caps",
            threads: int | None = None) -> dict:
-    """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
+    """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`).
+
+    ``threads``: a fixed count, or None for the inherited setting (``$CAPSSIM_THREADS``; ``auto``: the
+    count adapts to the machine's load at each stage, :func:`capssim.threads.adapt_threads`)."""
+    set_threads(threads)
+    adaptive = is_adaptive(threads)
     dev = resolve_device(device)
     capture = read_capture(capture_path, load_gt=False)
     timer = MemoryStageTimer(dev)
@@ -149,7 +160,8 @@ def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, m
     if not np.all(np.isfinite(out.image)):
         raise RuntimeError("benchmark run produced non-finite values")
     return {
-        "method": method, "hr_size": capture.hr_shape[0], "device": str(dev), "threads": torch.get_num_threads(),
+        "method": method, "hr_size": capture.hr_shape[0], "device": str(dev),
+        "threads": f"auto, {_thread_range(adaptive_decisions())}" if adaptive else torch.get_num_threads(),
         "iterations": iterations, "true_warps": true_warps, "wall_s": wall,
         "stages_s": dict(timer.stages), "stage_peak_mb": {k: v / 2**20 for k, v in timer.peaks.items()},
         "peak_mb": timer.overall_peak / 2**20, "baseline_mb": baseline / 2**20,
@@ -198,7 +210,7 @@ def format_tables(results: list[dict]) -> str:
         stages += sorted({s for r in rows for s in r["stages_s"]} - set(stages))
         mem_unit = "peak RSS MB" if dev == "cpu" else "peak allocated MB"
         head = f"caps, {rows[0]['iterations']} iterations, device {dev}" + (
-            f" ({rows[0]['threads']} threads)" if dev == "cpu" else "")
+            f" ({rows[0]['threads']}{'' if isinstance(rows[0]['threads'], str) else ' threads'})" if dev == "cpu" else "")
         lines.append(head + f"; cells: seconds ({mem_unit}); fastest of {rows[0]['repeats']} run(s)")
         width = 26
         lines.append(f"{'stage':{width}s}" + "".join(f"{f'{s}x{s}':>22s}" for s in sizes))
