@@ -14,8 +14,10 @@ the busy loss. So ``auto`` starts every command on one thread, and a reconstruct
 each of its stages (:func:`adapt_threads`, called by the methods' stage timer): all the cores this
 process may use while the other processes used less than half a core since the last decision, one
 fewer for each further core they use. An explicit count is kept as given. Phases of small tensors
-(the registration's L-BFGS on raw-size images) lose the most when the machine is busy (16x): they
-run inside :func:`small_tensor_threads`, one thread whatever the count. Measurements:
+(the registration's L-BFGS on the raw images of a small capture) lose the most when the machine is
+busy (16x): they run inside :func:`small_tensor_threads`, one thread whatever the count; the
+registration of a large capture follows the governor under ``auto`` (:func:`registration_threads`).
+Measurements:
 ``docs/notes/reconstruction-speed.md`` ("Threads on a shared machine", "Adaptive threads").
 """
 
@@ -127,15 +129,35 @@ def small_tensor_threads(threads: int = 1) -> Iterator[int]:
     short to share between threads and stall when another process holds a core. Yields the count
     used. Nested uses and exceptions restore the outer count.
     """
-    before = torch.get_num_threads()
+    global _cap
+    before, outer_cap = torch.get_num_threads(), _cap
     count = max(1, min(int(threads), before))
+    _cap = count if outer_cap is None else min(count, outer_cap)  # the governor stays under it
     if count != before:
         torch.set_num_threads(count)
     try:
         yield count
     finally:
+        _cap = outer_cap
         if torch.get_num_threads() != before:
             torch.set_num_threads(before)
+
+
+#: sub-images of at least this many pixels (128 x 128: a 512 px capture) make the registration's tensors
+#: large enough to share between threads (30 % faster on 2 quiet cores; docs: notes/reconstruction-speed.md)
+LARGE_REGISTRATION_PIXELS = 128 * 128
+
+
+@contextmanager
+def registration_threads(image_pixels: int) -> Iterator[int]:
+    """Threads of a registration on images of ``image_pixels`` pixels: under ``auto`` and for large images,
+    the governor's count, re-decided inside the phase (:func:`adapt_threads` at each evaluation);
+    otherwise :func:`small_tensor_threads` (one thread). Yields the count at the start."""
+    if _governor is not None and image_pixels >= LARGE_REGISTRATION_PIXELS:
+        yield adapt_threads()
+    else:
+        with small_tensor_threads() as count:
+            yield count
 
 
 def busy_cpu_seconds(cpus, *, stat_path: str = "/proc/stat") -> float | None:
@@ -187,13 +209,17 @@ class ThreadGovernor:
 
     def update(self) -> int:
         """Re-decide the thread count if ``interval_s`` has passed; return the count in use."""
+        if time.monotonic() - self.last[0] < self.interval_s:
+            return torch.get_num_threads()
         now = self._sample()
         wall, busy, own = (a - b if a is not None and b is not None else None for a, b in zip(now, self.last))
-        if busy is None or wall < self.interval_s:
+        if busy is None:
             return torch.get_num_threads()
         self.last = now
         others = max(0.0, (busy - own) / wall)
         count = adaptive_count(others, self.max_threads)
+        if _cap is not None:
+            count = min(count, _cap)
         self.decisions.append((round(others, 2), count))
         if count != torch.get_num_threads():
             torch.set_num_threads(count)
@@ -201,6 +227,7 @@ class ThreadGovernor:
 
 
 _governor: ThreadGovernor | None = None
+_cap: int | None = None  # set by small_tensor_threads: the governor never goes above it
 
 
 def adaptive_decisions() -> list[tuple[float, int]]:

@@ -30,7 +30,7 @@ from capssim.psf import PSF
 from capssim.reconstruct.registration import estimate_lr_homographies, registration_parameters
 from capssim.reconstruct.registration_store import stored_or_computed
 from capssim.reconstruct.registry import RunContext
-from capssim.threads import small_tensor_threads
+from capssim.threads import registration_threads
 
 
 def truth_known(capture: Capture) -> bool:
@@ -155,9 +155,9 @@ def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray
 
 def _estimated_aperture_warps(images: np.ndarray, saturated: np.ndarray, hr_shape, mode: str,
                               device) -> tuple[np.ndarray, dict]:
-    """Register the sub-images (one torch thread: small tensors); the aperture homographies
-    ``(4, 3, 3)`` and the registration's record."""
-    with small_tensor_threads():
+    """Register the sub-images (:func:`~capssim.threads.registration_threads`: one torch thread, or under
+    ``auto`` the free cores for large images); the aperture homographies ``(4, 3, 3)`` and the record."""
+    with registration_threads(int(images.shape[-2]) * int(images.shape[-1])):
         result = estimate_lr_homographies(images.astype(np.float32), hr_shape=hr_shape, saturated=saturated,
                                           parameters=registration_parameters(mode), device=str(device))
     aperture = np.asarray(result.aperture_homographies, dtype=np.float64)

@@ -31,6 +31,7 @@ from capssim.errors import InputError
 from capssim.reconstruct.lbfgs import minimize_lbfgs
 from capssim.reconstruct.registration_filters import box_sum
 from capssim.reconstruct.registration_warp import params_to_matrices, spline_coefficients, spline_sample
+from capssim.threads import adapt_threads
 
 
 class LevelCriterion:
@@ -147,6 +148,7 @@ def minimize(criterion: LevelCriterion, p0: torch.Tensor, *, max_iterations: int
     criterion.fix_weights(p0)
 
     def value_and_gradient(p: torch.Tensor) -> tuple[float, torch.Tensor]:
+        adapt_threads()  # under 'auto': follow the machine's load within the registration too
         with torch.enable_grad():  # callers may run under torch.no_grad()
             p = p.detach().requires_grad_(True)
             value = criterion.objective(p)

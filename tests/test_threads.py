@@ -144,3 +144,28 @@ def test_governor_follows_the_other_processes(tmp_path, monkeypatch):
     missing = threads.ThreadGovernor(2, stat_path=str(tmp_path / "absent"))
     assert missing.update() == torch.get_num_threads()  # no /proc/stat: no decision
     assert missing.decisions == []
+
+
+def test_small_tensor_phases_cap_the_governor_and_large_registrations_follow_it(tmp_path, monkeypatch):
+    stat = tmp_path / "stat"
+    stat.write_text("cpu0 0 0 0 0 0 0 0 0 0 0\ncpu1 0 0 0 0 0 0 0 0 0 0\n")
+    clock = {"wall": 10.0}
+    monkeypatch.setattr(threads.time, "monotonic", lambda: clock["wall"])
+    monkeypatch.setattr(threads.time, "process_time", lambda: 0.0)
+    threads.set_threads()  # auto
+    governor = threads.ThreadGovernor(2, stat_path=str(stat))
+    governor.cpus = [0, 1]
+    monkeypatch.setattr(threads, "_governor", governor)
+    clock["wall"] += 1.0
+    with threads.small_tensor_threads() as count:  # quiet machine, but a small-tensor phase: one thread
+        assert count == 1 and threads.adapt_threads() == 1 and torch.get_num_threads() == 1
+    small = threads.LARGE_REGISTRATION_PIXELS - 1
+    with threads.registration_threads(small) as count:
+        assert count == 1
+    clock["wall"] += 1.0
+    with threads.registration_threads(threads.LARGE_REGISTRATION_PIXELS) as count:  # quiet: both cores
+        assert count == 2 and torch.get_num_threads() == 2
+    monkeypatch.setattr(threads, "_governor", None)
+    torch.set_num_threads(2)
+    with threads.registration_threads(threads.LARGE_REGISTRATION_PIXELS) as count:  # a fixed count: one thread
+        assert count == 1
