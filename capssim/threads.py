@@ -82,16 +82,19 @@ def resolve_threads(threads: int | None = None) -> int:
     """
     if threads is not None:
         return _checked(threads, "--threads")
+    env = _environment_count()
+    return DEFAULT_THREADS if env is None else _checked(env, ENV_VAR)
+
+
+def _environment_count() -> str | None:
+    """``$CAPSSIM_THREADS`` when it gives a count (not blank, not ``auto``), else None."""
     env = os.environ.get(ENV_VAR, "").strip()
-    if env and env.lower() != AUTO:
-        return _checked(env, ENV_VAR)
-    return DEFAULT_THREADS
+    return None if not env or env.lower() == AUTO else env
 
 
 def is_adaptive(threads: int | None = None) -> bool:
     """True when neither ``threads`` nor ``$CAPSSIM_THREADS`` gives a count (the default, ``auto``)."""
-    env = os.environ.get(ENV_VAR, "").strip()
-    return threads is None and (not env or env.lower() == AUTO)
+    return threads is None and _environment_count() is None
 
 
 def set_threads(threads: int | None = None, *, renderer: bool = False) -> int:
@@ -212,9 +215,9 @@ class ThreadGovernor:
         if time.monotonic() - self.last[0] < self.interval_s:
             return torch.get_num_threads()
         now = self._sample()
-        wall, busy, own = (a - b if a is not None and b is not None else None for a, b in zip(now, self.last))
-        if busy is None:
+        if now[1] is None or self.last[1] is None:  # no /proc/stat
             return torch.get_num_threads()
+        wall, busy, own = (a - b for a, b in zip(now, self.last))
         self.last = now
         others = max(0.0, (busy - own) / wall)
         count = adaptive_count(others, self.max_threads)

@@ -141,14 +141,13 @@ def normalized_convolution(num: torch.Tensor, den: torch.Tensor, sigma: float, *
             break
         s *= 2
         pixels = missing.any(0).nonzero()                                             # (N, 2)
+        at = (slice(None), pixels[:, 0], pixels[:, 1])                                # their (P, N) values
         bn_at, bd_at = _gaussian_blur_at(num, pixels, s), _gaussian_blur_at(den, pixels, s)
         if bn_at is None:  # too many: the whole image at once
-            bn_at, bd_at = (gaussian_blur(t, s)[:, pixels[:, 0], pixels[:, 1]] for t in (num, den))
-        still = missing[:, pixels[:, 0], pixels[:, 1]]                                # (P, N)
-        ok_at = bd_at > min_density
-        current = out[:, pixels[:, 0], pixels[:, 1]]
-        out[:, pixels[:, 0], pixels[:, 1]] = torch.where(still & ok_at, bn_at / bd_at.clamp(min=1e-12), current)
-        missing[:, pixels[:, 0], pixels[:, 1]] = still & ~ok_at
+            bn_at, bd_at = gaussian_blur(num, s)[at], gaussian_blur(den, s)[at]
+        still, ok_at = missing[at], bd_at > min_density
+        out[at] = torch.where(still & ok_at, bn_at / bd_at.clamp(min=1e-12), out[at])
+        missing[at] = still & ~ok_at
     if bool(missing.any()):
         # no sample at all in a whole plane (every pixel saturated): fall back to the plane mean
         total_w = den.sum(dim=(-2, -1), keepdim=True)

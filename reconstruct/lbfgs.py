@@ -90,11 +90,11 @@ def strong_wolfe_search(objective: Objective, x: torch.Tensor, direction: torch.
         evaluations += 1
     if bracket is None:  # no bracket within the budget: the better end of [0, t]
         return (start if start.f <= new.f else new), evaluations
-    return _zoom(objective, trial, bracket, start, evaluations, sufficient, flat_enough,
+    return _zoom(trial, bracket, evaluations, sufficient, flat_enough,
                  direction_scale=float(direction.abs().max()), tolerance_change=tolerance_change)
 
 
-def _zoom(objective, trial, bracket, start, evaluations, sufficient, flat_enough, *, direction_scale: float,
+def _zoom(trial, bracket, evaluations, sufficient, flat_enough, *, direction_scale: float,
           tolerance_change: float) -> tuple[_Point, int]:
     """N&W Algorithm 3.6 with cubic trial steps kept 10 % of the bracket from its ends after one
     step of insufficient progress. ``bracket[low]`` is the lower of its two values."""
@@ -171,8 +171,8 @@ def minimize_lbfgs(objective: Objective, x0: torch.Tensor, *, max_iterations: in
         return x.reshape(shape), iterations, evaluations
     steps: list[torch.Tensor] = []
     changes: list[torch.Tensor] = []
-    gamma, direction, t = 1.0, -g, 1.0
-    g_previous, f_previous = g, f
+    gamma, direction = 1.0, -g
+    g_previous, t = g, 1.0
     while True:
         iterations += 1
         if iterations > 1:
@@ -180,8 +180,9 @@ def minimize_lbfgs(objective: Objective, x0: torch.Tensor, *, max_iterations: in
             curvature = float(change.dot(step))
             if curvature > 1e-10:
                 if len(steps) == history_size:
-                    steps.pop(0), changes.pop(0)
-                steps.append(step), changes.append(change)
+                    del steps[0], changes[0]
+                steps.append(step)
+                changes.append(change)
                 gamma = curvature / float(change.dot(change))
             direction = _two_loop(g, steps, changes, gamma)
         g_previous, f_previous = g, f

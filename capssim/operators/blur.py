@@ -14,8 +14,17 @@ from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
 
 
-def _replicate_index(n: int, before: int, after: int) -> torch.Tensor:
-    return torch.clamp(torch.arange(-before, n + after), 0, n - 1)
+def fold_replicated_border(padded: torch.Tensor, ph: int, pw: int) -> torch.Tensor:
+    """Adjoint of replicate padding by ``(ph, pw)``: ``(N, H + 2 ph, W + 2 pw) -> (N, H, W)``. The
+    border strips are summed onto the edge rows and columns they were copied from (in place)."""
+    hp, wp = padded.shape[-2:]
+    if pw:
+        padded[:, :, pw] += padded[:, :, :pw].sum(-1)
+        padded[:, :, wp - pw - 1] += padded[:, :, wp - pw:].sum(-1)
+    if ph:
+        padded[:, ph] += padded[:, :ph].sum(-2)
+        padded[:, hp - ph - 1] += padded[:, hp - ph:].sum(-2)
+    return padded[:, ph:hp - ph, pw:wp - pw].contiguous()
 
 
 def stack_kernels(kernel) -> np.ndarray:
@@ -46,8 +55,8 @@ class Convolve(LinearOperator):
     stack or a list of odd kernels of any sizes): plane ``p`` of the flattened leading axes
     uses kernel ``p // (planes // G)`` (e.g. one PSF per aperture of ``(4, 3, H, W)``).
 
-    Forward = replicate-pad (a gather) then valid ``conv2d``; adjoint = ``conv_transpose2d``
-    then the pad's adjoint (an ``index_add`` folding the border back).
+    Forward = replicate-pad then valid ``conv2d``; adjoint = ``conv_transpose2d`` then the pad's
+    adjoint (:func:`fold_replicated_border`).
     """
 
     name = "convolve"
@@ -60,9 +69,6 @@ class Convolve(LinearOperator):
         super().__init__(shape, shape)
         self.kernel = torch.as_tensor(k)[:, None]  # (G, 1, kh, kw)
         self.pad = (k.shape[1] // 2, k.shape[2] // 2)
-        h, w = shape[-2:]
-        self.row_index = _replicate_index(h, self.pad[0], self.pad[0])
-        self.col_index = _replicate_index(w, self.pad[1], self.pad[1])
         self.is_identity = k.shape[1:] == (1, 1) and bool(np.all(k[:, 0, 0] == 1.0))
 
     def _grouped_kernel(self, like, n: int, *, flipped: bool = False):
@@ -90,5 +96,5 @@ class Convolve(LinearOperator):
         ph, pw = self.pad
         # conv_transpose2d(y, k) written as a full correlation with the flipped kernel
         full = F.pad(y.reshape(1, n, h, w), (2 * pw, 2 * pw, 2 * ph, 2 * ph))
-        padded = F.conv2d(full, self._grouped_kernel(y, n, flipped=True), groups=n).reshape(n, 1, h + 2 * ph, w + 2 * pw)
-        return self._fold_padding(padded, y)
+        padded = F.conv2d(full, self._grouped_kernel(y, n, flipped=True), groups=n).reshape(n, h + 2 * ph, w + 2 * pw)
+        return fold_replicated_border(padded, ph, pw).reshape(self.input_shape)

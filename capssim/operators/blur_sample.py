@@ -22,7 +22,7 @@ import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
-from capssim.operators.blur import _replicate_index, stack_kernels
+from capssim.operators.blur import fold_replicated_border, stack_kernels
 from capssim.operators.sampling import _check_factor
 
 
@@ -65,8 +65,6 @@ class BlurIntegrateDecimate(LinearOperator):
         kernel_of_plane = np.arange(planes) // (planes // k.shape[0])
         self.integrate, self.stride = int(integrate), stride
         self.pad = (k.shape[1] // 2, k.shape[2] // 2)
-        self.row_index = _replicate_index(h, self.pad[0], self.pad[0])
-        self.col_index = _replicate_index(w, self.pad[1], self.pad[1])
         # one strided conv per distinct offset: (row/col start, its planes, their kernels (n, 1, kh', kw'))
         self.groups = []
         for oy, ox in np.unique(per_plane, axis=0):
@@ -110,7 +108,7 @@ class BlurIntegrateDecimate(LinearOperator):
                 padded[members, ry:ry + bh, rx:rx + bw] += back
             else:
                 padded[:, ry:ry + bh, rx:rx + bw].index_add_(0, self._const(f"m{g}", members, y), back)
-        return _fold_replicated_border(padded, ph, pw).reshape(self.input_shape)
+        return fold_replicated_border(padded, ph, pw).reshape(self.input_shape)
 
 
 def _as_slice(members: np.ndarray):
@@ -119,16 +117,3 @@ def _as_slice(members: np.ndarray):
     if step > 0 and np.array_equal(members, members[0] + step * np.arange(members.size)):
         return slice(int(members[0]), int(members[-1]) + 1, step)
     return torch.from_numpy(members)
-
-
-def _fold_replicated_border(padded: torch.Tensor, ph: int, pw: int) -> torch.Tensor:
-    """Adjoint of replicate padding by ``(ph, pw)``: ``(N, H + 2 ph, W + 2 pw) -> (N, H, W)``. The
-    border strips are summed onto the edge rows and columns they were copied from."""
-    hp, wp = padded.shape[-2:]
-    if pw:
-        padded[:, :, pw] += padded[:, :, :pw].sum(-1)
-        padded[:, :, wp - pw - 1] += padded[:, :, wp - pw:].sum(-1)
-    if ph:
-        padded[:, ph] += padded[:, :ph].sum(-2)
-        padded[:, hp - ph - 1] += padded[:, hp - ph:].sum(-2)
-    return padded[:, ph:hp - ph, pw:wp - pw].contiguous()

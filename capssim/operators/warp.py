@@ -80,10 +80,11 @@ class Warp(LinearOperator):
         out_hw = tuple(out_hw or in_hw)
         b = h.shape[0]
         super().__init__((b, channels, *in_hw), (b, channels, *out_hw))
-        # (4, B*Nout) so each tap is one index_select over the flattened batch; int32 where it fits
-        # halves the index traffic (the forward is 2-3x faster on CPU)
-        fits_int32 = b * in_hw[0] * in_hw[1] < 2**31
-        idx, wts = bilinear_taps(h, tuple(in_hw), out_hw, index_dtype=torch.int32 if fits_int32 else torch.int64)
+        # (4, B*Nout) so each tap is one index_select over the flattened batch. One channel: int32 taps on
+        # 1-D views halve the index traffic (forward 2-3x faster on CPU); several: int64 along dim 1
+        # (int32 there makes index_add_ about 10x slower)
+        int32 = channels == 1 and b * in_hw[0] * in_hw[1] < 2**31
+        idx, wts = bilinear_taps(h, tuple(in_hw), out_hw, index_dtype=torch.int32 if int32 else torch.int64)
         self.index = idx.reshape(4, -1)
         self.weight = wts.reshape(4, -1)
         self.homographies = h
@@ -92,27 +93,28 @@ class Warp(LinearOperator):
         b, c, hin, win = self.input_shape
         idx = self._const("i", self.index, x)
         wts = self._const("w", self.weight, x)
-        flat = x.permute(1, 0, 2, 3).reshape(c, b * hin * win)
-        if c == 1:  # a 1-D gather is about 2x faster than index_select along dim 1
-            flat = flat[0]
-        out = flat.index_select(-1, idx[0]) * wts[0]
+        planes = _gathered_axis_last(x.permute(1, 0, 2, 3).reshape(c, b * hin * win))
+        out = planes.index_select(-1, idx[0]) * wts[0]
         for t in range(1, 4):
-            out.addcmul_(flat.index_select(-1, idx[t]), wts[t])
+            out.addcmul_(planes.index_select(-1, idx[t]), wts[t])
         return out.reshape(c, b, *self.output_shape[2:]).permute(1, 0, 2, 3).contiguous()
 
     def _adjoint(self, y):
         b, c, hin, win = self.input_shape
         idx = self._const("i", self.index, y)
         wts = self._const("w", self.weight, y)
-        flat = y.permute(1, 0, 2, 3).reshape(c, -1)
+        values = _gathered_axis_last(y.permute(1, 0, 2, 3).reshape(c, -1))
         out = y.new_zeros(c, b * hin * win)
-        if c == 1:  # index_add_ along dim 1 with int32 indices takes a slow path
-            for t in range(4):
-                out[0].index_add_(0, idx[t], flat[0] * wts[t])
-        else:
-            for t in range(4):
-                out.index_add_(1, idx[t], flat * wts[t])
+        sums = _gathered_axis_last(out)
+        for t in range(4):
+            sums.index_add_(-1, idx[t], values * wts[t])
         return out.reshape(c, b, hin, win).permute(1, 0, 2, 3).contiguous()
+
+
+def _gathered_axis_last(planes: torch.Tensor) -> torch.Tensor:
+    """``(C, N)`` planes as the tensor the taps index along its last axis: one channel as a 1-D view
+    (the ``int32`` taps of :class:`Warp` are fast there, and slow along dim 1 of a 2-D tensor)."""
+    return planes[0] if planes.shape[0] == 1 else planes
 
 
 def warp_image(image: torch.Tensor, homography, out_hw: tuple[int, int] | None = None) -> torch.Tensor:
