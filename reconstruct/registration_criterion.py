@@ -126,7 +126,8 @@ class LevelCriterion:
     def stokes_residual(self, warped: torch.Tensor) -> torch.Tensor:
         """Mean square of ``I0 + I90 - I45 - I135`` over the pixels valid in all four images."""
         w = self.weights.prod(dim=0)
-        res = self.ref + warped[1] - warped[0] - warped[2]
+        i45, i90, i135 = warped.unbind(0)
+        res = self.ref + i90 - i45 - i135
         return (w * res * res).sum() / w.sum().clamp_min(1.0)
 
     def objective(self, p: torch.Tensor) -> torch.Tensor:

@@ -73,17 +73,25 @@ def spline_coefficients(img: torch.Tensor, *, taps: int = 12) -> torch.Tensor:
     processing", IEEE SPM 1999); applied separably, truncated at ``|k| <= taps``
     (``|z|^12 < 2e-7``) and renormalised so constants stay exact on tiny images.
     """
-    k = torch.arange(-taps, taps + 1, dtype=img.dtype, device=img.device)
-    h = math.sqrt(3.0) * _SPLINE_POLE ** k.abs()
-    x = img[:, None]
-    pad_w, pad_h = min(taps, img.shape[-1] - 1), min(taps, img.shape[-2] - 1)
-    if pad_w > 0:
-        kw = h[taps - pad_w: taps + pad_w + 1]
-        x = F.conv2d(F.pad(x, (pad_w, pad_w, 0, 0), mode="reflect"), (kw / kw.sum())[None, None, None, :])
-    if pad_h > 0:
-        kh = h[taps - pad_h: taps + pad_h + 1]
-        x = F.conv2d(F.pad(x, (0, 0, pad_h, pad_h), mode="reflect"), (kh / kh.sum())[None, None, :, None])
-    return x[:, 0]
+    x = img
+    for dim in (2, 1):  # along the width, then the height
+        pad = min(taps, x.shape[dim] - 1)
+        if pad > 0:
+            weights = [math.sqrt(3.0) * _SPLINE_POLE ** abs(k) for k in range(-pad, pad + 1)]
+            x = _symmetric_filter(x, [w / sum(weights) for w in weights], dim)
+    return x
+
+
+def _symmetric_filter(x: torch.Tensor, weights: list[float], dim: int) -> torch.Tensor:
+    """``x`` ``(B, H, W)`` filtered along ``dim`` by the odd symmetric ``weights``, border mirrored: one
+    multiply-add per tap on shifted views (float64 convolutions take the framework's slow path)."""
+    pad, n = len(weights) // 2, x.shape[dim]
+    padding = (pad, pad, 0, 0) if dim == 2 else (0, 0, pad, pad)
+    padded = F.pad(x[:, None], padding, mode="reflect")[:, 0]
+    out = padded.narrow(dim, 0, n) * weights[0]
+    for i in range(1, len(weights)):
+        out.add_(padded.narrow(dim, i, n), alpha=weights[i])
+    return out
 
 
 def spline_sample(coeffs: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
@@ -109,14 +117,16 @@ def spline_sample(coeffs: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
         g0, g1 = w0 + w1, w2 + w3
         return (t0 - 1 + w1 / g0, t0 + 1 + w3 / g1), (g0, g1)
 
-    (x0, x1), (gx0, gx1) = fold(xy[..., 0])
-    (y0, y1), (gy0, gy1) = fold(xy[..., 1])
+    xs, ys = xy.unbind(-1)  # (not selects: their backward fills a zero tensor of the whole input each)
+    (x0, x1), (gx0, gx1) = fold(xs)
+    (y0, y1), (gy0, gy1) = fold(ys)
     sx, sy = 2.0 / max(ww - 1, 1), 2.0 / max(hh - 1, 1)
     gx = torch.cat([x0, x1, x0, x1], 1) * sx - 1
     gy = torch.cat([y0, y0, y1, y1], 1) * sy - 1
     taps = F.grid_sample(coeffs[:, None], torch.stack([gx, gy], -1), mode="bilinear", padding_mode="reflection",
                          align_corners=True)[:, 0]  # (B, 4, N)
-    gx0, gx1, gy0, gy1 = gx0[:, 0], gx1[:, 0], gy0[:, 0], gy1[:, 0]
-    out = gy0 * (gx0 * taps[:, 0] + gx1 * taps[:, 1]) + gy1 * (gx0 * taps[:, 2] + gx1 * taps[:, 3])
+    gx0, gx1, gy0, gy1 = gx0.squeeze(1), gx1.squeeze(1), gy0.squeeze(1), gy1.squeeze(1)
+    t00, t01, t10, t11 = taps.unbind(1)
+    out = gy0 * (gx0 * t00 + gx1 * t01) + gy1 * (gx0 * t10 + gx1 * t11)
     return out.reshape(out_shape)
 
