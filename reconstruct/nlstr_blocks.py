@@ -20,9 +20,9 @@ def gram_maps(zr: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Ten
     """Per-block-position Gram entries of a region ``(C, Hr, W)`` -> ``(Ny*Nx, planes)``.
 
     Planes: height mode ``(i, i+d)`` for ``i + d < b`` (b(b+1)/2, ordered by ``d`` then ``i``),
-    width mode likewise, channel mode ``(c, c')`` for ``c <= c'`` (``tri_c``). The box sums are
-    exact pairwise sums (:func:`capssim.reconstruct.filters.sliding_window_sum`); every plane is
-    written once into the position-major result (no stacking and concatenation).
+    width mode likewise, channel mode ``(c, c')`` for ``c <= c'`` (``tri_c``: ``torch.triu_indices(C, C)``,
+    row-major). The box sums are exact pairwise sums (:func:`capssim.reconstruct.filters.sliding_window_sum`);
+    every plane is written once into the position-major result (no stacking and concatenation).
     """
     c, hr, w = zr.shape
     b = block
@@ -38,8 +38,12 @@ def gram_maps(zr: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Ten
         colbox = sliding_window_sum((zr[:, :, :w - d] * zr[:, :, d:]).sum(0), b, dim=0)    # (ny, W-d)
         out[:, :, slot:slot + b - d] = colbox.unfold(1, b - d, 1)[:, :nx]
         slot += b - d
-    zh = zr.permute(1, 2, 0)                                                                # (hr, W, C) view
-    prods = zh.index_select(2, tri_c[0]) * zh.index_select(2, tri_c[1])                    # (hr, W, T)
+    zh = zr.permute(1, 2, 0).contiguous()                                                  # (hr, W, C)
+    prods = zr.new_empty(hr, w, tri_c[0].numel())                                          # (hr, W, T)
+    start = 0
+    for i in range(c):  # row i of the upper triangle (tri_c is row-major): channel i times channels i..C-1
+        torch.mul(zh[:, :, i:i + 1], zh[:, :, i:], out=prods[:, :, start:start + c - i])
+        start += c - i
     out[:, :, slot:] = sliding_window_sum(sliding_window_sum(prods, b, dim=0), b, dim=1)
     return out.view(ny * nx, -1)
 

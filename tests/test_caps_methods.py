@@ -180,7 +180,7 @@ def test_options_compose_the_parameter_objects_under_the_same_names():
                                      "fov_mask": "off"}, c1=0.001)
     assert (opts.admm.iterations, opts.nlstr.strip_mb, opts.cagf.radius, opts.matching.rematch_max_gap,
             opts.nlstr.c1, opts.fov_mask) == (7, 0.5, 2, 4, 0.001, False)
-    assert CapsOptions().to_dict()["strip_mb"] == 96.0 and CapsOptions().nlstr.strip_bytes == 96 * 2**20
+    assert CapsOptions().to_dict()["strip_mb"] == 64.0 and CapsOptions().nlstr.strip_bytes == 64 * 2**20
     with pytest.raises(UnknownNameError):
         CapsOptions.from_options({"eps": 1e-3})  # NLSTR's eps is not an option
     with pytest.raises(InputError):
