@@ -147,14 +147,26 @@ def _two_loop(gradient: torch.Tensor, steps: list[torch.Tensor], changes: list[t
     return r
 
 
+class Memory:
+    """The curvature pairs ``(s, y)`` and the scale ``gamma`` of an L-BFGS run, to start a related
+    problem (the next pyramid level) from them instead of from steepest descent."""
+
+    def __init__(self):
+        self.steps: list[torch.Tensor] = []
+        self.changes: list[torch.Tensor] = []
+        self.gamma = 1.0
+
+
 def minimize_lbfgs(objective: Objective, x0: torch.Tensor, *, max_iterations: int, tolerance_grad: float,
                    tolerance_change: float, history_size: int = 20,
-                   max_evaluations: int | None = None) -> tuple[torch.Tensor, int, int]:
+                   max_evaluations: int | None = None, memory: Memory | None = None) -> tuple[torch.Tensor, int, int]:
     """Minimise ``objective`` from ``x0`` (any shape; treated as one vector).
 
     Stops at ``max_iterations`` iterations or ``max_evaluations`` evaluations (default 1.25x the
     iterations), when the gradient's max-norm is at most ``tolerance_grad``, or when a step, its
     change of value or the directional derivative falls below ``tolerance_change``.
+    ``memory``: curvature pairs to start from (a warm start: the first step is the quasi-Newton one,
+    not steepest descent), updated in place; pairs of another shape are dropped.
     Returns ``(x, iterations, evaluations)``.
     """
     max_evaluations = max_iterations * 5 // 4 if max_evaluations is None else max_evaluations
@@ -169,9 +181,12 @@ def minimize_lbfgs(objective: Objective, x0: torch.Tensor, *, max_iterations: in
     evaluations, iterations = 1, 0
     if float(g.abs().max()) <= tolerance_grad:
         return x.reshape(shape), iterations, evaluations
-    steps: list[torch.Tensor] = []
-    changes: list[torch.Tensor] = []
-    gamma, direction = 1.0, -g
+    memory = Memory() if memory is None else memory
+    if memory.steps and memory.steps[0].shape != x.shape:
+        memory.steps, memory.changes, memory.gamma = [], [], 1.0
+    steps, changes, gamma = memory.steps, memory.changes, memory.gamma
+    warm = bool(steps)
+    direction = _two_loop(g, steps, changes, gamma) if warm else -g
     g_previous, t = g, 1.0
     while True:
         iterations += 1
@@ -183,10 +198,10 @@ def minimize_lbfgs(objective: Objective, x0: torch.Tensor, *, max_iterations: in
                     del steps[0], changes[0]
                 steps.append(step)
                 changes.append(change)
-                gamma = curvature / float(change.dot(change))
+                gamma = memory.gamma = curvature / float(change.dot(change))
             direction = _two_loop(g, steps, changes, gamma)
         g_previous, f_previous = g, f
-        t = min(1.0, 1.0 / float(g.abs().sum())) if iterations == 1 else 1.0
+        t = min(1.0, 1.0 / float(g.abs().sum())) if iterations == 1 and not warm else 1.0
         slope = float(g.dot(direction))
         if slope > -tolerance_change:
             break

@@ -144,7 +144,8 @@ class LevelCriterion:
 TOLERANCE_GRAD, TOLERANCE_CHANGE = 1e-7, 1e-9
 
 
-def minimize(criterion: LevelCriterion, p0: torch.Tensor, *, max_iterations: int) -> tuple[torch.Tensor, int, int]:
+def minimize(criterion: LevelCriterion, p0: torch.Tensor, *, max_iterations: int,
+             memory=None) -> tuple[torch.Tensor, int, int]:
     """L-BFGS (strong Wolfe) from ``p0`` with the weights frozen at ``p0``; returns ``(p, iterations, evaluations)``."""
     criterion.fix_weights(p0)
 
@@ -157,7 +158,7 @@ def minimize(criterion: LevelCriterion, p0: torch.Tensor, *, max_iterations: int
         return float(value.detach()), gradient
 
     return minimize_lbfgs(value_and_gradient, p0, max_iterations=max_iterations, tolerance_grad=TOLERANCE_GRAD,
-                          tolerance_change=TOLERANCE_CHANGE, history_size=20)
+                          tolerance_change=TOLERANCE_CHANGE, history_size=20, memory=memory)
 
 
 def final_fit(criterion, p: torch.Tensor, *, stokes: bool = False) -> tuple[torch.Tensor, float | None]:

@@ -6,7 +6,7 @@ import sys
 import pytest
 import torch
 
-from capssim.reconstruct.lbfgs import cubic_minimizer, minimize_lbfgs
+from capssim.reconstruct.lbfgs import Memory, cubic_minimizer, minimize_lbfgs
 
 
 def rosenbrock(x: torch.Tensor) -> torch.Tensor:
@@ -73,6 +73,32 @@ def test_quadratic_converges_and_respects_evaluation_budget():
     _, _, evaluations = minimize_lbfgs(value_and_gradient, torch.full((6,), -1.2, dtype=torch.float64),
                                        max_iterations=8, tolerance_grad=1e-7, tolerance_change=1e-9)
     assert evaluations <= 8 * 5 // 4 + 26
+
+
+def test_warm_start_from_a_related_problem_takes_fewer_iterations():
+    # an ill-conditioned quadratic, then the same curvature with another minimum (the next pyramid level)
+    a = torch.diag(torch.logspace(0, 3, 8, dtype=torch.float64))
+    shift = torch.linspace(-1, 1, 8, dtype=torch.float64)
+
+    def first(x):
+        return float(0.5 * x @ a @ x), a @ x
+
+    def second(x):
+        return float(0.5 * (x - shift) @ a @ (x - shift)), a @ (x - shift)
+
+    options = dict(max_iterations=200, tolerance_grad=1e-10, tolerance_change=1e-14)
+    memory = Memory()
+    x1, _, _ = minimize_lbfgs(first, torch.ones(8, dtype=torch.float64), memory=memory, **options)
+    assert memory.steps and float(x1.abs().max()) < 1e-6
+    cold, cold_iterations, _ = minimize_lbfgs(second, x1, **options)
+    warm, warm_iterations, _ = minimize_lbfgs(second, x1, memory=memory, **options)
+    torch.testing.assert_close(warm, shift, rtol=0, atol=1e-6)
+    torch.testing.assert_close(cold, shift, rtol=0, atol=1e-6)
+    assert warm_iterations < cold_iterations
+    # pairs of another shape are dropped, not used
+    _, _, _ = minimize_lbfgs(lambda x: (float(0.5 * x @ x), x), torch.ones(3, dtype=torch.float64), memory=memory,
+                             **options)
+    assert all(s.shape == (3,) for s in memory.steps)
 
 
 def test_cubic_minimizer():
