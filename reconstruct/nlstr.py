@@ -162,6 +162,31 @@ def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int
     return out
 
 
+def _offset_differences(zpad: torch.Tensor, top: int, rows: int, width: int, radius: int) -> torch.Tensor:
+    """``sq[t, y, x] = sum_c (z[c, top + y, x] - z[c, top + y + oy, x + ox])^2`` for every offset ``t = (oy, ox)``
+    of the ``(2 r + 1)^2`` window (row-major), from ``zpad`` = ``z`` zero-padded by ``2 r``: ``(n_off, rows, W)``.
+
+    Offsets come in pairs ``+-o`` with ``sq[-o](p) = sq[o](p - o)``: each pair is one pass over the channels,
+    on the region widened by ``r`` (bit-identical to computing both; about 0.6x the work). Values at pixels
+    whose partner lies outside the image are those of zero padding and belong to invalid candidates only.
+    """
+    r = radius
+    side = 2 * r + 1
+    n_off = side * side
+    sq = zpad.new_empty(n_off, rows, width)
+    sq[n_off // 2] = 0.0
+    ext = zpad[:, top + r:top + rows + 3 * r, r:width + 3 * r]                  # image rows top-r.., cols -r..
+    diff = torch.empty_like(ext)
+    pair_sum = zpad.new_empty(ext.shape[1:])
+    for t in range(n_off // 2 + 1, n_off):  # the offsets after the centre; their mirrors are n_off - 1 - t
+        oy, ox = t // side - r, t % side - r
+        torch.sub(ext, zpad[:, top + r + oy:top + rows + 3 * r + oy, r + ox:width + 3 * r + ox], out=diff)
+        torch.sum(diff.square_(), 0, out=pair_sum)
+        sq[t] = pair_sum[r:r + rows, r:r + width]
+        sq[n_off - 1 - t] = pair_sum[r - oy:r - oy + rows, r - ox:r - ox + width]
+    return sq
+
+
 def _triu(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
     return tuple(torch.triu_indices(n, n, device=device))
 
@@ -241,7 +266,7 @@ class NonlocalSparseTensor:
         match = match_rows * n_off * w * item * 4 + rows * nx * n_off * (2 * item + 17)
         gram_rows = min(h, match_rows + 2 * r) - b + 1
         gram = gram_rows * (w - b + 1) * self._map_planes() * item * 3 + rows * nx * b * b * c * item * 10
-        persistent = c * (h + 2 * r) * (w + 2 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
+        persistent = c * (h + 4 * r) * (w + 4 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
         persistent += self.n_ref * b * b * c * item  # U of every group
         return int(persistent + 4 * h * w * c * item + max(match, gram))
 
@@ -274,7 +299,7 @@ class NonlocalSparseTensor:
         b, r = self.params.block, self.params.search_radius
         n_off = (2 * r + 1) ** 2
         p = max(1, min(int(n_similar), n_off))
-        zpad = F.pad(z, (r, r, r, r))
+        zpad = F.pad(z, (2 * r, 2 * r, 2 * r, 2 * r))
         dy_all = torch.arange(-r, r + 1, device=z.device)
         dys = dy_all[:, None].expand(-1, 2 * r + 1).reshape(-1)
         dxs = dy_all[None, :].expand(2 * r + 1, -1).reshape(-1)
@@ -286,14 +311,8 @@ class NonlocalSparseTensor:
             ya = int(self.ref_y[strip.ref_rows[0]])
             yb = int(self.ref_y[strip.ref_rows[-1]])
             rows = yb + b - ya
-            a = z[:, ya:ya + rows, :]
             ref_rows_rel = self.ref_y[strip.ref_rows] - ya
-            sq = torch.empty(n_off, rows, w, dtype=z.dtype, device=z.device)
-            diff = torch.empty_like(a)
-            for t in range(n_off):  # whole-image ops per offset into reused buffers, no loop over blocks
-                dy, dx = divmod(t, 2 * r + 1)
-                torch.sub(a, zpad[:, ya + dy:ya + dy + rows, dx:dx + w], out=diff)
-                torch.sum(diff.square_(), 0, out=sq[t])
+            sq = _offset_differences(zpad, ya, rows, w, r)                            # (n_off, rows, W)
             box = window_sums_at(sq, b, self.ref_x, dim=2)                            # (n_off, rows, nx)
             box = window_sums_at(box, b, ref_rows_rel, dim=1)                         # (n_off, nrows, nx)
             dist = box.permute(1, 2, 0)                                                # (nrows, nx, n_off)
