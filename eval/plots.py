@@ -89,6 +89,7 @@ def speed_vs_error(records: list[dict], path: Path, *, metric: str = "psnr_mean"
                        edgecolors="black" if on_front else "none", linewidths=1.3, zorder=3, label=m)
             ax.annotate(m, (t[i], v[i]), textcoords="offset points", xytext=(5, 4), fontsize=8)
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())  # labelled minor ticks overlap on short ranges
         lo, hi = t.min(), t.max()
         ax.set_xlim(lo / 2, hi * 3)
         ax.set_xlabel("wall time per reconstruction (s, log)")

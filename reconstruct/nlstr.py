@@ -386,16 +386,23 @@ class NonlocalSparseTensor:
                 top, left = y0 + p * s, q * s
                 num[top:top + ny * b, left:left + nx * b] += tiles.permute(0, 2, 1, 3, 4).reshape(ny * b, nx * b, c)
 
-    def _shrunk_blocks(self, pair: torch.Tensor, bases: tuple, acc: dict, terms: bool) -> torch.Tensor:
-        """Eq. 22-23 and the inverse transform for groups whose reference block and ``U`` are stacked in
-        ``pair`` ``(k, b, 2, b, C)``: the blocks ``(k, b, b, C)`` of the shrunk cores, in chunks of
-        :data:`CHUNK_GROUPS`; the statistics of :func:`shrink_core` are added to ``acc``."""
-        prm, k = self.params, pair.shape[0]
-        blocks = pair.new_empty(k, *pair.shape[1:2], *pair.shape[3:])
-        for lo in range(0, k, CHUNK_GROUPS):
-            part = slice(lo, min(k, lo + CHUNK_GROUPS))
+    def _shrunk_blocks(self, refs: torch.Tensor, u: torch.Tensor, bases: tuple, acc: dict,
+                       terms: bool) -> torch.Tensor:
+        """Eq. 22-23 and the inverse transform for groups with reference blocks ``refs`` ``(R, n, b, b*C)`` (``R``
+        rows of ``n`` groups; a strided view allowed) and weighted sums ``u`` ``(R*n, b, b*C)``: the blocks
+        ``(R*n, b, b, C)`` of the shrunk cores. Chunks of whole rows, about :data:`CHUNK_GROUPS` groups, stack
+        their ``R`` and ``U`` (one batched transform) and stay in the cache; the statistics of
+        :func:`shrink_core` are added to ``acc``."""
+        prm, c = self.params, self.shape[0]
+        rows, per_row, b = refs.shape[:3]
+        blocks = u.new_empty(rows * per_row, b, b, c)
+        step = max(1, CHUNK_GROUPS // per_row)
+        for r0 in range(0, rows, step):
+            part = slice(r0 * per_row, min(rows, r0 + step) * per_row)
             ph, pw, pc = (basis[part] for basis in bases)
-            coeffs = mode_products(pair[part], ph, pw, pc, transpose=True)
+            chunk = refs[r0:r0 + step]
+            pair = torch.stack([chunk, u[part].view(chunk.shape)], dim=3).view(-1, b, 2, b, c)
+            coeffs = mode_products(pair, ph, pw, pc, transpose=True)
             alpha, beta = coeffs[:, :, 0], coeffs[:, :, 1]  # (n, b, b, C) views, no copies
             core, parts = shrink_core(alpha, beta, prm.c1, prm.c2, adaptive=prm.adaptive, eps=prm.eps, terms=terms)
             for key, value in parts.items():
@@ -436,13 +443,12 @@ class NonlocalSparseTensor:
             else:
                 ph, pw, pc = self._strip_bases(z, strip, py, px)
                 self._bases_cache[1].append((ph, pw, pc))
-            pair = z.new_empty(k, b, 2, b * c)  # the reference block R and U = S x4 w (eq. 19), stacked
-            if self.tiled:
-                pair[:, :, 0] = self._reference_blocks(z_pixels, strip).reshape(k, b, b * c)
+            if self.tiled:  # the reference blocks R: a strided view (rows, Nx, b, b*C)
+                refs = self._reference_blocks(z_pixels, strip).flatten(-2)
             else:
-                pair[:, :, 0] = gather_blocks(segments, ry * w + rx, row_starts)
-            pair[:, :, 1] = u_all.index_select(0, groups)
-            blocks = self._shrunk_blocks(pair.view(k, b, 2, b, c), (ph, pw, pc), acc, terms)
+                refs = gather_blocks(segments, ry * w + rx, row_starts)[:, None]
+            u = u_all.narrow(0, int(groups[0]), k)  # U = S x4 w (eq. 19); a strip's groups are consecutive
+            blocks = self._shrunk_blocks(refs, u, (ph, pw, pc), acc, terms)
             if self.tiled:
                 self._add_tiles(num.view(h, w, c), blocks, strip)
             else:
