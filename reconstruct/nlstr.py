@@ -6,10 +6,10 @@ The HR image ``Z = I - L`` (``(C, H, W)``, C = 12 for CAPS) is cut into overlapp
 For each reference block:
 
 1. **Block matching** (section 3.3): the ``P`` most similar blocks ``S^(k)`` in a
-   ``(2 R + 1)^2`` window around it, by the channel-summed squared difference. All
-   candidate offsets are scored at once per row of offsets: the squared differences of
-   the image with its shifted copies, box-summed over the block (``avg_pool``), then
-   ``topk``. No Python loop over blocks.
+   ``(2 R + 1)^2`` window around it, by the channel-summed squared difference. Per offset,
+   the squared differences of the image with its shifted copy (one pass for the pair
+   ``+-o``: ``sq[-o](p) = sq[o](p - o)``), box-summed over the blocks of the reference
+   grid, then ``topk``. No Python loop over blocks.
 2. **Dictionaries** (eq. 21, PCAT): the height-, width- and channel-mode PCA bases of
    the group are the eigenvectors of the mode Gram matrices ``S_(n) S_(n)^T``, summed
    over the ``P`` blocks. Each block's own 8x8 / 8x8 / CxC Gram matrix is read from
@@ -28,9 +28,11 @@ For each reference block:
    literal block norms ``||alpha||_1`` and ``||alpha - beta||_2^2`` (see
    docs/notes/solver.md for why the default is per coefficient).
 4. **Aggregation** (eq. 29): ``X = (sum_k R_k^T 1)^-1 sum_k R_k^T (C x1 Phi_h x2 Phi_w
-   x3 Phi_c)``, by ``index_add`` into the image.
+   x3 Phi_c)``: on a regular grid the blocks of every ``(b/s)``-th row and column tile the
+   image and are added as reshaped images, else by ``index_add``.
 
-Memory is bounded by processing reference rows in strips sized by ``strip_mb``; the
+Steps 3-4 run on chunks of about :data:`CHUNK_GROUPS` groups, whose temporaries stay in
+the cache. Memory is bounded by processing reference rows in strips sized by ``strip_mb``; the
 working set is estimated and checked (:mod:`capssim.resources`) before anything is
 allocated. On CUDA the same code runs unchanged. The block-matching schedule across ADMM
 iterations belongs to :class:`capssim.reconstruct.nlstr_prior.NLSTRPrior`.
@@ -52,6 +54,7 @@ from capssim.reconstruct.nlstr_blocks import (
     gram_maps,
     group_matrix,
     mode_products,
+    offset_differences,
     orthonormal_bases,
     row_segments,
     shrink_core,
@@ -160,31 +163,6 @@ def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int
     for q in range(1, size // step):
         out.add_(chunks.narrow(dim, q, n))
     return out
-
-
-def _offset_differences(zpad: torch.Tensor, top: int, rows: int, width: int, radius: int) -> torch.Tensor:
-    """``sq[t, y, x] = sum_c (z[c, top + y, x] - z[c, top + y + oy, x + ox])^2`` for every offset ``t = (oy, ox)``
-    of the ``(2 r + 1)^2`` window (row-major), from ``zpad`` = ``z`` zero-padded by ``2 r``: ``(n_off, rows, W)``.
-
-    Offsets come in pairs ``+-o`` with ``sq[-o](p) = sq[o](p - o)``: each pair is one pass over the channels,
-    on the region widened by ``r`` (bit-identical to computing both; about 0.6x the work). Values at pixels
-    whose partner lies outside the image are those of zero padding and belong to invalid candidates only.
-    """
-    r = radius
-    side = 2 * r + 1
-    n_off = side * side
-    sq = zpad.new_empty(n_off, rows, width)
-    sq[n_off // 2] = 0.0
-    ext = zpad[:, top + r:top + rows + 3 * r, r:width + 3 * r]                  # image rows top-r.., cols -r..
-    diff = torch.empty_like(ext)
-    pair_sum = zpad.new_empty(ext.shape[1:])
-    for t in range(n_off // 2 + 1, n_off):  # the offsets after the centre; their mirrors are n_off - 1 - t
-        oy, ox = t // side - r, t % side - r
-        torch.sub(ext, zpad[:, top + r + oy:top + rows + 3 * r + oy, r + ox:width + 3 * r + ox], out=diff)
-        torch.sum(diff.square_(), 0, out=pair_sum)
-        sq[t] = pair_sum[r:r + rows, r:r + width]
-        sq[n_off - 1 - t] = pair_sum[r - oy:r - oy + rows, r - ox:r - ox + width]
-    return sq
 
 
 def _triu(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -312,7 +290,7 @@ class NonlocalSparseTensor:
             yb = int(self.ref_y[strip.ref_rows[-1]])
             rows = yb + b - ya
             ref_rows_rel = self.ref_y[strip.ref_rows] - ya
-            sq = _offset_differences(zpad, ya, rows, w, r)                            # (n_off, rows, W)
+            sq = offset_differences(zpad, ya, rows, w, r)                            # (n_off, rows, W)
             box = window_sums_at(sq, b, self.ref_x, dim=2)                            # (n_off, rows, nx)
             box = window_sums_at(box, b, ref_rows_rel, dim=1)                         # (n_off, nrows, nx)
             dist = box.permute(1, 2, 0)                                                # (nrows, nx, n_off)
