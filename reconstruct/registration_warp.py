@@ -20,6 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import UnknownNameError
+from capssim.reconstruct.filters import correlate
 
 #: motion models and their number of parameters
 MOTION_MODELS: dict[str, int] = {"translation": 2, "euclidean": 3, "similarity": 4, "affine": 6, "homography": 8}
@@ -74,24 +75,13 @@ def spline_coefficients(img: torch.Tensor, *, taps: int = 12) -> torch.Tensor:
     (``|z|^12 < 2e-7``) and renormalised so constants stay exact on tiny images.
     """
     x = img
-    for dim in (2, 1):  # along the width, then the height
+    for dim in (2, 1):  # along the width (a 1 x K kernel), then the height (K x 1)
         pad = min(taps, x.shape[dim] - 1)
         if pad > 0:
             weights = [math.sqrt(3.0) * _SPLINE_POLE ** abs(k) for k in range(-pad, pad + 1)]
-            x = _symmetric_filter(x, [w / sum(weights) for w in weights], dim)
+            kernel = torch.tensor([w / sum(weights) for w in weights], dtype=torch.float64)
+            x = correlate(x, kernel[None] if dim == 2 else kernel[:, None], padding="reflect")
     return x
-
-
-def _symmetric_filter(x: torch.Tensor, weights: list[float], dim: int) -> torch.Tensor:
-    """``x`` ``(B, H, W)`` filtered along ``dim`` by the odd symmetric ``weights``, border mirrored: one
-    multiply-add per tap on shifted views (float64 convolutions take the framework's slow path)."""
-    pad, n = len(weights) // 2, x.shape[dim]
-    padding = (pad, pad, 0, 0) if dim == 2 else (0, 0, pad, pad)
-    padded = F.pad(x[:, None], padding, mode="reflect")[:, 0]
-    out = padded.narrow(dim, 0, n) * weights[0]
-    for i in range(1, len(weights)):
-        out.add_(padded.narrow(dim, i, n), alpha=weights[i])
-    return out
 
 
 def spline_sample(coeffs: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
