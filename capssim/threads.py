@@ -114,7 +114,7 @@ def set_threads(threads: int | None = None, *, renderer: bool = False) -> int:
     os.environ[ENV_VAR] = AUTO if adaptive else str(count)
     for var in CHILD_ENV_VARS:
         os.environ[var] = str(count)
-    _governor = ThreadGovernor(available_cores()) if adaptive else None
+    _governor = ThreadGovernor(available_cores(), since=_startup_sample()) if adaptive else None
     return count
 
 
@@ -196,15 +196,13 @@ class ThreadGovernor:
     used. Decisions at least ``interval_s`` apart; none where ``/proc/stat`` is unreadable.
     """
 
-    def __init__(self, max_threads: int, *, interval_s: float = 0.25, stat_path: str = "/proc/stat"):
+    def __init__(self, max_threads: int, *, interval_s: float = 0.25, stat_path: str = "/proc/stat",
+                 since: tuple[float, float | None, float] | None = None):
         self.max_threads = max(1, int(max_threads))
         self.interval_s = interval_s
         self.stat_path = stat_path
-        try:
-            self.cpus = sorted(os.sched_getaffinity(0))
-        except AttributeError:  # not Linux
-            self.cpus = list(range(os.cpu_count() or 1))
-        self.last = self._sample()
+        self.cpus = _affinity()
+        self.last = since if since is not None else self._sample()  # since: an earlier _sample()
         self.decisions: list[tuple[float, int]] = []  # (others' cores, threads chosen)
 
     def _sample(self) -> tuple[float, float | None, float]:
@@ -227,6 +225,25 @@ class ThreadGovernor:
         if count != torch.get_num_threads():
             torch.set_num_threads(count)
         return count
+
+
+def _affinity() -> list[int]:
+    try:
+        return sorted(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return list(range(os.cpu_count() or 1))
+
+
+#: the load sample taken when this module was imported (the command's start-up), for the first governor
+_import_sample = (time.monotonic(), busy_cpu_seconds(_affinity()), time.process_time())
+
+
+def _startup_sample() -> tuple[float, float | None, float] | None:
+    """The import-time sample, once: the first governor of a process measures the load over the start-up,
+    so the first stages of a command (CAGF, the initialization) already run at the machine's count."""
+    global _import_sample
+    sample, _import_sample = _import_sample, None
+    return sample
 
 
 _governor: ThreadGovernor | None = None

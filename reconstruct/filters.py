@@ -7,6 +7,8 @@ device-agnostic and vectorized; images are ``(..., H, W)`` tensors.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 
@@ -62,6 +64,27 @@ def correlate(image: torch.Tensor, kernel, *, padding: str = "reflect") -> torch
     if out is None:
         out = image.new_zeros((x.shape[0], h, w))
     return out.reshape(*lead, h, w)
+
+
+def gaussian_kernel(sigma: float, *, like: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """The normalised 1-D Gaussian of standard deviation ``sigma`` (pixels) on ``-r..r``, and ``r = ceil(3 sigma)``."""
+    radius = max(1, int(math.ceil(3 * sigma)))
+    t = torch.arange(-radius, radius + 1, dtype=like.dtype, device=like.device)
+    k = torch.exp(-0.5 * (t / sigma) ** 2)
+    return k / k.sum(), radius
+
+
+def gaussian_blur(image: torch.Tensor, sigma: float, *, padding: str = "zeros") -> torch.Tensor:
+    """Separable Gaussian blur of every ``(H, W)`` slice of ``image`` (``sigma`` in pixels; 0: a copy).
+
+    ``padding`` as :func:`correlate` (``'zeros'`` for normalized convolution, ``'replicate'``
+    for images). Two 1-D passes of :func:`correlate`: on CPU several times faster than a
+    grouped ``conv2d`` and the same float32 values.
+    """
+    if sigma <= 0:
+        return image.clone()
+    k, _ = gaussian_kernel(sigma, like=image)
+    return correlate(correlate(image, k[None, :], padding=padding), k[:, None], padding=padding)
 
 
 def sliding_window_sum(x: torch.Tensor, size: int, *, dim: int) -> torch.Tensor:

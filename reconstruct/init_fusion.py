@@ -31,14 +31,13 @@ truth is given).
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.reconstruct.cagf import box_mean
+from capssim.reconstruct.filters import gaussian_blur, gaussian_kernel
 from capssim.reconstruct.rearrange import Observations
 
 
@@ -76,27 +75,6 @@ def splat(values: torch.Tensor, positions: torch.Tensor, target: torch.Tensor, n
     return out.reshape(n_planes, hh, ww)
 
 
-def _gaussian_kernel(sigma: float, like: torch.Tensor) -> tuple[torch.Tensor, int]:
-    """The normalised 1-D Gaussian of :func:`gaussian_blur` and its radius ``ceil(3 sigma)``."""
-    radius = max(1, int(math.ceil(3 * sigma)))
-    t = torch.arange(-radius, radius + 1, dtype=like.dtype, device=like.device)
-    k = torch.exp(-0.5 * (t / sigma) ** 2)
-    return k / k.sum(), radius
-
-
-def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Separable Gaussian blur of ``(..., H, W)`` with zero padding (for normalized convolution)."""
-    if sigma <= 0:
-        return x.clone()
-    k, radius = _gaussian_kernel(sigma, x)
-    shape = x.shape
-    n = max(1, x.numel() // (shape[-2] * shape[-1]))
-    flat = x.reshape(1, n, shape[-2], shape[-1])  # planes as groups: one fast grouped conv
-    flat = F.conv2d(flat, k.view(1, 1, 1, -1).expand(n, 1, 1, -1), padding=(0, radius), groups=n)
-    flat = F.conv2d(flat, k.view(1, 1, -1, 1).expand(n, 1, -1, 1), padding=(radius, 0), groups=n)
-    return flat.reshape(shape)
-
-
 #: at most this many gathered values per chunk of :func:`_gaussian_blur_at` (float32: 64 MB)
 _BLUR_AT_CHUNK = 2**24
 
@@ -106,7 +84,7 @@ def _gaussian_blur_at(x: torch.Tensor, pixels: torch.Tensor, sigma: float) -> to
 
     Each value is the kernel-weighted sum of its own ``(2r+1)^2`` zero-padded window. None when the
     windows would hold more values than the whole-image blur touches (then blur the image)."""
-    k, radius = _gaussian_kernel(sigma, x)
+    k, radius = gaussian_kernel(sigma, like=x)
     planes, (hh, ww), width = x.shape[0], x.shape[-2:], 2 * radius + 1
     if pixels.shape[0] * width * width > 4 * hh * ww:
         return None
@@ -211,5 +189,5 @@ def fuse_initial_estimate(obs: Observations, homographies, hr_shape: tuple[int, 
     return t_c + slope * (pan - p_c)
 
 
-__all__ = ["fuse_initial_estimate", "gaussian_blur", "normalized_convolution", "sample_maps", "sample_positions",
+__all__ = ["fuse_initial_estimate", "normalized_convolution", "sample_maps", "sample_positions",
            "splat"]

@@ -9,7 +9,11 @@ For each reference block:
    ``(2 R + 1)^2`` window around it, by the channel-summed squared difference. Per offset,
    the squared differences of the image with its shifted copy (one pass for the pair
    ``+-o``: ``sq[-o](p) = sq[o](p - o)``), box-summed over the blocks of the reference
-   grid, then ``topk``. No Python loop over blocks.
+   grid, then ``topk``. No Python loop over blocks. With ``match_components = m > 0`` the
+   differences are those of the image's ``m`` leading principal components of the channels
+   (PCA-projected similarity, as in Tasdizen, "Principal neighborhood dictionaries for
+   nonlocal means image denoising", IEEE TIP 18(12), 2009; here across channels): fewer
+   channels to difference, an option of the ``fast`` preset, not the paper's.
 2. **Dictionaries** (eq. 21, PCAT): the height-, width- and channel-mode PCA bases of
    the group are the eigenvectors of the mode Gram matrices ``S_(n) S_(n)^T``, summed
    over the ``P`` blocks. Each block's own 8x8 / 8x8 / CxC Gram matrix is read from
@@ -48,7 +52,6 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.reconstruct.filters import sliding_window_sum
 from capssim.reconstruct.nlstr_blocks import (
     gather_blocks,
     gram_maps,
@@ -56,10 +59,12 @@ from capssim.reconstruct.nlstr_blocks import (
     mode_products,
     offset_differences,
     orthonormal_bases,
+    principal_channels,
     row_segments,
     shrink_core,
     unpack_grams,
     weighted_block_sums,
+    window_sums_at,
 )
 from capssim.resources import check_memory, check_range
 
@@ -77,6 +82,7 @@ class NLSTRParameters:
     block: int = 8
     stride: int = 4
     search_radius: int = 7
+    match_components: int = 0  # block matching on this many principal components of the channels; 0: all
     c1: float = 0.002
     c2: float = 0.02
     adaptive: str = "element"
@@ -99,6 +105,10 @@ class NLSTRParameters:
             raise InputError("stride", self.stride, f"an integer in [1, block={self.block}]")
         if self.search_radius < 0:
             raise InputError("search_radius", self.search_radius, "an integer >= 0")
+        if isinstance(self.match_components, bool) or not isinstance(self.match_components, int) \
+                or self.match_components < 0:
+            raise InputError("match_components", repr(self.match_components),
+                             "an integer >= 0 (principal components of the channels for block matching; 0: all)")
         for name in ("c1", "c2", "weight_bandwidth", "strip_mb"):
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
@@ -142,27 +152,6 @@ class _Strip:
     ref_rows: torch.Tensor     # indices into the reference-row list
     y_lo: int                  # first candidate block row
     y_hi: int                  # last candidate block row (inclusive)
-
-
-def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int) -> torch.Tensor:
-    """Sums of ``x`` over ``[start, start + size)`` along ``dim`` for each of ``starts`` (ascending).
-
-    When the starts are ``0, s, 2s, ...`` with ``s`` dividing ``size`` (the reference grid of an
-    image whose sides are multiples of the stride), the windows are sums of ``size / s``
-    consecutive ``s``-chunks: one pass over ``x`` instead of window sums at every position.
-    """
-    n = starts.numel()
-    step = int(starts[1] - starts[0]) if n > 1 else size
-    span = step * (n - 1) + size
-    aligned = (size % step == 0 and span <= x.shape[dim] and int(starts[0]) == 0
-               and bool((starts == torch.arange(n, device=starts.device) * step).all()))
-    if not aligned:
-        return sliding_window_sum(x, size, dim=dim).index_select(dim, starts)
-    chunks = x.narrow(dim, 0, span).unflatten(dim, (span // step, step)).sum(dim + 1)
-    out = chunks.narrow(dim, 0, n).clone()
-    for q in range(1, size // step):
-        out.add_(chunks.narrow(dim, q, n))
-    return out
 
 
 def _triu(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -277,7 +266,7 @@ class NonlocalSparseTensor:
         b, r = self.params.block, self.params.search_radius
         n_off = (2 * r + 1) ** 2
         p = max(1, min(int(n_similar), n_off))
-        zpad = F.pad(z, (2 * r, 2 * r, 2 * r, 2 * r))
+        zpad = F.pad(principal_channels(z, self.params.match_components), (2 * r, 2 * r, 2 * r, 2 * r))
         dy_all = torch.arange(-r, r + 1, device=z.device)
         dys = dy_all[:, None].expand(-1, 2 * r + 1).reshape(-1)
         dxs = dy_all[None, :].expand(2 * r + 1, -1).reshape(-1)

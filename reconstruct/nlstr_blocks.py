@@ -9,12 +9,27 @@ numbers. Everything is batched torch and runs unchanged on CUDA.
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import torch
 
 from capssim.errors import InputError
 from capssim.reconstruct.filters import sliding_window_sum
+
+
+def principal_channels(z: torch.Tensor, count: int) -> torch.Tensor:
+    """``z`` ``(C, H, W)`` projected on its ``count`` leading principal components of the channels
+    (eigenvectors of the mean-removed ``C x C`` channel covariance): ``(count, H, W)``; ``z`` itself when
+    ``count`` is 0 or at least ``C``. Distances between blocks of the projection are those of ``z``
+    within the components' subspace (a lower bound)."""
+    c = z.shape[0]
+    if count <= 0 or count >= c:
+        return z
+    flat = z.reshape(c, -1)
+    centred = flat - flat.mean(1, keepdim=True)
+    _, vectors = torch.linalg.eigh(centred @ centred.T)                     # ascending eigenvalues
+    return (vectors[:, -count:].T @ flat).reshape(count, *z.shape[1:])
 
 
 def offset_differences(zpad: torch.Tensor, top: int, rows: int, width: int, radius: int) -> torch.Tensor:
@@ -40,6 +55,38 @@ def offset_differences(zpad: torch.Tensor, top: int, rows: int, width: int, radi
         sq[t] = pair_sum[r:r + rows, r:r + width]
         sq[n_off - 1 - t] = pair_sum[r - oy:r - oy + rows, r - ox:r - ox + width]
     return sq
+
+
+def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int) -> torch.Tensor:
+    """Sums of ``x`` over ``[start, start + size)`` along ``dim`` for each of ``starts`` (ascending).
+
+    A reference grid ``0, s, 2s, ...`` (then possibly one last start, ``image side - block``): with
+    ``g = gcd(size, s)`` each window is ``size / g`` consecutive ``g``-chunks, so one pass over ``x``
+    and a few strided additions give them all, instead of window sums at every position. Other starts
+    fall back to those.
+    """
+    n = starts.numel()
+    step = int(starts[1] - starts[0]) if n > 1 else size
+    on_grid = (starts == torch.arange(n, device=starts.device) * step).tolist()
+    regular = on_grid.index(False) if False in on_grid else n                      # the grid's prefix
+    if regular < max(n - 1, 1) or step < 1 or bool((starts[regular:] + size > x.shape[dim]).any()):
+        return sliding_window_sum(x, size, dim=dim).index_select(dim, starts)
+    g = math.gcd(size, step)
+    span = step * (regular - 1) + size
+    chunks = x.narrow(dim, 0, span).unflatten(dim, (span // g, g)).sum(dim + 1)   # (..., span / g, ...)
+    per = step // g
+    out = chunks.narrow(dim, 0, step * (regular - 1) // g + 1)[_every(dim, per, chunks.ndim)].clone()
+    for q in range(1, size // g):
+        out.add_(chunks.narrow(dim, q, step * (regular - 1) // g + 1)[_every(dim, per, chunks.ndim)])
+    if regular < n:  # the last block, flush with the image side
+        last = x.narrow(dim, int(starts[-1]), size).sum(dim, keepdim=True)
+        out = torch.cat([out, last], dim=dim)
+    return out
+
+
+def _every(dim: int, step: int, ndim: int) -> tuple:
+    """An index taking every ``step``-th entry along ``dim`` of an ``ndim``-array."""
+    return (slice(None),) * (dim % ndim) + (slice(None, None, step),)
 
 
 def gram_maps(zr: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:

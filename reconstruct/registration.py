@@ -51,9 +51,10 @@ from capssim.errors import InputError
 from capssim.geometry import lr_homographies as lr_from_aperture
 from capssim.geometry import raw_matrix
 from capssim.homography import rotation_and_scale
+from capssim.reconstruct.filters import gaussian_blur
 from capssim.reconstruct.registration_core import StackRegistration, register_stack
 from capssim.reconstruct.registration_criterion import stokes_residual_rms
-from capssim.reconstruct.registration_filters import gaussian_blur, noise_sigma
+from capssim.reconstruct.registration_filters import noise_sigma
 from capssim.reconstruct.registration_images import (
     LUMINANCE_METHODS,
     mosaic_from_sub_images,
@@ -332,7 +333,7 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, parameters:
     raw = mosaic_from_sub_images(x)
     lum = LUMINANCE_METHODS["binomial" if luminance == "auto" else luminance](raw)
     if parameters.presmooth_sigma > 0:
-        lum = gaussian_blur(lum, parameters.presmooth_sigma)
+        lum = gaussian_blur(lum, parameters.presmooth_sigma, padding="replicate")
     valid = usable_pixels(mosaic_from_sub_images(sat.to(torch.float64)))
     diag["raw_shape"] = list(raw.shape[1:])
     model = diag["model"] = _usable_model(parameters.model, raw.shape[1:], diag)

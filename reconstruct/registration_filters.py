@@ -58,18 +58,6 @@ def gradient_magnitude(img: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(gx * gx + gy * gy)
 
 
-def gaussian_blur(img: torch.Tensor, sigma: float) -> torch.Tensor:
-    """``(B, H, W)`` separable Gaussian blur, replicate border."""
-    if sigma <= 0:
-        return img
-    rad = max(1, int(math.ceil(3 * sigma)))
-    g = torch.exp(-0.5 * (torch.arange(-rad, rad + 1, dtype=img.dtype, device=img.device) / sigma) ** 2)
-    g = g / g.sum()
-    x = F.conv2d(F.pad(img[:, None], (rad, rad, 0, 0), mode="replicate"), g[None, None, None, :])
-    x = F.conv2d(F.pad(x, (0, 0, rad, rad), mode="replicate"), g[None, None, :, None])
-    return x[:, 0]
-
-
 def phase_correlation_peaks(ref: torch.Tensor, mov: torch.Tensor, *, peaks: int = 3
                             ) -> tuple[torch.Tensor, torch.Tensor]:
     """Candidate translations ``(B, K, 2)`` (x, y) with ``mov(p + t) ~ ref(p)``, and peak heights ``(B, K)``.

@@ -21,10 +21,10 @@ import time
 import torch
 import torch.nn.functional as F
 
+from capssim.reconstruct.filters import gaussian_blur
 from capssim.reconstruct.lbfgs import Memory
 from capssim.reconstruct.registration_criterion import LevelCriterion, minimize
 from capssim.reconstruct.registration_filters import (
-    gaussian_blur,
     gradient_magnitude,
     noise_sigma,
     phase_correlation_peaks,
@@ -96,8 +96,8 @@ def coarse_translation(criteria: LevelCriteria, ref: torch.Tensor, moving: torch
     are each refined (translation, coarsest level) and the one with the highest local R^2 kept.
     """
     b, dev, dtype = moving.shape[0], ref.device, ref.dtype
-    gm_ref = gradient_magnitude(gaussian_blur(ref[None], 1.0))[0]
-    gm_mov = gradient_magnitude(gaussian_blur(moving, 1.0))
+    gm_ref = gradient_magnitude(gaussian_blur(ref[None], 1.0, padding="replicate"))[0]
+    gm_mov = gradient_magnitude(gaussian_blur(moving, 1.0, padding="replicate"))
     shifts, heights = phase_correlation_peaks(gm_ref, gm_mov, peaks=peaks)
     candidates = torch.cat([torch.zeros(b, 1, 2, dtype=dtype, device=dev), shifts], 1)  # (B, K+1, 2)
     crit = criteria(criteria.levels - 1, 0.0, "translation")

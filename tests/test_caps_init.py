@@ -108,7 +108,7 @@ def test_fusion_hard_cases():
 
 def _normalized_convolution_whole_image(num, den, sigma, min_density=1e-3, max_doublings=6):
     """The definition: every doubled kernel applied to the whole image."""
-    from capssim.reconstruct.init_fusion import gaussian_blur
+    from capssim.reconstruct.filters import gaussian_blur
 
     out, missing, s = None, None, sigma
     for _ in range(max_doublings + 1):

@@ -173,8 +173,8 @@ def test_options_compose_the_parameter_objects_under_the_same_names():
     """CapsOptions holds one parameter object per step; the option names and the record stay flat."""
     names = ["iterations", "mu0", "grow_rate", "grow_step", "dt", "n_similar", "n_similar_step", "n_similar_min",
              "rematch_change", "rematch_min_gap", "rematch_max_gap", "dictionary_gap", "block", "stride",
-             "search_radius", "c1", "c2", "adaptive", "weight_bandwidth", "strip_mb", "nu", "cagf_radius", "cagf_eps",
-             "psf_sigma", "fov_mask", "track_psnr", "preset"]
+             "search_radius", "match_components", "c1", "c2", "adaptive", "weight_bandwidth", "strip_mb", "nu",
+             "cagf_radius", "cagf_eps", "psf_sigma", "fov_mask", "track_psnr", "preset"]
     assert list(CapsOptions().to_dict()) == names == list(CapsOptions.option_names())
     opts = CapsOptions.from_options({"iterations": "7", "strip-mb": "0.5", "cagf_radius": 2, "rematch_max_gap": 4,
                                      "fov_mask": "off"}, c1=0.001)
@@ -189,7 +189,8 @@ def test_options_compose_the_parameter_objects_under_the_same_names():
 
 def test_preset_fast_sets_its_options_and_explicit_options_win():
     fast = CapsOptions.from_options({"preset": "fast"})
-    assert (fast.admm.iterations, fast.matching.dictionary_gap, fast.nlstr.stride, fast.preset) == (7, 4, 6, "fast")
+    assert (fast.admm.iterations, fast.matching.dictionary_gap, fast.matching.rematch_min_gap, fast.nlstr.stride,
+            fast.nlstr.match_components, fast.preset) == (7, 4, 4, 6, 3, "fast")
     assert CapsOptions.from_options({"preset": "fast", "iterations": "12"}).admm.iterations == 12
     default = CapsOptions.from_options({})
     assert (default.admm.iterations, default.matching.dictionary_gap, default.preset) == (25, 5, "default")

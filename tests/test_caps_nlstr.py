@@ -12,9 +12,15 @@ from capssim.reconstruct.nlstr import (
     NonlocalSparseTensor,
     reference_positions,
     shrink_core,
+)
+from capssim.reconstruct.nlstr_blocks import (
+    gram_maps,
+    mode_products,
+    principal_channels,
+    unpack_grams,
+    weighted_block_sums,
     window_sums_at,
 )
-from capssim.reconstruct.nlstr_blocks import gram_maps, mode_products, unpack_grams, weighted_block_sums
 from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
 
 
@@ -247,12 +253,42 @@ def test_dictionary_gap_reuses_dictionaries_between_updates():
         MatchSchedule(dictionary_gap=0).validate()
 
 
-def test_window_sums_at_a_stride_aligned_grid_equal_the_sliding_sums():
-    x = torch.rand(6, 20, 3, dtype=torch.float64)
-    for starts in (torch.arange(0, 13, 4), torch.tensor([0, 4, 8, 12]), torch.tensor([0, 3, 6, 9, 12]),
-                   torch.tensor([0, 4, 8, 10])):
-        expected = sliding_window_sum(x, 8, dim=1).index_select(1, starts)
-        assert torch.allclose(window_sums_at(x, 8, starts, dim=1), expected)
+@pytest.mark.parametrize("size", [8, 6, 5])
+def test_window_sums_at_any_reference_grid_equal_the_sliding_sums(size):
+    x = torch.rand(6, 40, 3, dtype=torch.float64)
+    grids = ([0, 4, 8, 12], [0, 4, 8, 10], [0, 3, 6, 9, 12], [0, 6, 12, 18, 24, 30, 32], [0, 5, 10, 15, 20],
+             [0, 4, 5, 12], [0], [3, 7], [0, 7, 14, 21, 28, 32])  # strides sharing a divisor with size or not,
+    for grid in grids:                                              # a last start flush with the side, none
+        starts = torch.tensor(grid)
+        expected = sliding_window_sum(x, size, dim=1).index_select(1, starts)
+        assert torch.allclose(window_sums_at(x, size, starts, dim=1), expected), grid
+        assert torch.allclose(window_sums_at(x.transpose(1, 2), size, starts, dim=2), expected.transpose(1, 2))
+
+
+def test_principal_channels_keep_block_distances_in_their_subspace_and_all_channels_when_asked():
+    gen = torch.Generator().manual_seed(4)
+    basis = torch.linalg.qr(torch.randn(12, 12, generator=gen, dtype=torch.float64))[0]
+    energy = torch.tensor([4.0, 2.0, 1.0] + [1e-4] * 9, dtype=torch.float64)   # three strong components
+    z = (basis * energy) @ torch.randn(12, 30 * 20, generator=gen, dtype=torch.float64)
+    z = (z + 0.5).reshape(12, 30, 20)
+    assert principal_channels(z, 0) is z and principal_channels(z, 12) is z
+    p = principal_channels(z, 3)
+    assert p.shape == (3, 30, 20)
+    full = (z[:, :8, :8] - z[:, 10:18, 5:13]).square().sum()
+    projected = (p[:, :8, :8] - p[:, 10:18, 5:13]).square().sum()
+    assert projected <= full and projected > 0.999 * full  # the three components hold the differences
+    with pytest.raises(InputError):
+        NLSTRParameters(match_components=-1).validate()
+
+
+def test_matching_on_principal_channels_finds_the_same_blocks_of_a_low_rank_image():
+    gen = torch.Generator().manual_seed(5)
+    mix = torch.rand(12, 2, generator=gen)
+    z = torch.einsum("ck,khw->chw", mix, torch.rand(2, 40, 48, generator=gen))  # rank 2 across channels
+    all_channels = NonlocalSparseTensor((12, 40, 48), NLSTRParameters()).match(z, 10)
+    two = NonlocalSparseTensor((12, 40, 48), NLSTRParameters(match_components=2)).match(z, 10)
+    agree = ((all_channels.pos_y == two.pos_y) & (all_channels.pos_x == two.pos_x)).float().mean()
+    assert agree > 0.99
 
 
 @pytest.mark.parametrize("shape,stride", [((12, 40, 48), 4), ((3, 24, 16), 2), ((2, 26, 18), 2), ((3, 40, 48), 8)])

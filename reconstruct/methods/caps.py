@@ -144,7 +144,7 @@ class CapsOptions:
 PRESETS: dict[str, dict] = {
     "default": {},
     "literal": {"dictionary_gap": 1},
-    "fast": {"iterations": 7, "dictionary_gap": 4, "stride": 6},
+    "fast": {"iterations": 7, "dictionary_gap": 4, "stride": 6, "match_components": 3, "rematch_min_gap": 4},
 }
 
 #: the parameter group of each CapsOptions field that holds one
