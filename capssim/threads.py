@@ -12,8 +12,9 @@ about 1.5x faster than with 1 on a quiet machine and 3-20x slower as soon as one
 process runs; ``OMP_WAIT_POLICY=PASSIVE`` or a short ``GOMP_SPINCOUNT`` lose the quiet gain or keep
 the busy loss. So ``auto`` starts every command on one thread, and a reconstruction re-decides at
 each of its stages (:func:`adapt_threads`, called by the methods' stage timer): all the cores this
-process may use while the other processes used less than half a core since the last decision, one
-fewer for each further core they use. An explicit count is kept as given. Phases of small tensors
+process may use while the other processes used less than half a core since the last decision (the
+first decision: since this module was imported, the command's start-up), one fewer for each further
+core they use. An explicit count is kept as given. Phases of small tensors
 (the registration's L-BFGS on the raw images of a small capture) lose the most when the machine is
 busy (16x): they run inside :func:`small_tensor_threads`, one thread whatever the count; the
 registration of a large capture follows the governor under ``auto`` (:func:`registration_threads`).

@@ -9,7 +9,6 @@ numbers. Everything is batched torch and runs unchanged on CUDA.
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import torch
@@ -60,33 +59,22 @@ def offset_differences(zpad: torch.Tensor, top: int, rows: int, width: int, radi
 def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int) -> torch.Tensor:
     """Sums of ``x`` over ``[start, start + size)`` along ``dim`` for each of ``starts`` (ascending).
 
-    A reference grid ``0, s, 2s, ...`` (then possibly one last start, ``image side - block``): with
-    ``g = gcd(size, s)`` each window is ``size / g`` consecutive ``g``-chunks, so one pass over ``x``
-    and a few strided additions give them all, instead of window sums at every position. Other starts
-    fall back to those.
+    When the starts are ``0, s, 2s, ...`` with ``s`` dividing ``size`` (the reference grid of an
+    image whose sides are multiples of the stride), the windows are sums of ``size / s``
+    consecutive ``s``-chunks: one pass over ``x`` instead of window sums at every position.
     """
     n = starts.numel()
     step = int(starts[1] - starts[0]) if n > 1 else size
-    on_grid = (starts == torch.arange(n, device=starts.device) * step).tolist()
-    regular = on_grid.index(False) if False in on_grid else n                      # the grid's prefix
-    if regular < max(n - 1, 1) or step < 1 or bool((starts[regular:] + size > x.shape[dim]).any()):
+    span = step * (n - 1) + size
+    aligned = (size % step == 0 and span <= x.shape[dim] and int(starts[0]) == 0
+               and bool((starts == torch.arange(n, device=starts.device) * step).all()))
+    if not aligned:
         return sliding_window_sum(x, size, dim=dim).index_select(dim, starts)
-    g = math.gcd(size, step)
-    span = step * (regular - 1) + size
-    chunks = x.narrow(dim, 0, span).unflatten(dim, (span // g, g)).sum(dim + 1)   # (..., span / g, ...)
-    per = step // g
-    out = chunks.narrow(dim, 0, step * (regular - 1) // g + 1)[_every(dim, per, chunks.ndim)].clone()
-    for q in range(1, size // g):
-        out.add_(chunks.narrow(dim, q, step * (regular - 1) // g + 1)[_every(dim, per, chunks.ndim)])
-    if regular < n:  # the last block, flush with the image side
-        last = x.narrow(dim, int(starts[-1]), size).sum(dim, keepdim=True)
-        out = torch.cat([out, last], dim=dim)
+    chunks = x.narrow(dim, 0, span).unflatten(dim, (span // step, step)).sum(dim + 1)
+    out = chunks.narrow(dim, 0, n).clone()
+    for q in range(1, size // step):
+        out.add_(chunks.narrow(dim, q, n))
     return out
-
-
-def _every(dim: int, step: int, ndim: int) -> tuple:
-    """An index taking every ``step``-th entry along ``dim`` of an ``ndim``-array."""
-    return (slice(None),) * (dim % ndim) + (slice(None, None, step),)
 
 
 def gram_maps(zr: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:

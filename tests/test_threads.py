@@ -146,14 +146,20 @@ def test_governor_follows_the_other_processes(tmp_path, monkeypatch):
     assert missing.decisions == []
 
 
-def test_small_tensor_phases_cap_the_governor_and_large_registrations_follow_it(tmp_path, monkeypatch):
+def _idle_machine(tmp_path, monkeypatch, wall: float) -> tuple[str, dict]:
+    """A ``/proc/stat`` of two idle CPUs and a clock at ``wall`` s that the test advances; no own CPU time."""
     stat = tmp_path / "stat"
     stat.write_text("cpu0 0 0 0 0 0 0 0 0 0 0\ncpu1 0 0 0 0 0 0 0 0 0 0\n")
-    clock = {"wall": 10.0}
+    clock = {"wall": wall}
     monkeypatch.setattr(threads.time, "monotonic", lambda: clock["wall"])
     monkeypatch.setattr(threads.time, "process_time", lambda: 0.0)
+    return str(stat), clock
+
+
+def test_small_tensor_phases_cap_the_governor_and_large_registrations_follow_it(tmp_path, monkeypatch):
+    stat, clock = _idle_machine(tmp_path, monkeypatch, 10.0)
     threads.set_threads()  # auto
-    governor = threads.ThreadGovernor(2, stat_path=str(stat))
+    governor = threads.ThreadGovernor(2, stat_path=stat)
     governor.cpus = [0, 1]
     monkeypatch.setattr(threads, "_governor", governor)
     clock["wall"] += 1.0
@@ -172,19 +178,15 @@ def test_small_tensor_phases_cap_the_governor_and_large_registrations_follow_it(
 
 
 def test_the_first_governor_measures_from_start_up_so_the_first_stages_already_decide(tmp_path, monkeypatch):
-    stat = tmp_path / "stat"
-    stat.write_text("cpu0 0 0 0 0 0 0 0 0 0 0\ncpu1 0 0 0 0 0 0 0 0 0 0\n")
-    clock = {"wall": 5.0}
-    monkeypatch.setattr(threads.time, "monotonic", lambda: clock["wall"])
-    monkeypatch.setattr(threads.time, "process_time", lambda: 0.0)
+    stat, _ = _idle_machine(tmp_path, monkeypatch, 5.0)
     monkeypatch.setattr(threads, "_import_sample", (4.0, 0.0, 0.0))  # taken 1 s before: the start-up
     torch.set_num_threads(1)
     start_up = threads._startup_sample()
     assert start_up == (4.0, 0.0, 0.0) and threads._startup_sample() is None  # handed out once
-    governor = threads.ThreadGovernor(2, stat_path=str(stat), since=start_up)
+    governor = threads.ThreadGovernor(2, stat_path=stat, since=start_up)
     governor.cpus = [0, 1]
     assert governor.update() == 2 and torch.get_num_threads() == 2  # no wait for a first interval
-    later = threads.ThreadGovernor(2, stat_path=str(stat))
+    later = threads.ThreadGovernor(2, stat_path=stat)
     later.cpus = [0, 1]
     torch.set_num_threads(1)
     assert later.update() == 1 and later.decisions == []  # without it: the interval first

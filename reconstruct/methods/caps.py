@@ -138,8 +138,9 @@ class CapsOptions:
 #: named settings of the CAPS methods (``-O preset=NAME``): the options each sets; explicit options win.
 #: ``default``: the paper's parameters (section 5.1), dictionaries every 5th iteration; ``literal``:
 #: Algorithm 1 as written, dictionaries at every iteration (same metrics within 0.08 dB, slower);
-#: ``fast``: 7 iterations, dictionaries every 4th, reference blocks every 6 px: 2.9-3.5x faster
-#: reconstruction at 512 px with stored warps, within 0.3 dB (docs/notes/reconstruction-speed.md;
+#: ``fast``: 7 iterations, block matching on the 3 leading principal components of the channels and at
+#: most every 4th iteration, dictionaries every 4th, reference blocks every 6 px: about 3.8x faster at
+#: 512 px with stored warps, within 0.2 dB on kettle and textured (docs/notes/reconstruction-speed.md;
 #: ``caps-fast`` in the ``ablation`` suite).
 PRESETS: dict[str, dict] = {
     "default": {},
