@@ -68,19 +68,6 @@ class LinearOperator:
             self._cast_cache[cache_key] = cached
         return cached
 
-    def _fold_padding(self, padded: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
-        """Adjoint of index padding ``x[..., row_index, :][..., col_index]``: ``(N, 1, Hp, Wp) -> input_shape``.
-
-        Each padded row/column is added back onto the input row/column it was copied from
-        (``self.row_index`` / ``self.col_index``, e.g. clamped indices for a replicated border).
-        """
-        h, w = self.input_shape[-2:]
-        cols = padded.new_zeros(padded.shape[0], 1, padded.shape[2], w)
-        cols.index_add_(3, self._const("c", self.col_index, like), padded)
-        out = padded.new_zeros(padded.shape[0], 1, h, w)
-        out.index_add_(2, self._const("r", self.row_index, like), cols)
-        return out.reshape(self.input_shape)
-
     def _forward(self, x: torch.Tensor) -> torch.Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 

@@ -14,17 +14,21 @@ from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
 
 
-def fold_replicated_border(padded: torch.Tensor, ph: int, pw: int) -> torch.Tensor:
-    """Adjoint of replicate padding by ``(ph, pw)``: ``(N, H + 2 ph, W + 2 pw) -> (N, H, W)``. The
-    border strips are summed onto the edge rows and columns they were copied from (in place)."""
+def fold_replicated_border(padded: torch.Tensor, pad: tuple[int, int, int, int]) -> torch.Tensor:
+    """Adjoint of ``F.pad(x, pad, mode="replicate")`` with ``pad = (left, right, top, bottom)``:
+    ``(N, H + top + bottom, W + left + right) -> (N, H, W)``. The border strips are summed onto the edge
+    rows and columns they were copied from (in place)."""
+    left, right, top, bottom = pad
     hp, wp = padded.shape[-2:]
-    if pw:
-        padded[:, :, pw] += padded[:, :, :pw].sum(-1)
-        padded[:, :, wp - pw - 1] += padded[:, :, wp - pw:].sum(-1)
-    if ph:
-        padded[:, ph] += padded[:, :ph].sum(-2)
-        padded[:, hp - ph - 1] += padded[:, hp - ph:].sum(-2)
-    return padded[:, ph:hp - ph, pw:wp - pw].contiguous()
+    if left:
+        padded[:, :, left] += padded[:, :, :left].sum(-1)
+    if right:
+        padded[:, :, wp - right - 1] += padded[:, :, wp - right:].sum(-1)
+    if top:
+        padded[:, top] += padded[:, :top].sum(-2)
+    if bottom:
+        padded[:, hp - bottom - 1] += padded[:, hp - bottom:].sum(-2)
+    return padded[:, top:hp - bottom, left:wp - right].contiguous()
 
 
 def stack_kernels(kernel) -> np.ndarray:
@@ -97,4 +101,4 @@ class Convolve(LinearOperator):
         # conv_transpose2d(y, k) written as a full correlation with the flipped kernel
         full = F.pad(y.reshape(1, n, h, w), (2 * pw, 2 * pw, 2 * ph, 2 * ph))
         padded = F.conv2d(full, self._grouped_kernel(y, n, flipped=True), groups=n).reshape(n, h + 2 * ph, w + 2 * pw)
-        return fold_replicated_border(padded, ph, pw).reshape(self.input_shape)
+        return fold_replicated_border(padded, (pw, pw, ph, ph)).reshape(self.input_shape)

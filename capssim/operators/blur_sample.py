@@ -83,4 +83,5 @@ class BlurIntegrateDecimate(LinearOperator):
         ho, wo = self.output_shape[-2:]
         flat = y.reshape(1, -1, ho, wo)
         padded = F.conv_transpose2d(flat, self._const("k", self.kernels, y), stride=self.stride, groups=flat.shape[1])
-        return fold_replicated_border(padded[0], *self.pad).reshape(self.input_shape)
+        ph, pw = self.pad
+        return fold_replicated_border(padded[0], (pw, pw, ph, ph)).reshape(self.input_shape)

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
+from capssim.operators.blur import fold_replicated_border
 
 
 def _check_factor(factor: int, shape: tuple[int, ...]) -> None:
@@ -36,21 +37,18 @@ class PixelIntegration(LinearOperator):
     def __init__(self, factor: int, shape: tuple[int, ...]):
         super().__init__(shape, shape)
         self.factor = int(factor)
-        h, w = shape[-2:]
-        self.row_index = torch.clamp(torch.arange(h + self.factor - 1), max=h - 1)
-        self.col_index = torch.clamp(torch.arange(w + self.factor - 1), max=w - 1)
+        self.pad = (0, self.factor - 1, 0, self.factor - 1)  # (left, right, top, bottom), replicated
         self.kernel = torch.full((1, 1, self.factor, self.factor), 1.0 / self.factor**2, dtype=torch.float64)
 
     def _forward(self, x):
         h, w = self.input_shape[-2:]
-        flat = x.reshape(-1, 1, h, w)
-        padded = flat.index_select(2, self._const("r", self.row_index, x)).index_select(3, self._const("c", self.col_index, x))
+        padded = F.pad(x.reshape(-1, 1, h, w), self.pad, mode="replicate")
         return F.conv2d(padded, self._const("k", self.kernel, x)).reshape(self.output_shape)
 
     def _adjoint(self, y):
         h, w = self.input_shape[-2:]
         padded = F.conv_transpose2d(y.reshape(-1, 1, h, w), self._const("k", self.kernel, y))
-        return self._fold_padding(padded, y)
+        return fold_replicated_border(padded[:, 0], self.pad).reshape(self.input_shape)
 
 
 class Decimation(LinearOperator):
