@@ -49,12 +49,17 @@ MAX_THREADS = 256
 CHILD_ENV_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 
 
-def available_cores() -> int:
-    """The CPU cores this process may run on (its affinity mask; ``os.cpu_count()`` elsewhere)."""
+def cpu_ids() -> list[int]:
+    """The CPUs this process may run on (its affinity mask; all of ``os.cpu_count()`` elsewhere)."""
     try:
-        return len(os.sched_getaffinity(0))
+        return sorted(os.sched_getaffinity(0))
     except AttributeError:  # not Linux
-        return os.cpu_count() or 1
+        return list(range(os.cpu_count() or 1))
+
+
+def available_cores() -> int:
+    """How many CPU cores this process may run on (:func:`cpu_ids`)."""
+    return len(cpu_ids())
 
 
 def _checked(value, argument: str) -> int:
@@ -202,7 +207,7 @@ class ThreadGovernor:
         self.max_threads = max(1, int(max_threads))
         self.interval_s = interval_s
         self.stat_path = stat_path
-        self.cpus = _affinity()
+        self.cpus = cpu_ids()
         self.last = since if since is not None else self._sample()  # since: an earlier _sample()
         self.decisions: list[tuple[float, int]] = []  # (others' cores, threads chosen)
 
@@ -228,15 +233,8 @@ class ThreadGovernor:
         return count
 
 
-def _affinity() -> list[int]:
-    try:
-        return sorted(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return list(range(os.cpu_count() or 1))
-
-
 #: the load sample taken when this module was imported (the command's start-up), for the first governor
-_import_sample = (time.monotonic(), busy_cpu_seconds(_affinity()), time.process_time())
+_import_sample = (time.monotonic(), busy_cpu_seconds(cpu_ids()), time.process_time())
 
 
 def _startup_sample() -> tuple[float, float | None, float] | None:

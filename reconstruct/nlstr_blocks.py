@@ -236,5 +236,5 @@ def shrink_core(alpha: torch.Tensor, beta: torch.Tensor, c1: float, c2: float, *
     return core, parts
 
 
-__all__ = ["gather_blocks", "gram_maps", "group_matrix", "mode_products", "offset_differences", "orthonormal_bases", "row_segments",
-           "shrink_core", "unpack_grams", "weighted_block_sums"]
+__all__ = ["gather_blocks", "gram_maps", "group_matrix", "mode_products", "offset_differences", "orthonormal_bases",
+           "principal_channels", "row_segments", "shrink_core", "unpack_grams", "weighted_block_sums", "window_sums_at"]
