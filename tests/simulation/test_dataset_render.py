@@ -16,7 +16,7 @@ from capssim.dataset.generate import generate_dataset
 from capssim.dataset.sample import generate_sample
 from capssim.dataset.verify import verify_dataset
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "examples" / "dataset-small.yaml"
 
 

@@ -16,7 +16,7 @@ from capssim.dataset.augment import rotate_flip_twelve
 from capssim.dataset.distributions import key_rng
 from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
 
 

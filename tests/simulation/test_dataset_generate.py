@@ -22,7 +22,7 @@ from capssim.dataset.sample import generate_sample
 from capssim.dataset.verify import verify_dataset
 from capssim.errors import InputError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
 
 CONFIG = """

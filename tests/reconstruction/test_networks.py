@@ -15,7 +15,7 @@ from capssim.reconstruct.networks import NETWORKS, WEIGHTS_DIR, build_network, l
 from capssim.reconstruct.networks.cpdnet import dofp_network_input, sparse_channels, stokes_linear
 from capssim.reconstruct.networks.tiling import apply_tiled
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_cpdnet_shapes_and_residual_start():
