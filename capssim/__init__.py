@@ -7,6 +7,6 @@ capssim never imports reconstruct or eval (the CLI in ``capssim.cli`` loads them
 
 import logging
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 logging.getLogger(__name__).addHandler(logging.NullHandler())

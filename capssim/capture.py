@@ -17,31 +17,24 @@ from __future__ import annotations
 
 import json
 import logging
-import platform
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import tifffile
 
-from capssim import __version__
-from capssim.conventions import (
-    BAYER_OFFSETS,
-    BAYER_SITE_COLOUR,
-    BAYER_SITES,
-    COLOURS,
-    LR_IMAGE_CHANNELS,
-    N_APERTURES,
-    N_CHANNELS,
-    N_LR_IMAGES,
-    POLARIZER_ANGLES_DEG,
-    SR_FACTOR,
-    dofp_layout,
-    dofp_layout_name,
-    split_bayer,
+from capssim.array_geometry import ArrayGeometry
+from capssim.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup
+from capssim.capture_meta import (  # noqa: F401  (re-exported: the capture format's public names)
+    CAPTURE_KINDS,
+    SCHEMA,
+    SCHEMA_VERSION,
+    build_meta,
+    software_versions,
+    validate_meta,
 )
-from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
-from capssim.geometry import ArrayGeometry
+from capssim.conventions import N_APERTURES, N_CHANNELS, dofp_layout, split_bayer
+from capssim.errors import CapssimError, CaptureFormatError, InputError
 from capssim.imageio import atomic_directory, atomic_write_json, write_tiff
 from capssim.psf import PSF
 from capssim.resources import check_memory
@@ -49,193 +42,6 @@ from capssim.rig import RigModel
 from capssim.sensor import Sensor, sensor_from_meta
 
 log = logging.getLogger(__name__)
-
-SCHEMA = "capssim.capture"
-SCHEMA_VERSION = 1
-CAPTURE_KINDS = ("simulated", "rendered", "real")
-
-
-def software_versions() -> dict:
-    import torch
-
-    versions = {"capssim": __version__, "python": platform.python_version(), "numpy": np.__version__,
-                "torch": torch.__version__}
-    for mod in ("mitsuba", "drjit"):
-        try:
-            import importlib.metadata as md
-
-            versions[mod] = md.version(mod)
-        except Exception:  # not installed
-            pass
-    return versions
-
-
-def build_meta(*, kind: str, hr_shape: tuple[int, int], aperture_homographies: np.ndarray, psf: dict,
-               sensor: Sensor, dofp_layout_spec="sony", extinction_ratio: float | None = None,
-               seed: int | None = None, source: dict | None = None, extra: dict | None = None,
-               has_gt: bool = True, has_dofp: bool = True) -> dict:
-    """The ``meta.json`` dictionary of a capture (schema version 1)."""
-    if kind not in CAPTURE_KINDS:
-        raise InputError("kind", kind, f"one of {CAPTURE_KINDS}")
-    hh, ww = (int(v) for v in hr_shape)
-    geometry = (aperture_homographies if isinstance(aperture_homographies, ArrayGeometry)
-                else ArrayGeometry(aperture_homographies, (hh, ww)))
-    hn, hm = geometry.aperture_homographies, geometry.lr_homographies
-    cell = dofp_layout(dofp_layout_spec)
-    lr = []
-    for m in range(N_LR_IMAGES):
-        n, q = divmod(m, 4)
-        lr.append({
-            "index": m, "aperture": n, "polarizer_deg": POLARIZER_ANGLES_DEG[n], "bayer_site": BAYER_SITES[q],
-            "colour": COLOURS[BAYER_SITE_COLOUR[q]], "channel": LR_IMAGE_CHANNELS[m],
-            "bayer_offset_rowcol": list(BAYER_OFFSETS[q]), "homography": hm[m].tolist(),
-        })
-    meta = {
-        "schema": SCHEMA,
-        "schema_version": SCHEMA_VERSION,
-        "kind": kind,
-        "geometry": {"hr_height": hh, "hr_width": ww, "raw_height": hh // 2, "raw_width": ww // 2,
-                     "sub_height": hh // 4, "sub_width": ww // 4, "sr_factor": SR_FACTOR,
-                     "n_apertures": N_APERTURES},
-        "conventions": {"channel_order": "c = 3*p + k, p over (0,45,90,135) deg, k over (R,G,B)",
-                        "homography_coordinates": "(x=col, y=row), pixel centres on integers",
-                        "homography_direction": "HR reference pixel -> target pixel"},
-        "cfa": "RGGB",
-        "polarizer_angles_deg": list(POLARIZER_ANGLES_DEG),
-        "extinction_ratio": None if extinction_ratio is None or np.isinf(extinction_ratio) else extinction_ratio,
-        "dofp_layout": [list(r) for r in cell],
-        "dofp_layout_name": dofp_layout_name(cell),
-        "aperture_homographies": hn.tolist(),
-        "lr_images": lr,
-        "psf": psf,
-        "sensor": sensor.to_meta(),
-        "files": {"caps_raw": "caps_raw.tiff"},
-        "seed": seed,
-        "source": source or {},
-        "software": software_versions(),
-    }
-    if has_dofp:
-        meta["files"]["dofp_raw"] = "dofp_raw.tiff"
-    if has_gt:
-        meta["files"]["gt"] = "gt.tiff"
-    if extra:
-        meta.update(extra)
-    return meta
-
-
-def _require(meta: dict, key: str, where: str = "meta.json"):
-    if key not in meta:
-        raise CaptureFormatError(f"{where}: missing key {key!r}. See README 'Capture folder format'.")
-    return meta[key]
-
-
-def _found(value) -> str:
-    """What a ``meta.json`` field holds, for a message: its JSON type and a short excerpt."""
-    kind = {dict: "an object", list: "a list", str: "a string", bool: "a boolean", type(None): "null"}.get(
-        type(value), "a number")
-    text = json.dumps(value, default=str)
-    return f"{kind} {text[:60] + '...' if len(text) > 60 else text}"
-
-
-def _expect(value, ok: bool, where: str, valid: str):
-    if not ok:
-        raise CaptureFormatError(f"{where}: got {_found(value)}; expected {valid}. "
-                                 "See README 'Capture folder format'.")
-    return value
-
-
-def _matrices(value, shape: tuple, where: str) -> np.ndarray:
-    """``value`` as a finite float64 array of ``shape``, or a :class:`CaptureFormatError`."""
-    valid = f"{' x '.join(map(str, shape))} finite numbers (nested lists)"
-    try:
-        array = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        array = None
-    _expect(value, array is not None and array.shape == shape and bool(np.all(np.isfinite(array))), where, valid)
-    return array
-
-
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _validate_types(meta) -> None:
-    """The JSON types of the fields every reader relies on (values are checked after)."""
-    geo = _expect(_require(meta, "geometry"), isinstance(meta["geometry"], dict), "meta.json geometry",
-                  "an object with hr_height, hr_width, raw_height, raw_width")
-    for key in ("hr_height", "hr_width", "raw_height", "raw_width"):
-        value = _require(geo, key, "meta.json geometry")
-        _expect(value, _is_int(value) and value > 0, f"meta.json geometry.{key}", "a positive integer (pixels)")
-    lr = _require(meta, "lr_images")
-    _expect(lr, isinstance(lr, list) and all(isinstance(e, dict) for e in lr), "meta.json lr_images",
-            f"a list of {N_LR_IMAGES} objects")
-    sensor = _require(meta, "sensor")
-    _expect(sensor, isinstance(sensor, dict) and isinstance(sensor.get("model"), str), "meta.json sensor",
-            "an object with a string 'model' (none, gaussian or poisson-gaussian)")
-    files = _require(meta, "files")
-    _expect(files, isinstance(files, dict) and all(v is None or (isinstance(v, str) and v) for v in files.values()),
-            "meta.json files", "an object of file names, e.g. {\"caps_raw\": \"caps_raw.tiff\"}")
-    _expect(files.get("caps_raw"), isinstance(files.get("caps_raw"), str), "meta.json files.caps_raw",
-            "the file name of the raw frames, e.g. \"caps_raw.tiff\"")
-    for key, ok, valid in (("psf", lambda v: v is None or isinstance(v, dict), "null or a PSF object"),
-                           ("extinction_ratio", lambda v: v is None or (isinstance(v, (int, float))
-                            and not isinstance(v, bool) and v >= 1), "null or a number >= 1"),
-                           ("seed", lambda v: v is None or (_is_int(v) and v >= 0), "null or an integer >= 0"),
-                           ("source", lambda v: isinstance(v, dict), "an object")):
-        if key in meta:
-            _expect(meta[key], ok(meta[key]), f"meta.json {key}", valid)
-
-
-def _validate_sensor(sensor: dict) -> None:
-    try:
-        sensor_from_meta(sensor)
-    except (InputError, UnknownNameError) as exc:
-        raise CaptureFormatError(f"meta.json sensor: {exc} See README 'Capture folder format'.") from None
-    except (TypeError, ValueError) as exc:  # unknown keys, values of the wrong type
-        raise CaptureFormatError(f"meta.json sensor: got {_found(sensor)} ({exc}); expected the fields of "
-                                 f"model {sensor['model']!r}. See README 'Capture folder format'.") from None
-
-
-def validate_meta(meta: dict) -> None:
-    """Raise :class:`CaptureFormatError` naming the first problem in a ``meta.json`` dict:
-    the field, what it holds and what is valid."""
-    _expect(meta, isinstance(meta, dict), "meta.json", "a JSON object")
-    if meta.get("schema") != SCHEMA:
-        raise CaptureFormatError(f"meta.json: schema is {meta.get('schema')!r}; expected {SCHEMA!r}.")
-    version = meta.get("schema_version")
-    if version != SCHEMA_VERSION:
-        raise CaptureFormatError(f"meta.json: schema_version {version!r} is not supported; expected {SCHEMA_VERSION}.")
-    _validate_types(meta)
-    geo = meta["geometry"]
-    if geo["hr_height"] != 2 * geo["raw_height"] or geo["hr_width"] != 2 * geo["raw_width"]:
-        raise CaptureFormatError("meta.json geometry: hr size must be twice the raw size.")
-    if geo["raw_height"] % 2 or geo["raw_width"] % 2:
-        raise CaptureFormatError("meta.json geometry: raw height and width must be even (RGGB cells).")
-    _matrices(_require(meta, "aperture_homographies"), (N_APERTURES, 3, 3), "meta.json aperture_homographies")
-    lr = meta["lr_images"]
-    if len(lr) != N_LR_IMAGES:
-        raise CaptureFormatError(f"meta.json: lr_images must list 16 images; got {len(lr)}.")
-    for m, entry in enumerate(lr):
-        _matrices(_require(entry, "homography", f"meta.json lr_images[{m}]"), (3, 3),
-                  f"meta.json lr_images[{m}].homography")
-        if entry.get("channel", LR_IMAGE_CHANNELS[m]) != LR_IMAGE_CHANNELS[m]:
-            raise CaptureFormatError(f"meta.json lr_images[{m}].channel is {entry.get('channel')}; "
-                                     f"the convention m = 4n + q gives {LR_IMAGE_CHANNELS[m]}.")
-    ArrayGeometry.from_meta(meta)
-    _validate_sensor(meta["sensor"])
-    try:
-        dofp_layout(meta.get("dofp_layout", "sony"))
-    except InputError as exc:
-        raise CaptureFormatError(f"meta.json dofp_layout: {exc}") from exc
-    try:
-        PSF.from_spec(meta.get("psf"))
-    except (InputError, TypeError, ValueError) as exc:
-        raise CaptureFormatError(f"meta.json psf: got {_found(meta.get('psf'))} ({exc}); expected a PSF object "
-                                 "such as {\"type\": \"gaussian\", \"sigma_hr_px\": 0.5}.") from None
-    try:
-        RigModel.from_dict(meta["rig"], where="meta.json rig") if meta.get("rig") is not None else None
-    except InputError as exc:
-        raise CaptureFormatError(f"{exc} (the true imperfect array; see docs: guides/calibration.md)") from None
 
 
 @dataclass
@@ -265,7 +71,12 @@ class Capture:
 
     @property
     def dofp_layout(self):
-        return dofp_layout(self.meta.get("dofp_layout", "sony"))
+        return dofp_layout(self.meta.get("dofp_layout", DEFAULT_DOFP_LAYOUT))
+
+    @property
+    def setup(self) -> CameraSetup:
+        """The camera set-up (``meta.json["setup"]``, or derived from the old keys of an older file)."""
+        return CameraSetup.from_meta(self.meta)
 
     @property
     def extinction_ratio(self) -> float | None:

@@ -197,7 +197,7 @@ class PSF:
         side = 2 * radius + 1
         h, w = (int(v) for v in hr_shape)
         what = f"the {self.type} PSF's kernel ({side}x{side} HR pixels)"
-        fix = f"Use a smaller {'PSF (--psf-sigma, --f-number)' if option == 'psf' else option}"
+        fix = f"Use a smaller {'PSF (--psf-sigma-hr-px, --f-number)' if option == 'psf' else option}"
         if radius:
             check_range(option, side, high=min(h, w), what=f"the {self.type} PSF's kernel side (HR pixels)",
                         reason=f"the smaller side of the {h}x{w} image", fix=fix + " or a larger image.")

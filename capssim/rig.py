@@ -36,9 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.conventions import BAYER_OFFSETS, BAYER_SITE_COLOUR, N_APERTURES, N_CHANNELS, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
 from capssim.imageio import atomic_write_text
 from capssim.psf import PSF
 

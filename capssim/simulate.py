@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from capssim.camera_setup import CameraSetup, as_setup
 from capssim.capture import Capture, build_meta
 from capssim.errors import InputError
 from capssim.homography import random_aperture_homographies
 from capssim.imageio import centre_crop
-from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import PSF
 from capssim.rig import RigModel
 from capssim.sensor import Sensor
@@ -95,28 +95,33 @@ def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None,
     return np.ascontiguousarray(gt, dtype=np.float32), info
 
 
-def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF | dict | None = None,
-                     dofp_layout="sony", extinction_ratio: float | None = None,
+def simulate_capture(gt: np.ndarray, setup: CameraSetup | Sensor | None = None, *, seed: int = 0,
                      pose_ranges: PoseRanges = PoseRanges(), aperture_homographies: np.ndarray | None = None,
                      source: dict | None = None, kind: str = "simulated", extra_meta: dict | None = None,
+                     psf: PSF | dict | None = None, dofp_layout=None, extinction_ratio: float | None = None,
                      rig: RigModel | None = None) -> Capture:
     """Simulate the CAPS raw frames and the DoFP raw frame of a ``(12, 2H, 2W)`` ground truth.
 
-    The measurement is :class:`~capssim.measurement.CameraArrayMeasurement` (``y = sensor(A x)``,
+    ``setup``: the camera set-up (:class:`~capssim.camera_setup.CameraSetup`; a bare
+    :class:`~capssim.sensor.Sensor` takes the default set-up around it, ``None`` the default set-up);
+    ``psf``, ``dofp_layout``, ``extinction_ratio`` and ``rig``, when given, replace its fields
+    (:func:`~capssim.camera_setup.as_setup`). The measurement is
+    :meth:`CameraSetup.measurement <capssim.camera_setup.CameraSetup.measurement>` (``y = sensor(A x)``,
     paper eq. 9): reproducible under ``seed``, whose three independent streams
     (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS noise and the DoFP noise.
     ``gt`` on [0, 1]; values above full scale are kept with a warning (they saturate the
-    sensor), negative ones refused (:func:`prepare_ground_truth`). Returns a
-    :class:`~capssim.capture.Capture` (not yet written). ``rig``: an imperfect array
-    (:class:`capssim.rig.RigModel`); its true values go to ``meta.json["rig"]``.
+    sensor), negative ones refused (:func:`prepare_ground_truth`). ``aperture_homographies``
+    ``(4, 3, 3)`` (HR reference -> aperture, x=col, y=row) replace the drawn poses. Returns a
+    :class:`~capssim.capture.Capture` (not yet written) whose ``meta.json["setup"]`` is the set-up's;
+    a non-ideal rig's true values also go to ``meta.json["rig"]``.
     """
     t0 = time.perf_counter()
+    setup = as_setup(setup, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio, rig=rig)
     gt, _ = prepare_ground_truth(gt, allow_out_of_range=True)
     hr_shape = gt.shape[1:]
-    measurement = CameraArrayMeasurement(sensor, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio,
-                                         seed=seed, rig=rig)
+    measurement = setup.measurement(seed)
     measurement.psf.check_extent(hr_shape, option="psf")
-    for n, aperture_psf in enumerate((rig.psf_objects() if rig is not None else None) or []):
+    for n, aperture_psf in enumerate((setup.rig.psf_objects() if setup.rig is not None else None) or []):
         aperture_psf.check_extent(hr_shape, option=f"rig psf[{n}]")
     if aperture_homographies is None:
         aperture_homographies, pose_params = random_aperture_homographies(
@@ -126,12 +131,9 @@ def simulate_capture(gt: np.ndarray, sensor: Sensor, *, seed: int = 0, psf: PSF 
         pose_params = None
     caps_raw, dofp_raw = measurement.measure(gt, aperture_homographies)
     extra = {"poses": {"ranges": pose_ranges.__dict__, "apertures": pose_params}}
-    if rig is not None and not rig.is_ideal:
-        extra["rig"] = rig.to_dict()
     if extra_meta:
         extra.update(extra_meta)
-    meta = build_meta(kind=kind, hr_shape=hr_shape, aperture_homographies=aperture_homographies,
-                      psf=measurement.psf.to_spec(), sensor=sensor, dofp_layout_spec=dofp_layout, extinction_ratio=extinction_ratio, seed=seed,
-                      source=source, extra=extra)
+    meta = build_meta(kind=kind, hr_shape=hr_shape, aperture_homographies=aperture_homographies, setup=setup,
+                      seed=seed, source=source, extra=extra)
     log.info("simulated %dx%d capture in %.2f s", hr_shape[0], hr_shape[1], time.perf_counter() - t0)
     return Capture(meta=meta, caps_raw=caps_raw, dofp_raw=dofp_raw, gt=gt)

@@ -29,6 +29,7 @@ from capssim.capture import list_reconstructions, read_capture
 from capssim.conventions import CHANNEL_NAMES, N_CHANNELS
 from capssim.errors import CapssimError, CaptureFormatError, InputError
 from capssim.eval import metrics as M
+from capssim.eval.metric_records import flatten, json_safe
 from capssim.eval.mtf import StarMTF, measure_star
 from capssim.imageio import atomic_write_json, read_tiff
 
@@ -77,7 +78,7 @@ class EstimateScore:
 
     def flat(self) -> dict[str, float | None]:
         """Scalar metrics for results.jsonl and baselines: the metrics' and the MTF's."""
-        return {**M.flatten(self.metrics), **flat_mtf(self.mtf)}
+        return {**flatten(self.metrics), **flat_mtf(self.mtf)}
 
 
 class CaptureScorer:
@@ -212,5 +213,5 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
         result["mtf_error"] = scorer.mtf_error
         log.warning("MTF of %s not measured: %s", path, scorer.mtf_error)
     if write:
-        atomic_write_json(path / "metrics.json", M.json_safe(result))
+        atomic_write_json(path / "metrics.json", json_safe(result))
     return result

@@ -14,7 +14,7 @@ error is the data's.
 image:
 
 * **alignment** of the 45/90/135 deg images to the 0 deg one (similarity model, the
-  registration engine of :mod:`capssim.reconstruct.registration_core` at full resolution, pixels
+  registration engine of :mod:`capssim.reconstruct.registration.engine` at full resolution, pixels
   clipped in any image left out): shift at the image centre (px, ``x`` = column), rotation
   (deg), scale (parts per million) and the mean displacement over the frame (px). The same
   is repeated on the weakly polarized pixels only (block DoLP < ``dolp_max``) as a
@@ -53,8 +53,8 @@ import torch.nn.functional as F
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
 from capssim.homography import rotation_and_scale
-from capssim.reconstruct.registration_core import register_stack
-from capssim.reconstruct.registration_warp import spline_coefficients, spline_sample
+from capssim.reconstruct.registration.engine import register_stack
+from capssim.reconstruct.registration.motion import spline_coefficients, spline_sample
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +133,72 @@ def _alignment_check(lum: torch.Tensor, valid: torch.Tensor, matrices: np.ndarra
             "reliable": bool(after_pct <= 1.05 * before_pct + 0.01)}
 
 
+def _alignment(lum: torch.Tensor, valid: torch.Tensor, weak: torch.Tensor) -> dict:
+    """Similarity alignment of the 45/90/135 deg luminance ``(4, H, W)`` to the 0 deg one, its check, and the
+    same on the weakly polarized pixels (``weak`` weights) when there are enough of them."""
+    shape, dev = tuple(lum.shape[1:]), lum.device
+    result: dict = {}
+    reg = register_stack(lum[0], lum[1:], ref_valid=valid, moving_valid=valid.expand(3, -1, -1),
+                         model="similarity", stokes_weight=0.0, robust_power=4.0)
+    result["alignment"] = _describe(reg.matrices, shape)
+    result["alignment_matrices"] = reg.matrices.tolist()
+    result["alignment_check"] = _alignment_check(lum, valid, reg.matrices)
+    if float(weak.mean()) >= MIN_WEAKLY_POLARIZED_SHARE:
+        reg_weak = register_stack(lum[0], lum[1:], ref_valid=weak, moving_valid=valid.expand(3, -1, -1),
+                                  model="similarity", stokes_weight=0.0, robust_power=4.0, rescue_below=0.0, initial=torch.as_tensor(
+                                      reg.params, dtype=torch.float64, device=dev))
+        result["alignment_weakly_polarized"] = _describe(reg_weak.matrices, shape)
+    else:
+        result["alignment_weakly_polarized"] = None
+    return result
+
+
+def _stokes_consistency(x: torch.Tensor, valid: torch.Tensor, *, bit_depth: int) -> dict:
+    """The Stokes residual ``I0 + I90 - I45 - I135`` per colour over the unclipped pixels (``x`` ``(4, 3, H, W)``),
+    against the quantization floor of ``bit_depth``, and the analyzer gains that best explain it."""
+    dev = x.device
+    lum = x.mean(dim=1)
+    s0 = lum.sum(0) / 2
+    res = x[0] + x[2] - x[1] - x[3]                                     # (3, H, W)
+    s0c = x.sum(0) / 2
+    m = valid.bool()
+    n = max(int(m.sum()), 1)
+    stokes = []
+    for k in range(3):
+        r = res[k][m]
+        rms = float(r.square().mean().sqrt())
+        low = _box_mean(res[k:k + 1] * valid, 15)[0] / _box_mean(valid[None], 15)[0].clamp_min(1e-9)
+        low_rms = float(low[m].square().mean().sqrt())
+        mean_s0 = max(float(s0c[k][m].mean()), 1e-12)
+        floor = 2.0 / (2 ** bit_depth - 1) / math.sqrt(12.0) if bit_depth > 0 else 0.0
+        stokes.append({"colour": "RGB"[k], "rms_percent_of_s0": 100.0 * rms / mean_s0,
+                       "quantization_floor_percent": 100.0 * floor / mean_s0,
+                       "excess_percent": 100.0 * math.sqrt(max(rms * rms - floor * floor, 0.0)) / mean_s0,
+                       "low_frequency_share": low_rms / max(rms, 1e-30)})
+    # gains: least squares of I0 = -g90 I90 + g45 I45 + g135 I135 + c over all colours
+    a = torch.stack([-lum[2][m], lum[1][m], lum[3][m], torch.ones(n, dtype=torch.float64, device=dev)], 1)
+    sol = torch.linalg.lstsq(a, lum[0][m][:, None]).solution[:, 0]
+    fit_rms = float((a @ sol - lum[0][m]).square().mean().sqrt())
+    return {"per_colour": stokes,
+            "gains": {"g45": float(sol[1]), "g90": float(sol[0]), "g135": float(sol[2]), "offset": float(sol[3])},
+            "rms_percent_after_gain_fit": 100.0 * fit_rms / max(float(s0[m].mean()), 1e-12)}
+
+
+def _verdict(result: dict, worst_stokes: float) -> str:
+    """One line: consistent or not, the worst Stokes excess, and the offsets (or why their estimate is unreliable)."""
+    worst_shift = max(r["mean_displacement_px"] for r in result["alignment"])
+    check = result["alignment_check"]
+    if check["reliable"]:
+        offsets = f"analyzer images offset by up to {worst_shift:.3f} px (mean over the frame)"
+    else:
+        offsets = (f"alignment estimate unreliable ({worst_shift:.3f} px; it raises the Stokes residual of the "
+                   f"luminance from {check['stokes_rms_percent_unaligned']:.2f} to "
+                   f"{check['stokes_rms_percent_aligned']:.2f} % of S0: polarization texture misleads it)")
+    return (("consistent" if result["consistent"] else "inconsistent")
+            + f": Stokes residual I0+I90-I45-I135 up to {worst_stokes:.2f} % of S0 above quantization (threshold "
+            f"{CONSISTENT_STOKES_PERCENT} %); " + offsets)
+
+
 def check_ground_truth(gt, *, dolp_max: float = 0.1, bit_depth: int = 0, device="cpu") -> dict:
     """Measure the inter-image alignment and the Stokes consistency of a ground truth.
 
@@ -181,61 +247,14 @@ def check_ground_truth(gt, *, dolp_max: float = 0.1, bit_depth: int = 0, device=
     result: dict = {"shape": list(arr.shape[1:]), "angles_deg": list(POLARIZER_ANGLES_DEG[1:]),
                     "clipped_share": [float(v) for v in clipped.double().mean(dim=(1, 2))],
                     "weakly_polarized_share": float(weak.mean())}
-    reg = register_stack(lum[0], lum[1:], ref_valid=valid, moving_valid=valid.expand(3, -1, -1),
-                         model="similarity", stokes_weight=0.0, robust_power=4.0)
-    result["alignment"] = _describe(reg.matrices, arr.shape[1:])
-    result["alignment_matrices"] = reg.matrices.tolist()
-    result["alignment_check"] = _alignment_check(lum, valid, reg.matrices)
-    if float(weak.mean()) >= MIN_WEAKLY_POLARIZED_SHARE:
-        reg_weak = register_stack(lum[0], lum[1:], ref_valid=weak, moving_valid=valid.expand(3, -1, -1),
-                                  model="similarity", stokes_weight=0.0, robust_power=4.0, rescue_below=0.0, initial=torch.as_tensor(
-                                      reg.params, dtype=torch.float64, device=dev))
-        result["alignment_weakly_polarized"] = _describe(reg_weak.matrices, arr.shape[1:])
-    else:
-        result["alignment_weakly_polarized"] = None
-
-    # Stokes residual per colour, over the pixels not clipped anywhere
-    res = x[0] + x[2] - x[1] - x[3]                                     # (3, H, W)
-    s0c = x.sum(0) / 2
-    m = valid.bool()
-    n = max(int(m.sum()), 1)
-    stokes = []
-    for k in range(3):
-        r = res[k][m]
-        rms = float(r.square().mean().sqrt())
-        low = _box_mean(res[k:k + 1] * valid, 15)[0] / _box_mean(valid[None], 15)[0].clamp_min(1e-9)
-        low_rms = float(low[m].square().mean().sqrt())
-        mean_s0 = max(float(s0c[k][m].mean()), 1e-12)
-        floor = 2.0 / (2 ** bit_depth - 1) / math.sqrt(12.0) if bit_depth > 0 else 0.0
-        stokes.append({"colour": "RGB"[k], "rms_percent_of_s0": 100.0 * rms / mean_s0,
-                       "quantization_floor_percent": 100.0 * floor / mean_s0,
-                       "excess_percent": 100.0 * math.sqrt(max(rms * rms - floor * floor, 0.0)) / mean_s0,
-                       "low_frequency_share": low_rms / max(rms, 1e-30)})
-    # gains: least squares of I0 = -g90 I90 + g45 I45 + g135 I135 + c over all colours
-    a = torch.stack([-lum[2][m], lum[1][m], lum[3][m], torch.ones(n, dtype=torch.float64, device=dev)], 1)
-    sol = torch.linalg.lstsq(a, lum[0][m][:, None]).solution[:, 0]
-    fit_rms = float((a @ sol - lum[0][m]).square().mean().sqrt())
-    result["stokes"] = {"per_colour": stokes,
-                        "gains": {"g45": float(sol[1]), "g90": float(sol[0]), "g135": float(sol[2]),
-                                  "offset": float(sol[3])},
-                        "rms_percent_after_gain_fit": 100.0 * fit_rms / max(float(s0[m].mean()), 1e-12)}
-    worst_shift = max(r["mean_displacement_px"] for r in result["alignment"])
-    worst_stokes = max(s["excess_percent"] for s in stokes)
+    result.update(_alignment(lum, valid, weak))
+    result["stokes"] = _stokes_consistency(x, valid, bit_depth=bit_depth)
+    worst_stokes = max(c["excess_percent"] for c in result["stokes"]["per_colour"])
     # Malus's law is the test: an offset or a gain drift between the shots always leaves a
     # Stokes residual where there is texture; the alignment estimate explains it (and is itself
     # biased by strong polarization texture, see the module docstring)
     result["consistent"] = bool(worst_stokes < CONSISTENT_STOKES_PERCENT)
-    check = result["alignment_check"]
-    if check["reliable"]:
-        offsets = f"analyzer images offset by up to {worst_shift:.3f} px (mean over the frame)"
-    else:
-        offsets = (f"alignment estimate unreliable ({worst_shift:.3f} px; it raises the Stokes residual of the "
-                   f"luminance from {check['stokes_rms_percent_unaligned']:.2f} to "
-                   f"{check['stokes_rms_percent_aligned']:.2f} % of S0: polarization texture misleads it)")
-    result["verdict"] = (
-        ("consistent" if result["consistent"] else "inconsistent")
-        + f": Stokes residual I0+I90-I45-I135 up to {worst_stokes:.2f} % of S0 above quantization (threshold "
-        f"{CONSISTENT_STOKES_PERCENT} %); " + offsets)
+    result["verdict"] = _verdict(result, worst_stokes)
     result["time_s"] = time.perf_counter() - t0
     log.info("gt-check: %s (%.1f s)", result["verdict"], result["time_s"])
     return result

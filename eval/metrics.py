@@ -57,13 +57,14 @@ population covariance.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from capssim.conventions import CHANNEL_NAMES, COLOURS, N_CHANNELS, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError, UnknownNameError
+from capssim.eval.metric_records import METRIC_SPECS
 from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
 #: PSNR reported for identical images (zero MSE), in dB.
@@ -95,37 +96,6 @@ CONVENTIONS: dict[str, Convention] = {
                       "Qiu et al.: no crop; as tokyotech otherwise; AoP PSNR = 20 log10(180/RMSE)"),
 }
 
-#: Every scalar metric :func:`flatten` produces: (direction, unit, definition). ``+1`` means
-#: higher is better, ``-1`` lower is better. The metric table of the docs (guides/scoring.md) is generated from it.
-METRIC_SPECS: dict[str, tuple[int, str, str]] = {
-    "psnr_mean": (+1, "dB", "mean over the 12 channels of PSNR(channel), data_range 1"),
-    "ssim_mean": (+1, "", "mean over the 12 channels of SSIM(channel), data_range 1"),
-    "psnr.<channel>": (+1, "dB", "PSNR of one channel (0-R ... 135-B), data_range 1"),
-    "ssim.<channel>": (+1, "", "SSIM of one channel, data_range 1, Gaussian window sigma 1.5"),
-    "cpsnr.<angle>": (+1, "dB", "CPSNR: PSNR of the MSE pooled over R, G, B at one polarizer angle, peak 1"),
-    "s0_psnr": (+1, "dB", "PSNR of S0 pooled over R, G, B (S0 in [0,2], range 2 == S0/2 with peak 1)"),
-    "s1_psnr": (+1, "dB", "PSNR of S1 = I0 - I90 pooled over R, G, B (range 2 == (S1+1)/2 with peak 1)"),
-    "s2_psnr": (+1, "dB", "PSNR of S2 = I45 - I135 pooled over R, G, B (range 2 == (S2+1)/2 with peak 1)"),
-    "dolp_psnr": (+1, "dB", "PSNR of per-colour DoLP in [0,1] pooled over R, G, B, data_range 1"),
-    "dolp_psnr_per_colour.<colour>": (+1, "dB", "PSNR of the DoLP of one colour, data_range 1"),
-    "dolp_ssim": (+1, "", "mean over R, G, B of SSIM(DoLP), data_range 1"),
-    "aop_rmse_deg": (-1, "deg", "RMSE of the wrap-aware AoP difference in [-90, 90), per colour, pooled, masked"),
-    "aop_mae_deg": (-1, "deg", "mean |wrap-aware AoP difference|, per colour, pooled, masked"),
-    "aop_psnr": (+1, "dB", "20 log10(180 / aop_rmse_deg) (Qiu et al.)"),
-    "aop_fraction": (0, "", "fraction of colour-pixels inside the AoP mask (not a quality metric)"),
-    "psnr_gt_peak_mean": (+1, "dB", "mean over the 12 channels of PSNR(channel), data_range = P, the GT's peak"),
-    "psnr_gt_peak.<channel>": (+1, "dB", "PSNR of one channel, data_range = P (GT's largest value, 12 channels)"),
-    "ssim_gt_peak_mean": (+1, "", "mean over the 12 channels of SSIM(channel), data_range = P, the GT's peak"),
-    "ssim_gt_peak.<channel>": (+1, "", "SSIM of one channel, data_range = P (the scene exposed to full scale)"),
-    "cpsnr_gt_peak.<angle>": (+1, "dB", "CPSNR at one polarizer angle, peak = P (GT's largest value)"),
-    "s0_psnr_gt_peak": (+1, "dB", "as s0_psnr with the data range times P (GT's largest value)"),
-    "s1_psnr_gt_peak": (+1, "dB", "as s1_psnr with the data range times P (GT's largest value)"),
-    "s2_psnr_gt_peak": (+1, "dB", "as s2_psnr with the data range times P (GT's largest value)"),
-    "lpips.<angle>": (-1, "", "LPIPS (AlexNet) of the RGB image at one polarizer angle; user-supplied weights"),
-    "lpips_mean": (-1, "", "mean of lpips.<angle> over the four angles (paper Table 1)"),
-}
-
-
 def get_convention(convention: str | Convention) -> Convention:
     if isinstance(convention, Convention):
         return convention
@@ -133,21 +103,6 @@ def get_convention(convention: str | Convention) -> Convention:
     if key not in CONVENTIONS:
         raise UnknownNameError("metric convention", str(convention), list(CONVENTIONS))
     return CONVENTIONS[key]
-
-
-def metric_direction(name: str) -> int:
-    """+1 when higher is better, -1 when lower is better, 0 when not a quality metric."""
-    if name in METRIC_SPECS:
-        return METRIC_SPECS[name][0]
-    head = name.split(".", 1)[0]
-    for key, spec in METRIC_SPECS.items():
-        if "." in key and key.split(".", 1)[0] == head:
-            return spec[0]
-    if head.startswith("mtf") or head.endswith("magnification") or head.endswith("limit_resolution"):
-        return +1
-    if "time" in head or head.endswith("_s") or "memory" in head:
-        return -1
-    return 0
 
 
 # -- input checks ---------------------------------------------------------------------------
@@ -274,25 +229,64 @@ def check_thresholds(*, min_s0: float | None = None, min_dolp: float | None = No
             raise InputError(name, value, f"a finite number in [0, {high:g}], or nothing for the convention's default")
 
 
-def json_safe(obj: Any) -> Any:
-    """``obj`` with every NaN or infinite float replaced by ``None`` (JSON ``null``), numpy scalars as Python ones.
+def _intensity_scores(est_c: np.ndarray, gt_c: np.ndarray, *, with_ssim: bool) -> dict[str, Any]:
+    """PSNR (and SSIM) of each of the 12 cropped channels on [0, 1], their means, and CPSNR per angle."""
+    out: dict[str, Any] = {"psnr": {CHANNEL_NAMES[c]: psnr(est_c[c], gt_c[c], data_range=1.0) for c in range(N_CHANNELS)}}
+    out["psnr_mean"] = float(np.mean(list(out["psnr"].values())))
+    if with_ssim:
+        out["ssim"] = {CHANNEL_NAMES[c]: ssim(est_c[c], gt_c[c], data_range=1.0) for c in range(N_CHANNELS)}
+        out["ssim_mean"] = float(np.mean(list(out["ssim"].values())))
+    else:
+        out["ssim"], out["ssim_mean"] = None, None
+    out["cpsnr"] = {str(a): psnr(est_c[3 * p:3 * p + 3], gt_c[3 * p:3 * p + 3], data_range=1.0)
+                    for p, a in enumerate(POLARIZER_ANGLES_DEG)}
+    return out
 
-    Standard JSON has no NaN; ``json.dumps(json_safe(obj), allow_nan=False)`` always succeeds
-    for results of :func:`score`.
-    """
-    if isinstance(obj, dict):
-        return {key: json_safe(value) for key, value in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(value) for value in obj]
-    if isinstance(obj, np.ndarray):
-        return json_safe(obj.tolist())
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
+
+def _polarization_scores(st_e: np.ndarray, st_g: np.ndarray, *, s0_guard: float | None, dolp_min: float | None,
+                         with_ssim: bool, notes: list[str]) -> dict[str, Any]:
+    """DoLP and AoP scores from the Stokes maps ``(3, 3, H, W)``; appends to ``notes`` why AoP is undefined."""
+    out: dict[str, Any] = {}
+    # DoLP per colour, clipped to [0, 1]; dark guard on each image's own S0
+    guard = s0_guard if s0_guard is not None else 0.0
+    d_e = dolp(st_e, min_s0=guard, fill=0.0)
+    d_g = dolp(st_g, min_s0=guard, fill=0.0)
+    out["dolp_psnr"] = psnr(d_e, d_g, data_range=1.0)
+    out["dolp_psnr_per_colour"] = {COLOURS[k]: psnr(d_e[k], d_g[k], data_range=1.0) for k in range(3)}
+    out["dolp_ssim"] = float(np.mean([ssim(d_e[k], d_g[k], data_range=1.0) for k in range(3)])) if with_ssim else None
+
+    # AoP per colour, wrap-aware, pooled; mask from the ground truth only
+    a_e, a_g = aop_deg(st_e), aop_deg(st_g)
+    diff = angle_difference_deg(a_e, a_g)
+    mask = np.ones_like(d_g, dtype=bool)
+    if s0_guard is not None:
+        mask &= st_g[0] > s0_guard
+    if dolp_min is not None:
+        mask &= d_g > dolp_min
+    if not np.any(np.hypot(st_g[1], st_g[2]) > 0):
+        mask[:] = False
+        notes.append("AoP undefined: the ground truth has S1 = S2 = 0 (DoLP = 0) at every pixel.")
+    elif not mask.any():
+        notes.append(f"AoP undefined: no ground-truth pixel has S0 > {s0_guard} and DoLP > {dolp_min}.")
+    out["aop_fraction"] = float(mask.mean())
+    if mask.any():
+        dm = diff[mask]
+        rmse = float(np.sqrt(np.mean(dm ** 2)))
+        out["aop_rmse_deg"] = rmse
+        out["aop_mae_deg"] = float(np.mean(np.abs(dm)))
+        out["aop_psnr"] = PSNR_CAP_DB if rmse <= 180.0 * 10 ** (-PSNR_CAP_DB / 20) else float(20 * math.log10(180.0 / rmse))
+    else:
+        out["aop_rmse_deg"] = out["aop_mae_deg"] = out["aop_psnr"] = None
+    return out
+
+
+def _lpips_scores(est_c: np.ndarray, gt_c: np.ndarray, lpips) -> dict[str, Any]:
+    """LPIPS of the RGB image at each polarizer angle and their mean; None without a model."""
+    if lpips is None:
+        return {"lpips": None, "lpips_mean": None}
+    per_angle = {str(a): float(lpips.distance(est_c[3 * p:3 * p + 3], gt_c[3 * p:3 * p + 3]))
+                 for p, a in enumerate(POLARIZER_ANGLES_DEG)}
+    return {"lpips": per_angle, "lpips_mean": float(np.mean(list(per_angle.values())))}
 
 
 def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0: float | None = None,
@@ -340,16 +334,7 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
     est_c = crop_border(est, b, matlab=conv.matlab_crop)
     gt_c = crop_border(gt, b, matlab=conv.matlab_crop)
 
-    out: dict[str, Any] = {"convention": conv.name}
-    out["psnr"] = {CHANNEL_NAMES[c]: psnr(est_c[c], gt_c[c], data_range=1.0) for c in range(N_CHANNELS)}
-    out["psnr_mean"] = float(np.mean(list(out["psnr"].values())))
-    if with_ssim:
-        out["ssim"] = {CHANNEL_NAMES[c]: ssim(est_c[c], gt_c[c], data_range=1.0) for c in range(N_CHANNELS)}
-        out["ssim_mean"] = float(np.mean(list(out["ssim"].values())))
-    else:
-        out["ssim"], out["ssim_mean"] = None, None
-    out["cpsnr"] = {str(a): psnr(est_c[3 * p:3 * p + 3], gt_c[3 * p:3 * p + 3], data_range=1.0)
-                    for p, a in enumerate(POLARIZER_ANGLES_DEG)}
+    out: dict[str, Any] = {"convention": conv.name, **_intensity_scores(est_c, gt_c, with_ssim=with_ssim)}
 
     # Stokes (computed on the full image, then cropped: pixelwise, so the order is immaterial)
     st_e = stokes_from_12(est_c)  # (3 [S0,S1,S2], 3 [R,G,B], H, W)
@@ -361,44 +346,9 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
     out["s2_psnr"] = psnr(e2, g2, data_range=rng_s)
     peak_scores, peak_notes = _gt_peak_scores(est_c, gt_c, st_e, st_g, conv.stokes_scale, with_ssim=with_ssim)
     out.update(peak_scores)
-
-    # DoLP per colour, clipped to [0, 1]; dark guard on each image's own S0
-    guard = s0_guard if s0_guard is not None else 0.0
-    d_e = dolp(st_e, min_s0=guard, fill=0.0)
-    d_g = dolp(st_g, min_s0=guard, fill=0.0)
-    out["dolp_psnr"] = psnr(d_e, d_g, data_range=1.0)
-    out["dolp_psnr_per_colour"] = {COLOURS[k]: psnr(d_e[k], d_g[k], data_range=1.0) for k in range(3)}
-    out["dolp_ssim"] = float(np.mean([ssim(d_e[k], d_g[k], data_range=1.0) for k in range(3)])) if with_ssim else None
-
-    # AoP per colour, wrap-aware, pooled; mask from the ground truth only
-    a_e, a_g = aop_deg(st_e), aop_deg(st_g)
-    diff = angle_difference_deg(a_e, a_g)
-    mask = np.ones_like(d_g, dtype=bool)
-    if s0_guard is not None:
-        mask &= st_g[0] > s0_guard
-    if dolp_min is not None:
-        mask &= d_g > dolp_min
-    if not np.any(np.hypot(st_g[1], st_g[2]) > 0):
-        mask[:] = False
-        notes.append("AoP undefined: the ground truth has S1 = S2 = 0 (DoLP = 0) at every pixel.")
-    elif not mask.any():
-        notes.append(f"AoP undefined: no ground-truth pixel has S0 > {s0_guard} and DoLP > {dolp_min}.")
-    out["aop_fraction"] = float(mask.mean())
-    if mask.any():
-        dm = diff[mask]
-        rmse = float(np.sqrt(np.mean(dm ** 2)))
-        out["aop_rmse_deg"] = rmse
-        out["aop_mae_deg"] = float(np.mean(np.abs(dm)))
-        out["aop_psnr"] = PSNR_CAP_DB if rmse <= 180.0 * 10 ** (-PSNR_CAP_DB / 20) else float(20 * math.log10(180.0 / rmse))
-    else:
-        out["aop_rmse_deg"] = out["aop_mae_deg"] = out["aop_psnr"] = None
-
-    if lpips is not None:
-        out["lpips"] = {str(a): float(lpips.distance(est_c[3 * p:3 * p + 3], gt_c[3 * p:3 * p + 3]))
-                        for p, a in enumerate(POLARIZER_ANGLES_DEG)}
-        out["lpips_mean"] = float(np.mean(list(out["lpips"].values())))
-    else:
-        out["lpips"], out["lpips_mean"] = None, None
+    out.update(_polarization_scores(st_e, st_g, s0_guard=s0_guard, dolp_min=dolp_min, with_ssim=with_ssim,
+                                    notes=notes))
+    out.update(_lpips_scores(est_c, gt_c, lpips))
 
     notes += peak_notes + _dark_scene_notes(est_c, gt_c, out["psnr"], st_g, s0_guard)
     out["settings"] = {"border": b, "matlab_crop": conv.matlab_crop, "stokes_scale": conv.stokes_scale,
@@ -428,22 +378,3 @@ def tokyotech_scores(estimate12, gt12, *, border: int | None = None) -> dict[str
     """
     result = score(estimate12, gt12, convention="tokyotech", border=border, with_ssim=False)
     return {column: result[key] if sub is None else result[key][sub] for column, (key, sub) in TOKYOTECH_COLUMNS.items()}
-
-
-def flatten(result: dict[str, Any], *, prefix: str = "") -> dict[str, float | None]:
-    """Scalar metrics of a :func:`score` result as ``{"psnr_mean": ..., "psnr.0-R": ...}``."""
-    flat: dict[str, float | None] = {}
-    for key, value in result.items():
-        if key in ("settings", "notes", "convention"):
-            continue
-        if isinstance(value, dict):
-            for sub, v in value.items():
-                flat[f"{prefix}{key}.{sub}"] = None if v is None else float(v)
-        elif value is None or isinstance(value, (int, float)):
-            flat[f"{prefix}{key}"] = None if value is None else float(value)
-    return flat
-
-
-def convention_table() -> list[dict]:
-    """The conventions as rows (for the docs and ``capssim evaluate --help``)."""
-    return [asdict(c) for c in CONVENTIONS.values()]

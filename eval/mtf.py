@@ -171,19 +171,22 @@ class StarMTF:
         return {name: r.to_dict() for name, r in self.results.items()}
 
 
-def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = None,
-                 center_rowcol: tuple[float, float] | None = None, radius: float | None = None,
-                 reference_modulation=None, reference_pitch: float = 1.0, threshold: float = HECT,
-                 residual_limit: float = 0.5, ring_width: float = 0.04, nyquist: float = NYQUIST,
-                 min_radius: float | None = None) -> StarMTF:
-    """MTF of each channel of a ``(C, H, W)`` sinusoidal Siemens star image, and their mean.
+@dataclass
+class _Rings:
+    """The rings shared by every channel of one star: ``order`` picks the usable rings by frequency."""
 
-    All channels share one centre (given, or the median of :func:`find_star_center` over up
-    to four channels) and one set of rings, so their MTFs can be averaged ring by ring: the
-    ``"mean"`` curve averages the channel MTFs (not the images: the channels of a
-    polarization star have different phases) and takes the RMS of their residual ratios.
-    ``reference_modulation`` is None (extrapolate per channel), a number, or one per channel.
-    """
+    cycles: int
+    center_rowcol: tuple[float, float]
+    r_max: float
+    order: np.ndarray  # (K,) ring indices, ascending frequency
+    frequency: np.ndarray  # (K,) cycles/pixel
+    radius: np.ndarray  # (K,) mean ring radius (pixels)
+    modulations: list[np.ndarray]  # per channel (rings, segments): amplitude / |mean|
+    ratios: list[np.ndarray]  # per channel (rings, segments): residual RMS / sinusoid RMS
+
+
+def _checked_star_inputs(images, cycles, names, reference_modulation) -> tuple[np.ndarray, int, list[str], list]:
+    """The ``(C, H, W)`` float64 stack, the cycle count, one name and one reference (or None) per channel."""
     imgs = np.asarray(images, dtype=np.float64)
     if imgs.ndim == 2:
         imgs = imgs[None]
@@ -193,8 +196,7 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
         raise InputError("images", f"{int((~np.isfinite(imgs)).sum())} NaN/inf pixels", "finite images")
     if int(cycles) < 4:
         raise InputError("cycles", cycles, "the star's number of sinusoidal periods per turn (>= 4)")
-    cycles = int(cycles)
-    n_ch, h, w = imgs.shape
+    n_ch = imgs.shape[0]
     names = list(names) if names is not None else [str(c) for c in range(n_ch)]
     if len(names) != n_ch:
         raise InputError("names", len(names), f"{n_ch} channel names")
@@ -202,9 +204,14 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
     if reference_modulation is not None:
         ref_arr = np.broadcast_to(np.asarray(reference_modulation, dtype=np.float64), (n_ch,))
         refs = [float(v) for v in ref_arr]
-    notes: list[str] = []
+    return imgs, int(cycles), names, refs
+
+
+def _star_centre(imgs: np.ndarray, cycles: int, center_rowcol, notes: list[str]) -> tuple[float, float]:
+    """The given centre ``(row, col)``, or the median of :func:`find_star_center` over the 4 most varied channels."""
+    _, h, w = imgs.shape
     if center_rowcol is None:
-        energy = [float(np.var(imgs[c])) for c in range(n_ch)]
+        energy = [float(np.var(imgs[c])) for c in range(imgs.shape[0])]
         pick = np.argsort(energy)[::-1][:4]
         centres = np.array([find_star_center(imgs[c], cycles=cycles) for c in pick])
         center_rowcol = tuple(float(v) for v in np.median(centres, axis=0))
@@ -212,6 +219,13 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
     cy, cx = float(center_rowcol[0]), float(center_rowcol[1])
     if not (0 <= cy <= h - 1 and 0 <= cx <= w - 1):
         raise InputError("center", f"({cy:.1f}, {cx:.1f})", f"a point inside the {h}x{w} image")
+    return cy, cx
+
+
+def _fit_star_rings(imgs: np.ndarray, centre: tuple[float, float], cycles: int, *, radius: float | None,
+                    min_radius: float | None, ring_width: float, nyquist: float, notes: list[str]) -> _Rings:
+    """Fit the sinusoid of every ring segment of every channel; keep the rings each direction group can use."""
+    (_, h, w), (cy, cx) = imgs.shape, centre
     r_border = min(cy, cx, h - 1 - cy, w - 1 - cx)
     # a given radius is the star's edge: keep 1.5 px off it (edge pixels mix star and background)
     r_max = min(radius - 1.5, r_border) if radius is not None else r_border
@@ -220,7 +234,7 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
         raise InputError("image", f"a star of usable radius {r_max:.1f} px around ({cy:.1f}, {cx:.1f})",
                          f"a star radius above {r_min + 2:.1f} px", "Check --center and --cycles.")
     edges = ring_edges(r_min, r_max, ring_width)
-    fits = [fit_rings(imgs[c], (cy, cx), cycles, edges) for c in range(n_ch)]
+    fits = [fit_rings(imgs[c], (cy, cx), cycles, edges) for c in range(imgs.shape[0])]
     # a ring counts when each direction group has at least 3 of its 4 segments fitted
     ring_ok = np.logical_and.reduce([np.logical_and.reduce([f["ok"][:, list(segs)].sum(1) >= 3
                                                             for segs in GROUPS.values()]) for f in fits])
@@ -248,47 +262,80 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
         raise InputError("image", "no ring with enough pixels", "a Siemens star", "Check --center and --cycles.")
     order = np.argsort(np.where(ring_ok, freq, np.inf))
     order = order[ring_ok[order]]
-    freq_o, radius_o = freq[order], radius_mean[order]
+    return _Rings(cycles, (cy, cx), float(r_max), order, freq[order], radius_mean[order], mods, ratios)
 
+
+def _channel_curves(rings: _Rings, c: int, ref_given: float | None, name: str
+                    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], float, str]:
+    """Channel ``c``'s MTF and residual ratio per direction group, and its reference modulation and source."""
+    mods, ratios = rings.modulations[c][rings.order], rings.ratios[c][rings.order]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        m_all = np.nanmean(mods, axis=1)
+    if ref_given is None:
+        ref, src = _reference_from_low_frequencies(rings.frequency, m_all)
+    else:
+        ref, src = ref_given, "given"
+    if not (np.isfinite(ref) and ref > 1e-6):
+        raise InputError("reference_modulation", ref, f"a positive target modulation (channel {name})",
+                         "Is this channel a Siemens star with the given --cycles?")
+    mtf, resid = {}, {}
+    for g, segs in GROUPS.items():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            mtf[g] = np.nanmean(mods[:, segs], axis=1) / ref
+            resid[g] = np.sqrt(np.nanmean(ratios[:, segs] ** 2, axis=1))
+    return mtf, resid, ref, src
+
+
+def _mtf_result(rings: _Rings, mtf: dict, resid: dict, ref: float, src: str, *, reference_pitch: float,
+                threshold: float, residual_limit: float, nyquist: float, notes: list[str]) -> MTFResult:
+    """The :class:`MTFResult` of one curve per group: each group's limit resolution from :func:`_limit`."""
+    credited, limit, why = {}, {}, {}
+    for g in GROUPS:
+        credited[g], limit[g], why[g] = _limit(rings.frequency, mtf[g], resid[g], threshold=threshold,
+                                                residual_limit=residual_limit, nyquist=nyquist)
+    return MTFResult(rings.cycles, rings.center_rowcol, rings.r_max, rings.frequency, rings.radius, mtf, resid,
+                     credited, limit, why, float(ref), src, float(reference_pitch), threshold, residual_limit,
+                     list(notes))
+
+
+def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = None,
+                 center_rowcol: tuple[float, float] | None = None, radius: float | None = None,
+                 reference_modulation=None, reference_pitch: float = 1.0, threshold: float = HECT,
+                 residual_limit: float = 0.5, ring_width: float = 0.04, nyquist: float = NYQUIST,
+                 min_radius: float | None = None) -> StarMTF:
+    """MTF of each channel of a ``(C, H, W)`` sinusoidal Siemens star image, and their mean.
+
+    All channels share one centre (given, or the median of :func:`find_star_center` over up
+    to four channels) and one set of rings, so their MTFs can be averaged ring by ring: the
+    ``"mean"`` curve averages the channel MTFs (not the images: the channels of a
+    polarization star have different phases) and takes the RMS of their residual ratios.
+    ``reference_modulation`` is None (extrapolate per channel), a number, or one per channel.
+    """
+    imgs, cycles, names, refs = _checked_star_inputs(images, cycles, names, reference_modulation)
+    notes: list[str] = []
+    centre = _star_centre(imgs, cycles, center_rowcol, notes)
+    rings = _fit_star_rings(imgs, centre, cycles, radius=radius, min_radius=min_radius, ring_width=ring_width,
+                            nyquist=nyquist, notes=notes)
+    limits = {"reference_pitch": reference_pitch, "threshold": threshold, "residual_limit": residual_limit,
+              "nyquist": nyquist, "notes": notes}
     results: dict[str, MTFResult] = {}
     per_group_mtf: dict[str, list] = {g: [] for g in GROUPS}
     per_group_ratio: dict[str, list] = {g: [] for g in GROUPS}
     ref_used = []
-    for c in range(n_ch):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            m_all = np.nanmean(mods[c][order], axis=1)
-        if refs[c] is None:
-            ref, src = _reference_from_low_frequencies(freq_o, m_all)
-        else:
-            ref, src = refs[c], "given"
-        if not (np.isfinite(ref) and ref > 1e-6):
-            raise InputError("reference_modulation", ref, f"a positive target modulation (channel {names[c]})",
-                             "Is this channel a Siemens star with the given --cycles?")
+    for c, name in enumerate(names):
+        mtf, resid, ref, src = _channel_curves(rings, c, refs[c], name)
         ref_used.append(ref)
-        mtf, resid, credited, limit, why = {}, {}, {}, {}, {}
-        for g, segs in GROUPS.items():
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                mtf[g] = np.nanmean(mods[c][order][:, segs], axis=1) / ref
-                resid[g] = np.sqrt(np.nanmean(ratios[c][order][:, segs] ** 2, axis=1))
-            credited[g], limit[g], why[g] = _limit(freq_o, mtf[g], resid[g], threshold=threshold,
-                                                    residual_limit=residual_limit, nyquist=nyquist)
+        for g in GROUPS:
             per_group_mtf[g].append(mtf[g])
             per_group_ratio[g].append(resid[g])
-        results[names[c]] = MTFResult(cycles, (cy, cx), float(r_max), freq_o, radius_o, mtf, resid, credited, limit,
-                                      why, float(ref), src, float(reference_pitch), threshold, residual_limit,
-                                      list(notes))
-    if n_ch > 1:
-        mtf, resid, credited, limit, why = {}, {}, {}, {}, {}
-        for g in GROUPS:
-            mtf[g] = np.mean(per_group_mtf[g], axis=0)
-            resid[g] = np.sqrt(np.mean(np.square(per_group_ratio[g]), axis=0))
-            credited[g], limit[g], why[g] = _limit(freq_o, mtf[g], resid[g], threshold=threshold,
-                                                    residual_limit=residual_limit, nyquist=nyquist)
-        results["mean"] = MTFResult(cycles, (cy, cx), float(r_max), freq_o, radius_o, mtf, resid, credited, limit,
-                                    why, float(np.mean(ref_used)), "mean of the channels' MTFs",
-                                    float(reference_pitch), threshold, residual_limit, list(notes))
+        results[name] = _mtf_result(rings, mtf, resid, ref, src, **limits)
+    if len(names) > 1:
+        mtf = {g: np.mean(per_group_mtf[g], axis=0) for g in GROUPS}
+        resid = {g: np.sqrt(np.mean(np.square(per_group_ratio[g]), axis=0)) for g in GROUPS}
+        results["mean"] = _mtf_result(rings, mtf, resid, float(np.mean(ref_used)), "mean of the channels' MTFs",
+                                      **limits)
     return StarMTF(results)
 
 

@@ -17,9 +17,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.capture import Capture
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
 from capssim.rig import RIG_FORMAT_VERSION, RigModel, read_rig_json
 
 IDEAL_NAMES = ("ideal", "none")

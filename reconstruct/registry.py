@@ -17,10 +17,9 @@ import importlib
 import logging
 import pkgutil
 import time
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 import torch
@@ -28,68 +27,14 @@ import torch
 from capssim.capture import Capture, read_capture, write_reconstruction
 from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
 from capssim.physical_validity import project_to_physical
-from capssim.reconstruct import methods as method_modules
-from capssim.reconstruct.calibration_model import CalibrationModel, resolve_calibration
-from capssim.reconstruct.registration_parameters import registration_parameters
-from capssim.threads import adapt_threads
+from capssim.reconstruct.calibration_model import resolve_calibration
+from capssim.reconstruct.registration.parameters import registration_parameters
+from capssim.reconstruct.run_context import MethodOutput, RunContext, StageTimer
 
 log = logging.getLogger(__name__)
 
-
-@dataclass
-class StageTimer:
-    """Wall time per named stage, in seconds; synchronizes CUDA so GPU time is counted."""
-
-    device: torch.device = torch.device("cpu")
-    stages: dict[str, float] = field(default_factory=dict)
-
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-        else:
-            adapt_threads()  # the default 'auto' thread count follows the machine's load, stage by stage
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            if self.device.type == "cuda":
-                torch.cuda.synchronize(self.device)
-            self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
-
-
-@dataclass
-class RunContext:
-    """What every method receives besides the capture."""
-
-    device: torch.device
-    timer: StageTimer
-    options: dict = field(default_factory=dict)
-    true_warps: bool = False
-    registration: str = "local-correlation"  # reconstruct.registration.REGISTRATION_MODES
-    reuse_registration: bool = True  # reconstruct.registration_store: False registers again (and re-stores)
-    progress: Callable[[int, int, str], None] | None = None
-    calibration: CalibrationModel | None = None  # reconstruct.calibration_model: the array's model (None: ideal)
-
-    def report(self, done: int, total: int, message: str = "") -> None:
-        if self.progress is not None:
-            self.progress(done, total, message)
-
-
-@dataclass
-class MethodOutput:
-    """A method's result: ``image`` ``(12, 2H, 2W)`` float32 and what it records.
-
-    ``unobserved`` ``(12, 2H, 2W)`` bool marks the pixels without a usable observation
-    (saturated or out of view), or is ``None`` when the method cannot tell; a function returning
-    that array is evaluated after the method's wall time is taken (it is a report, not the method).
-    """
-
-    image: np.ndarray
-    params: dict = field(default_factory=dict)
-    history: list[dict] = field(default_factory=list)
-    extra: dict = field(default_factory=dict)
-    unobserved: np.ndarray | Callable[[], np.ndarray] | None = None
+#: the package whose modules are the registered methods, one method (or a family) per file
+METHODS_PACKAGE = "capssim.reconstruct.methods"
 
 
 @dataclass(frozen=True)
@@ -130,9 +75,11 @@ def _load_methods() -> None:
     global _LOADED
     if _LOADED:
         return
+    # the methods import this registry to register themselves: they are discovered here by name, not imported above
+    method_modules = importlib.import_module(METHODS_PACKAGE)
     for mod in pkgutil.iter_modules(method_modules.__path__):
         if not mod.name.startswith("_"):
-            importlib.import_module(f"{method_modules.__name__}.{mod.name}")
+            importlib.import_module(f"{METHODS_PACKAGE}.{mod.name}")
     _LOADED = True
 
 
@@ -230,7 +177,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     (:func:`capssim.physical_validity.project_to_physical`: ``I >= 0``, ``I0 + I90 = I45 + I135``,
     DoLP <= 1) where all four angles are observed; its time is a stage of the method's.
     ``reuse_registration``: reuse the warps stored with the capture for the same registration
-    (:mod:`capssim.reconstruct.registration_store`); False registers again and replaces them.
+    (:mod:`capssim.reconstruct.registration.store`); False registers again and replaces them.
     ``calibration``: the model of the array for CAPS methods
     (:func:`capssim.reconstruct.calibration_model.resolve_calibration`: ``None`` the capture's own
     calibration file if it names one, ``"ideal"``, ``"truth"`` or a ``capssim-rig`` file).

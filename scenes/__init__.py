@@ -1,9 +1,12 @@
 """The scene library: one module per scene, each describing geometry, materials, depth and purpose.
 
-Every module defines one :class:`capssim.render.scene_base.Scene` subclass and registers it
-with the renderer's registry (:func:`capssim.render.scene_registry.register`). Importing this
-package imports every scene module, so the registry then holds the whole library:
-``capssim scenes`` lists it; ``capssim render NAME`` renders one.
+Every module defines one :class:`capssim.render.scene_base.Scene` subclass; :data:`LIBRARY` lists
+them all, and :func:`register_library` is the one call that registers them with the renderer's
+registry (:mod:`capssim.render.scene_registry`). Nobody calls it by hand: the package declares it as
+the entry point ``library`` of the group ``capssim.scenes`` (pyproject.toml), and the registry calls
+every function of that group the first time a scene is looked up by name. So ``capssim scenes``
+lists the library and ``capssim render NAME`` renders one without importing this package first; a
+package of your own can add scenes the same way, with an entry point in that group.
 """
 
 from __future__ import annotations
@@ -13,18 +16,34 @@ if __name__ != "capssim.scenes":
     raise ImportError(f"{__name__!r} is not an import name of capssim: the folder scenes/ is the package "
                       "capssim.scenes; write `import capssim.scenes` (after `pip install -e .`)")
 
-import importlib
-import pkgutil
+from typing import Callable
 
-from capssim.render.scene_registry import all_scenes, get_scene, register
+from capssim.render.scene_base import Scene
+from capssim.render.scene_registry import all_scenes, get_scene
+from capssim.scenes.aop_wheel import AopWheel
+from capssim.scenes.calibration_sheet import CalibrationSheet
+from capssim.scenes.colorchecker import ColorChecker
+from capssim.scenes.dolp_ramp import DolpRamp
+from capssim.scenes.materials import Materials
+from capssim.scenes.polarization_star import PolarizationStar
+from capssim.scenes.siemens_star import SiemensStar
+from capssim.scenes.textured import Textured
+from capssim.scenes.water_glare import WaterGlare
+from capssim.scenes.window_reflection import WindowReflection
+
+#: every scene class of the library, in name order of their modules
+LIBRARY: tuple[type[Scene], ...] = (AopWheel, CalibrationSheet, ColorChecker, DolpRamp, Materials, PolarizationStar,
+                                    SiemensStar, Textured, WaterGlare, WindowReflection)
 
 
-def _import_all() -> None:
-    """Import (and so register) every scene module of this package, in name order."""
-    for module in sorted(m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")):
-        importlib.import_module(f"{__name__}.{module}")
+def register_library(register: Callable[[type[Scene]], object]) -> None:
+    """Register every scene of :data:`LIBRARY` with ``register`` (:func:`capssim.render.scene_registry.register`).
+
+    The entry point ``capssim.scenes:register_library`` (group ``capssim.scenes``); the registry calls
+    it once, with its own ``register``.
+    """
+    for scene_class in LIBRARY:
+        register(scene_class)
 
 
-_import_all()
-
-__all__ = ["all_scenes", "get_scene", "register"]
+__all__ = ["LIBRARY", "all_scenes", "get_scene", "register_library"]

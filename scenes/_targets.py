@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
-
 from capssim.errors import InputError
 from capssim.render.scene_base import CameraPose, Scene
 
@@ -36,13 +34,6 @@ def rectangle(half_size: float, *, z: float = 0.0, **extra) -> dict:
         [half_size, half_size, 1.0])}
     d.update(extra)
     return d
-
-
-def metres_to_pixels(camera, xy_m: np.ndarray) -> np.ndarray:
-    """Card-plane points (z = 0) -> reference HR pixel (x=col, y=row)."""
-    xy_m = np.asarray(xy_m, dtype=np.float64)
-    pts = np.concatenate([xy_m, np.zeros((*xy_m.shape[:-1], 1))], axis=-1)
-    return camera.project(pts)
 
 
 class FacingCardScene(Scene):

@@ -16,11 +16,9 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65
-from capssim.render.scene_registry import register
 from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle
 
 
-@register
 class CalibrationSheet(FacingCardScene):
     info = SceneInfo(
         name="calibration-sheet",

@@ -19,7 +19,6 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65
-from capssim.render.scene_registry import register
 from capssim.render.spectral import CameraResponse, cached_arrays
 from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
@@ -44,7 +43,6 @@ def colorchecker_spectra() -> tuple[list[str], np.ndarray, np.ndarray]:
     return [str(n) for n in data["names"]], data["wavelengths"], data["reflectance"]
 
 
-@register
 class ColorChecker(FacingCardScene):
     info = SceneInfo(
         name="colorchecker",

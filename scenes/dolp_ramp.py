@@ -16,13 +16,11 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
-from capssim.render.scene_registry import register
 from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
 RAMP_SPAN = 0.8  # fraction of the view width over which DoLP goes from 0 to 1
 
 
-@register
 class DolpRamp(FacingCardScene):
     info = SceneInfo(
         name="dolp-ramp",

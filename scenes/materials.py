@@ -24,7 +24,6 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo, d65, scale_pose, scale_scene
-from capssim.render.scene_registry import register
 
 RADIUS = 0.08
 XS = (-0.425, -0.255, -0.085, 0.085, 0.255, 0.425)
@@ -46,7 +45,6 @@ def checker(c0, c1, squares: float) -> dict:
             "color1": {"type": "rgb", "value": list(c1)}, "to_uv": mi.ScalarTransform4f().scale([squares, squares, 1])}
 
 
-@register
 class Materials(Scene):
     info = SceneInfo(
         name="materials",

@@ -19,11 +19,9 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
-from capssim.render.scene_registry import register
 from capssim.scenes._targets import DiscCardScene, card_half_size, rectangle
 
 
-@register
 class SiemensStar(DiscCardScene):
     info = SceneInfo(
         name="siemens-star",

@@ -21,7 +21,6 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
-from capssim.render.scene_registry import register
 from capssim.scenes._targets import FacingCardScene, rectangle, view_half_width
 
 IMAGES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field", "retina",
@@ -43,7 +42,6 @@ def load_image(name: str) -> np.ndarray:
     return np.where(img <= 0.04045, img / 12.92, ((img + 0.055) / 1.055) ** 2.4)
 
 
-@register
 class Textured(FacingCardScene):
     info = SceneInfo(
         name="textured",

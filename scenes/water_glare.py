@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo
-from capssim.render.scene_registry import register
 from capssim.scenes._procedural import sand_texture, sky_envmap
 from capssim.scenes.window_reflection import fresnel_dolp
 
@@ -28,7 +27,6 @@ N_WATER = 1.333
 HEIGHT, AHEAD = 12.0, 16.0
 
 
-@register
 class WaterGlare(Scene):
     info = SceneInfo(
         name="water-glare",

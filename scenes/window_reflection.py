@@ -24,7 +24,6 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo, d65, scale_pose, scale_scene
-from capssim.render.scene_registry import register
 from capssim.scenes._procedural import poster_texture
 from capssim.scenes.materials import checker
 
@@ -41,7 +40,6 @@ def fresnel_dolp(incidence_deg: float, n: float) -> tuple[float, float, float]:
     return rs, rp, (rs - rp) / (rs + rp)
 
 
-@register
 class WindowReflection(Scene):
     info = SceneInfo(
         name="window-reflection",

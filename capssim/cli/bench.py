@@ -4,66 +4,61 @@ Subjects (``capssim.eval.benchmarks``): ``suite`` (scenes x methods x noise leve
 regression baselines, report and results page), ``reconstruct`` (time and memory per stage of
 ``caps``), ``registration`` (warp error and time per capture), ``dofp`` (the DoFP baselines on
 the published protocol), ``render`` (the rendering choices) and ``dataset`` (generation
-throughput). Options that mean the same thing have the same name in every subject: ``--device``,
-``--repeats``, ``--threads``, ``--size``, ``--scenes`` and ``--methods`` (comma-separated),
-``-o/--output`` (also write the measurements to this JSON file; ``suite``: the output folder).
+throughput). They follow the command-line grammar (docs: guides/cli.md): inputs positional,
+``-o/--output`` only for what the subject makes (``suite``: its output folder), ``--json`` prints
+the measurements as JSON to stdout (the tables then go to stderr), lists by repetition
+(``-m/--method``, ``--scene``, ``--size``, ``--device``, ``-w/--workers``), and ``--threads`` and
+``--device`` on every subject.
 """
 
 from __future__ import annotations
 
 import os
+from functools import partial
 from pathlib import Path
 from typing import List, Optional
 
 import typer
-from typer.core import TyperGroup
 
-from capssim.cli._options import ThreadsOption, apply_threads, check_hr_size, check_iterations, each, number_in
+from capssim.cli._options import (
+    DEFAULT_DEVICE,
+    DEVICE_HELP,
+    DEVICES,
+    DeviceOption,
+    JsonOption,
+    ThreadsOption,
+    apply_compute,
+    check_device,
+    check_hr_size,
+    check_iterations,
+    each,
+    echo_json,
+    number_in,
+)
 from capssim.cli.evaluate import format_table, format_value
-from capssim.errors import InputError
-from capssim.imageio import atomic_write_json
 
-MOVED = {"reconstruct-benchmark": "capssim bench reconstruct", "render-bench": "capssim bench render"}
-
-
-class _BenchGroup(TyperGroup):
-    """The ``bench`` group; the former ``capssim bench --suite NAME`` is a clear error naming the new shape."""
-
-    def parse_args(self, ctx, args: list[str]) -> list[str]:
-        if args and args[0].split("=", 1)[0] == "--suite":
-            typer.echo("error: 'capssim bench --suite NAME' is now 'capssim bench suite NAME' "
-                       "(same options otherwise; see 'capssim bench suite --help').", err=True)
-            raise typer.Exit(2)
-        return super().parse_args(ctx, args)
-
-
-bench_app = typer.Typer(name="bench", cls=_BenchGroup, no_args_is_help=True, rich_markup_mode=None,
+bench_app = typer.Typer(name="bench", no_args_is_help=True, rich_markup_mode=None,
                         help="Benchmarks: capssim bench SUBJECT [options] with SUBJECT in suite, reconstruct, "
                              "registration, dofp, render, dataset.")
 
-DeviceOption = typer.Option("cpu", "--device", help="cpu | cuda | auto.")
 RepeatsOption = typer.Option(1, "--repeats", help="Runs of each measurement; the tables show the fastest.",
                              callback=number_in("--repeats", 1, 1000, what="runs"))
-JsonOption = typer.Option(None, "-o", "--output", help="Also write the measurements to this JSON file.")
+MethodsOption = typer.Option(None, "--method", "-m", metavar="METHOD", help="Method (repeatable).")
+ScenesOption = typer.Option(None, "--scene", metavar="SCENE", help="Scene (repeatable).")
 
 
-def _names(csv: Optional[str]) -> list[str] | None:
-    return [t.strip() for t in csv.split(",") if t.strip()] if csv else None
-
-
-def _set_threads(threads: Optional[int], *, adaptive: bool = False) -> None:
-    """--threads, else $CAPSSIM_THREADS, else capssim.threads' default; inherited by workers. Benchmarks
-    other than ``reconstruct`` (the default's own benchmark) keep one fixed count, so that their timings
-    compare within a run: the default ``auto`` is then its starting count."""
+def _set_threads(threads: Optional[int], device: str, *, adaptive: bool = False):
+    """--threads, else $CAPSSIM_THREADS, else capssim.threads' default, inherited by workers; returns the
+    ``torch.device`` of --device. Benchmarks other than ``reconstruct`` (the default's own benchmark) keep
+    one fixed count, so that their timings compare within a run: the default ``auto`` is then its starting count."""
     from capssim.threads import resolve_threads  # start-up time: pulls torch
 
-    apply_threads(threads if adaptive or threads is not None else resolve_threads(None))
+    return apply_compute(threads if adaptive or threads is not None else resolve_threads(None), device)
 
 
-def _write_json(path: Optional[Path], obj) -> None:
-    if path is not None:
-        atomic_write_json(path, obj)
-        typer.echo(f"wrote {path}")
+def _say(as_json: bool):
+    """``typer.echo`` of the human-readable text: to stderr with ``--json`` (stdout holds only the JSON)."""
+    return partial(typer.echo, err=as_json)
 
 
 # -- suite ---------------------------------------------------------------------------------------
@@ -94,8 +89,10 @@ def suite(
     update_baseline: Optional[Path] = typer.Option(None, "--update-baseline", help="Write this run's metrics as the baseline."),
     results_page: Optional[Path] = typer.Option(None, "--results-page",
                                                 help="(Re)write this Markdown results page, e.g. docs/results/quick.md."),
-    methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated subset of the suite's methods."),
-    scenes: Optional[str] = typer.Option(None, "--scenes", help="Comma-separated subset of the suite's scenes."),
+    methods: Optional[List[str]] = typer.Option(None, "--method", "-m", metavar="METHOD",
+                                                help="Run only this method of the suite (repeatable)."),
+    scenes: Optional[List[str]] = typer.Option(None, "--scene", metavar="SCENE",
+                                               help="Run only this scene of the suite (repeatable)."),
     device: str = DeviceOption,
     threads: Optional[int] = ThreadsOption,
     cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/cache)."),
@@ -120,14 +117,14 @@ def suite(
     # start-up time: the runner pulls torch, the renderer and every method
     from capssim.eval.benchmarks.baseline import check_against_baseline, write_baseline
     from capssim.eval.benchmarks.suite import load_suite, run_suite
-    from capssim.eval.report import write_report, write_results_page
+    from capssim.eval.suite_report import write_report, write_results_page
 
     spec = load_suite(name)
-    _set_threads(threads)
+    _set_threads(threads, device)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TextColumn("{task.fields[case]}"), console=Console(stderr=True), transient=False) as progress:
         task = progress.add_task(f"bench {spec['name']}", total=None, case="")
-        run = run_suite(spec, output, methods=_names(methods), scenes=_names(scenes), device=device, cache_dir=cache,
+        run = run_suite(spec, output, methods=methods or None, scenes=scenes or None, device=device, cache_dir=cache,
                         fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
                         events=_progress_events(progress, task))
     verdict = check_against_baseline(run, check) if check is not None else None
@@ -159,7 +156,7 @@ def _mean_metric(records: list[dict], key: str) -> float | None:
 
 def render_bench_summary(run) -> str:
     """One compact table per scene / noise level (the full tables are in report.md)."""
-    from capssim.eval.report import group_records
+    from capssim.eval.suite_report import group_records
 
     lines = []
     methods = [m["label"] for m in run.spec["methods"]]
@@ -184,26 +181,27 @@ def render_bench_summary(run) -> str:
 # -- reconstruct ---------------------------------------------------------------------------------
 @bench_app.command("reconstruct")
 def reconstruct(
+    gt: Optional[Path] = typer.Argument(None, metavar="[GT]", help="Ground-truth scene (default: ../shared/data/gt/qiu-kettle if "
+                                                   "present, else a synthetic scene)."),
     sizes: List[int] = typer.Option([256, 512, 1024], "--size", metavar="PIXELS", help="HR output size (repeatable).",
                                     callback=each(check_hr_size("--size"))),
-    devices: List[str] = typer.Option(["cpu", "cuda"], "--device", metavar="DEVICE",
-                                      help="Devices to time (repeatable; cuda is skipped when absent)."),
+    devices: List[str] = typer.Option([DEFAULT_DEVICE], "--device", metavar="|".join(DEVICES), callback=check_device,
+                                      help=DEVICE_HELP + " Repeatable: one timing per device."),
     iterations: int = typer.Option(25, "--iterations", help="ADMM iterations (paper: 25).", callback=check_iterations),
     repeats: int = RepeatsOption,
     threads: Optional[int] = ThreadsOption,
-    gt: Optional[Path] = typer.Option(None, "--gt", help="Ground-truth scene (default: ../shared/data/gt/qiu-kettle "
-                                                           "if present, else a synthetic scene)."),
     estimated_warps: bool = typer.Option(False, "--estimated-warps", help="Time the registration too."),
-    as_json: Optional[Path] = JsonOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """Wall time and peak memory per stage of 'caps' at the paper's defaults, each run in a fresh process."""
-    _set_threads(threads, adaptive=True)
+    resolved = list(dict.fromkeys(_set_threads(threads, d, adaptive=True).type for d in devices))
     from capssim.eval.benchmarks.reconstruct import format_tables, run_benchmark
 
-    results = run_benchmark(sizes=sizes, devices=devices, iterations=iterations, repeats=repeats, gt=gt,
+    results = run_benchmark(sizes=sizes, devices=resolved, iterations=iterations, repeats=repeats, gt=gt,
                             true_warps=not estimated_warps, threads=threads, log=lambda msg: typer.echo(msg, err=True))
-    typer.echo(format_tables(results))
-    _write_json(as_json, results)
+    _say(as_json)(format_tables(results))
+    if as_json:
+        echo_json(results)
 
 
 # -- registration --------------------------------------------------------------------------------
@@ -211,42 +209,48 @@ def reconstruct(
 def registration(
     captures: List[Path] = typer.Argument(..., metavar="CAPTURE...",
                                           help="Capture folders with true homographies (simulated or rendered)."),
-    mode: str = typer.Option("local-correlation", "--mode", help="Registration mode (capssim reconstruct "
-                                                                 "--registration names them)."),
+    mode: str = typer.Option("local-correlation", "--registration", help="Registration mode (as capssim "
+                                                                         "reconstruct --registration)."),
     stokes_weight: Optional[float] = typer.Option(None, "--stokes-weight",
                                                   help="Weight of the Stokes-consistency term (default: the mode's)."),
     content_alignment: Optional[Path] = typer.Option(
-        None, "--content-alignment", help="capssim gt-check -o record of the captures' ground truth: also report "
-                                          "the error against the content warps."),
+        None, "--content-alignment", help="capssim gt-check --json record of the captures' ground truth: also "
+                                          "report the error against the content warps."),
     device: str = DeviceOption,
     threads: Optional[int] = ThreadsOption,
-    as_json: Optional[Path] = JsonOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """Registration error against the true warps (HR px) and time per capture."""
     from capssim.eval.benchmarks.registration import format_registration_bench, run_registration_bench
 
-    _set_threads(threads)
+    _set_threads(threads, device)
     result = run_registration_bench([str(c) for c in captures], mode=mode, content_alignment=content_alignment,
                                     stokes_weight=stokes_weight, device=device)
-    typer.echo(format_registration_bench(result))
-    _write_json(as_json, result)
+    _say(as_json)(format_registration_bench(result))
+    if as_json:
+        echo_json(result)
 
 
 # -- dofp ----------------------------------------------------------------------------------------
 @bench_app.command("dofp")
 def dofp(
-    scenes: str = typer.Option("qiu-kettle,qiu-cellphonecases", "--scenes", help="Comma-separated scene folders."),
-    methods: str = typer.Option("dofp-bilinear,dofp-eari", "--methods", help="Comma-separated DoFP methods."),
-    gt_root: Optional[Path] = typer.Option(None, "--gt-root", help="Folder holding the scene folders "
-                                                                   "(default: ../shared/data/gt)."),
-    layout: str = typer.Option("sony", "--layout", help="DoFP 2x2 polarizer cell."),
-    psf_sigma: float = typer.Option(0.0, "--psf-sigma", help="Gaussian PSF std, HR px (0: none, as published)."),
+    gt_root: Optional[Path] = typer.Argument(None, metavar="[GT_ROOT]", help="Folder holding the scene folders (default: "
+                                                        "../shared/data/gt)."),
+    scenes: List[str] = typer.Option(["qiu-kettle", "qiu-cellphonecases"], "--scene", metavar="SCENE",
+                                     help="Scene folder under GT_ROOT (repeatable)."),
+    methods: List[str] = typer.Option(["dofp-bilinear", "dofp-eari"], "--method", "-m", metavar="METHOD",
+                                      help="DoFP method (repeatable)."),
+    layout: str = typer.Option("sony", "--dofp-layout", help="DoFP 2x2 polarizer cell."),
+    psf_sigma_hr_px: float = typer.Option(
+        0.0, "--psf-sigma-hr-px", callback=number_in("--psf-sigma-hr-px", 0.0, what="HR pixels; 0 = no blur"),
+        help="Gaussian optical PSF std, HR px. Default 0: the published DoFP protocol has no blur (a capture's "
+             "camera set-up default is 0.5)."),
     border: Optional[int] = typer.Option(None, "--border", help="Border crop of the metrics (default: Tokyo Tech's 15)."),
     device: str = DeviceOption,
     repeats: int = RepeatsOption,
     threads: Optional[int] = ThreadsOption,
     eari_variants: bool = typer.Option(False, "--eari-variants", help="Score dofp-eari under its numerical variants."),
-    as_json: Optional[Path] = JsonOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """The DoFP demosaicking baselines on the published protocol (noise-free, Tokyo Tech / EARI scores)."""
     import torch  # start-up time
@@ -255,15 +259,17 @@ def dofp(
     from capssim.eval.benchmarks.dofp import run_dofp_benchmark
     from capssim.eval.metrics import CONVENTIONS
 
-    _set_threads(threads)
-    rows = run_dofp_benchmark(_names(scenes), _names(methods), gt_root=gt_root, layout=layout, psf_sigma=psf_sigma,
+    _set_threads(threads, device)
+    rows = run_dofp_benchmark(scenes, methods, gt_root=gt_root, layout=layout, psf_sigma_hr_px=psf_sigma_hr_px,
                               border=border, device=device, repeats=repeats, eari_variants=eari_variants)
     crop = CONVENTIONS["tokyotech"].border if border is None else border
-    typer.echo(f"DoFP demosaicking, noise-free, layout {layout}, PSF sigma {psf_sigma} HR px, border crop {crop} px "
-               f"(MATLAB indexing); PSNR in dB (peak 1), AoP RMSE in degrees; "
-               f"time: min of {repeats} run(s) on {device}, {torch.get_num_threads()} CPU thread(s)")
-    typer.echo(dofp_table(rows))
-    _write_json(as_json, rows)
+    say = _say(as_json)
+    say(f"DoFP demosaicking, noise-free, layout {layout}, PSF sigma {psf_sigma_hr_px} HR px, border crop {crop} px "
+        f"(MATLAB indexing); PSNR in dB (peak 1), AoP RMSE in degrees; "
+        f"time: min of {repeats} run(s) on {device}, {torch.get_num_threads()} CPU thread(s)")
+    say(dofp_table(rows))
+    if as_json:
+        echo_json(rows)
 
 
 # -- render --------------------------------------------------------------------------------------
@@ -283,11 +289,16 @@ def _scene_cost_lines(rows: list[dict]) -> list[str]:
     return lines
 
 
+#: the scenes of the render cost table when no --scene, --warp-accuracy or --samplers is given
+COST_SCENES = ("siemens-star", "aop-wheel", "colorchecker", "textured", "materials", "window-reflection",
+               "water-glare", "polarization-star", "dolp-ramp")
+
+
 @bench_app.command("render")
 def render(
-    scenes: str = typer.Option("siemens-star,aop-wheel,colorchecker,textured,materials,window-reflection,"
-                               "water-glare,polarization-star,dolp-ramp", "--scenes",
-                               help="Comma-separated scenes for the cost table."),
+    scenes: Optional[List[str]] = typer.Option(None, "--scene", metavar="SCENE",
+                                               help="Scene of the cost table (repeatable; default: nine library "
+                                                    "scenes, none with --warp-accuracy or --samplers)."),
     size: int = typer.Option(128, "--size", help="HR size."),
     spp: Optional[int] = typer.Option(None, "--spp", help="Fixed spp per HR pixel (default: --target-noise)."),
     target_noise: Optional[float] = typer.Option(None, "--target-noise", help="Monte-Carlo target (default 0.004).",
@@ -299,75 +310,63 @@ def render(
     sampler_scene: Optional[str] = typer.Option(None, "--samplers",
                                                 help="Scene: RMS error of independent vs multijitter sampling."),
     threads: Optional[int] = ThreadsOption,
-    as_json: Optional[Path] = JsonOption,
+    device: str = DeviceOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """Tables behind the rendering choices: cost per scene, planar-warp accuracy, sampler gain."""
     from capssim.eval.benchmarks import render as bench  # start-up time: Mitsuba's set-up and the scenes
 
-    _set_threads(threads)
+    _set_threads(threads, device)
+    say = _say(as_json)
     measured: dict[str, list] = {}
-    names = _names(scenes) or []
+    names = scenes or ([] if warp_scene or sampler_scene else list(COST_SCENES))
     if names:
-        typer.echo(f"render cost, {size} px HR ({'--spp ' + str(spp) if spp else 'target noise'}), "
-                   "time in render_capture")
+        say(f"render cost, {size} px HR ({'--spp ' + str(spp) if spp else 'target noise'}), time in render_capture")
         measured["scene_costs"] = bench.scene_costs(names, size=size, spp=spp, target_noise=target_noise,
                                                     measure=measure)
-        typer.echo("\n".join(_scene_cost_lines(measured["scene_costs"])))
+        say("\n".join(_scene_cost_lines(measured["scene_costs"])))
     if warp_scene:
-        typer.echo(f"\nplanar warp accuracy, {warp_scene}, {size} px, {warp_spp} spp, no PSF: raw frames of apertures "
-                   "1-3 against real per-aperture renders")
-        typer.echo(f"{'method':<42} {'rms':>9} {'rel. to mean':>13} {'MC noise':>9} {'s':>6}")
+        say(f"\nplanar warp accuracy, {warp_scene}, {size} px, {warp_spp} spp, no PSF: raw frames of apertures "
+            "1-3 against real per-aperture renders")
+        say(f"{'method':<42} {'rms':>9} {'rel. to mean':>13} {'MC noise':>9} {'s':>6}")
         measured["warp_accuracy"] = bench.warp_accuracy(warp_scene, size=size, spp=warp_spp)
         for r in measured["warp_accuracy"]:
             noise = "-" if r["mc_noise_rms"] is None else f"{r['mc_noise_rms']:.5f}"
             secs = "-" if r["seconds"] is None else f"{r['seconds']:.1f}"
-            typer.echo(f"{r['method']:<42} {r['rms']:>9.5f} {r['relative']:>12.2%} {noise:>9} {secs:>6}")
+            say(f"{r['method']:<42} {r['rms']:>9.5f} {r['relative']:>12.2%} {noise:>9} {secs:>6}")
     if sampler_scene:
-        typer.echo(f"\nsampler, {sampler_scene} reference view, {size} px: RMS error against a 1024 spp render")
-        typer.echo(f"{'sampler':<12} {'spp':>5} {'rms error':>10}")
+        say(f"\nsampler, {sampler_scene} reference view, {size} px: RMS error against a 1024 spp render")
+        say(f"{'sampler':<12} {'spp':>5} {'rms error':>10}")
         measured["sampler_gain"] = bench.sampler_gain(sampler_scene, size=size)
         for r in measured["sampler_gain"]:
-            typer.echo(f"{r['sampler']:<12} {r['spp']:>5} {r['rms_error']:>10.5f}")
-    _write_json(as_json, measured)
+            say(f"{r['sampler']:<12} {r['spp']:>5} {r['rms_error']:>10.5f}")
+    if as_json:
+        echo_json(measured)
 
 
 # -- dataset -------------------------------------------------------------------------------------
 @bench_app.command("dataset")
 def dataset(
     config: Path = typer.Argument(..., help="Dataset config YAML (e.g. examples/dataset-bench-gt.yaml)."),
-    workers: str = typer.Option("1,2", "--workers", help="Comma-separated worker counts (0: in this process)."),
+    workers: List[int] = typer.Option([1, 2], "--workers", "-w", metavar="N", min=0,
+                                      help="Local worker count to time (repeatable; 0: in this process)."),
     keep: Optional[Path] = typer.Option(None, "--keep", help="Move the generated datasets into this folder."),
     threads: Optional[int] = ThreadsOption,
-    as_json: Optional[Path] = JsonOption,
+    device: str = DeviceOption,
+    as_json: bool = JsonOption,
 ) -> None:
     """Dataset generation throughput (samples per hour) for each number of local workers."""
     from capssim.eval.benchmarks.dataset import format_table as dataset_table
     from capssim.eval.benchmarks.dataset import run_dataset_benchmark
 
-    try:
-        counts = [int(w) for w in _names(workers) or []]
-    except ValueError:
-        raise InputError("--workers", workers, "comma-separated worker counts, e.g. 1,2") from None
-    _set_threads(threads)
-    rows = run_dataset_benchmark(config, counts, keep=keep)
-    typer.echo(f"cores: {os.cpu_count()}, config: {config}")
-    typer.echo(dataset_table(rows))
-    _write_json(as_json, rows)
-
-
-# -- the former commands -------------------------------------------------------------------------
-def _moved_command(old: str, new: str):
-    def moved(ctx: typer.Context) -> None:
-        typer.echo(f"error: 'capssim {old}' is now '{new}' (see '{new} --help').", err=True)
-        raise typer.Exit(2)
-
-    moved.__doc__ = f"Moved: use '{new}'."
-    return moved
+    _set_threads(threads, device)
+    rows = run_dataset_benchmark(config, list(workers), keep=keep)
+    say = _say(as_json)
+    say(f"cores: {os.cpu_count()}, config: {config}")
+    say(dataset_table(rows))
+    if as_json:
+        echo_json(rows)
 
 
 def register(app: typer.Typer) -> None:
     app.add_typer(bench_app, name="bench")
-    for old, new in MOVED.items():
-        app.command(old, hidden=True, context_settings={"ignore_unknown_options": True, "allow_extra_args": True})(
-            _moved_command(old, new))
-

@@ -9,7 +9,7 @@ from typing import List, Optional
 
 import typer
 
-from capssim.cli._options import ThreadsOption, apply_threads
+from capssim.cli._options import DeviceOption, ThreadsOption, apply_compute
 from capssim.errors import InputError
 from capssim.imageio import check_output_file
 
@@ -18,12 +18,16 @@ def calibrate(
     captures: List[Path] = typer.Argument(..., help="Calibration capture folders, or folders holding them."),
     output: Path = typer.Option(..., "-o", "--output", help="The capssim-rig JSON file to write."),
     report: Optional[Path] = typer.Option(None, "--report", help="Also write plots and a summary to this folder."),
-    as_json: bool = typer.Option(False, "--json", help="Print the calibration as JSON."),
+    as_json: bool = typer.Option(False, "--json", help="Print the calibration as JSON to stdout."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Replace an existing --output."),
     threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
-    """Measure an imperfect array (angles, extinction, gain, vignetting, homographies, PSF) from calibration captures."""
-    apply_threads(threads)
+    """Measure an imperfect array (angles, extinction, gain, vignetting, homographies, PSF) from calibration captures.
+
+    The measurement computes on the CPU; --device is checked like every command's.
+    """
+    apply_compute(threads, device)
     check_output_file(output, argument="-o/--output")
     if output.exists() and not overwrite:
         raise InputError("-o/--output", str(output), "a file that does not exist yet", "Pass --overwrite to replace it.")

@@ -9,23 +9,13 @@ from typing import Optional
 import typer
 
 from capssim.cli._options import (
-    AngleOffsetsOption,
-    AperturePsfOption,
-    ExtinctionRatiosOption,
-    GainsOption,
-    NoiseOption,
+    DeviceOption,
     OverwriteOption,
-    RigOption,
-    RigSeedOption,
     SeedOption,
-    SensorOption,
-    SigmaOption,
     ThreadsOption,
-    VignettingOption,
-    apply_threads,
-    rig_from_options,
-    sensor_from_options,
+    apply_compute,
 )
+from capssim.cli._setup_options import SetupOptions, with_setup_options
 from capssim.errors import InputError
 
 #: keyword of make_calibration_captures -> the flag that sets it
@@ -33,35 +23,31 @@ _FLAGS = {"polarizer_angles": "--polarizer-angles", "size": "--size", "spp": "--
           "renderer": "--renderer"}
 
 
+@with_setup_options
 def calibration_captures(
-    output: Path = typer.Argument(..., help="Folder to create: one capture folder per calibration target."),
+    output: Path = typer.Option(..., "-o", "--output", help="Folder to create: one capture folder per calibration "
+                                                           "target."),
     size: int = typer.Option(256, "--size", help="HR size in pixels (the size of the captures to calibrate)."),
     polarizer_angles: int = typer.Option(12, "--polarizer-angles", help="Angles of the polarizer sweep (>= 3)."),
     frames: int = typer.Option(1, "--frames", help="Captures of each uniform target (flat, sweep angles), 1..5."),
     renderer: str = typer.Option("simulate", "--renderer", help="simulate | mitsuba."),
     spp: Optional[int] = typer.Option(64, "--spp", help="Samples per HR pixel (--renderer mitsuba)."),
     seed: int = SeedOption,
-    noise: str = NoiseOption,
-    sigma: Optional[float] = SigmaOption,
-    sensor: Optional[str] = SensorOption,
-    rig: Optional[str] = RigOption,
-    rig_seed: int = RigSeedOption,
-    angle_offsets: Optional[str] = AngleOffsetsOption,
-    extinction_ratios: Optional[str] = ExtinctionRatiosOption,
-    gains: Optional[str] = GainsOption,
-    vignetting: Optional[float] = VignettingOption,
-    aperture_psf_sigmas: Optional[str] = AperturePsfOption,
+    setup_options: SetupOptions = SetupOptions(),
     overwrite: bool = OverwriteOption,
-    as_json: bool = typer.Option(False, "--json", help="Print the set's index (index.json) as JSON."),
+    as_json: bool = typer.Option(False, "--json", help="Print the set's index (index.json) as JSON to stdout."),
     threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
-    """Simulate or render a rig's calibration captures: flat field, polarizer sweep, geometry target, star."""
-    apply_threads(threads, renderer=renderer == "mitsuba")
+    """Simulate or render a rig's calibration captures: flat field, polarizer sweep, geometry target, star.
+
+    The simulation computes on the CPU (Mitsuba picks its own variant); --device is checked like every command's.
+    """
     if renderer not in ("simulate", "mitsuba"):
         raise InputError("--renderer", repr(renderer), "simulate or mitsuba")
-    model, geometry = rig_from_options(rig or "ideal", rig_seed, angle_offsets=angle_offsets,
-                                       extinction_ratios=extinction_ratios, gains=gains, vignetting=vignetting,
-                                       aperture_psf_sigmas=aperture_psf_sigmas)
+    apply_compute(threads, device, renderer=renderer == "mitsuba")
+    model, geometry = setup_options.rig_model(default="ideal")
+    setup = setup_options.camera_setup(model)
     if geometry is not None and tuple(geometry.hr_shape) != (size, size):
         raise InputError("--size", size, f"the rig file's geometry size {geometry.hr_shape[0]}",
                          f"Use --size {geometry.hr_shape[0]}, or a rig file without geometry.")
@@ -69,7 +55,7 @@ def calibration_captures(
 
     try:
         index = make_calibration_captures(
-            output, rig=model, size=size, sensor=sensor_from_options(noise, sigma, sensor), renderer=renderer,
+            output, setup=setup, size=size, renderer=renderer,
             polarizer_angles=polarizer_angles, seed=seed, spp=spp, frames=frames, overwrite=overwrite,
             aperture_homographies=None if geometry is None else geometry.aperture_homographies)
     except InputError as exc:

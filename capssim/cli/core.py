@@ -10,64 +10,37 @@ from typing import Optional
 import typer
 
 from capssim.cli._options import (
-    AngleOffsetsOption,
-    AperturePsfOption,
-    DofpLayoutOption,
-    ExtinctionRatiosOption,
-    GainsOption,
-    NoiseOption,
+    DeviceOption,
     OverwriteOption,
-    RigOption,
-    RigSeedOption,
     SeedOption,
-    SensorOption,
-    SigmaOption,
     ThreadsOption,
-    VignettingOption,
-    apply_threads,
-    check_rig_psfs,
-    rig_from_options,
-    rig_homographies,
-    sensor_from_options,
+    apply_compute,
 )
+from capssim.cli._setup_options import SetupOptions, check_rig_psfs, rig_homographies, with_setup_options
 from capssim.design import DesignInputs, system_design
-from capssim.imageio import atomic_write_json, check_output_file, check_output_free, read_gt_scene
-from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
+from capssim.imageio import check_output_free, read_gt_scene
 
 
+@with_setup_options
 def simulate(
-    gt: Path = typer.Option(..., "--gt", help="Ground truth: folder of 0/45/90/135.png, or a 12-channel TIFF."),
+    gt: Path = typer.Argument(..., help="Ground truth: folder of 0/45/90/135.png, or a 12-channel TIFF."),
     output: Path = typer.Option(..., "-o", "--output", help="Capture folder to create."),
     crop: Optional[int] = typer.Option(None, "--crop", help="Centred N x N crop of the ground truth (multiple of 4)."),
     seed: int = SeedOption,
-    noise: str = NoiseOption,
-    sigma: Optional[float] = SigmaOption,
-    sensor: Optional[str] = SensorOption,
-    dofp_layout: str = DofpLayoutOption,
-    psf_sigma: float = typer.Option(DEFAULT_SIGMA_HR_PX, "--psf-sigma",
-                                    help="Gaussian optical PSF std in HR pixels (0 = none)."),
     shift_max: float = typer.Option(2.0, "--shift-max", help="Max random aperture offset, HR pixels."),
     rotation_max: float = typer.Option(0.5, "--rotation-max", help="Max random aperture rotation, degrees."),
     scale_max: float = typer.Option(0.005, "--scale-max", help="Max random relative scale error."),
-    extinction_ratio: Optional[float] = typer.Option(None, "--extinction-ratio",
-                                                     help="Polarizer extinction ratio (default: ideal); with "
-                                                          "--rig realistic or a rig file, the DoFP camera's only."),
-    rig: Optional[str] = RigOption,
-    rig_seed: int = RigSeedOption,
-    angle_offsets: Optional[str] = AngleOffsetsOption,
-    extinction_ratios: Optional[str] = ExtinctionRatiosOption,
-    gains: Optional[str] = GainsOption,
-    vignetting: Optional[float] = VignettingOption,
-    aperture_psf_sigmas: Optional[str] = AperturePsfOption,
+    setup_options: SetupOptions = SetupOptions(),
     overwrite: bool = OverwriteOption,
     threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
-    """Simulate CAPS and DoFP captures from a ground-truth scene (paper section 5.2), through an ideal or imperfect array."""
-    apply_threads(threads)
-    rig_model, rig_geometry = rig_from_options(rig, rig_seed, angle_offsets=angle_offsets,
-                                               extinction_ratios=extinction_ratios, gains=gains,
-                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas,
-                                               extinction_ratio=extinction_ratio)
+    """Simulate CAPS and DoFP captures from a ground-truth scene (paper section 5.2), through an ideal or imperfect array.
+
+    The simulation computes on the CPU; --device is checked like every command's.
+    """
+    apply_compute(threads, device)
+    rig_model, rig_geometry = setup_options.rig_model()
     # these pull torch and the operators: loaded when the command runs (start-up time)
     from capssim.capture import write_capture
     from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
@@ -77,13 +50,12 @@ def simulate(
     image, source = read_gt_scene(gt)
     image, crop_info = prepare_ground_truth(image, crop=crop)
     source.update(crop_info)
-    psf = PSF.gaussian(psf_sigma)
-    check_rig_psfs(rig_model, image.shape[1:], aperture_psf_sigmas=aperture_psf_sigmas)
+    setup = setup_options.camera_setup(rig_model)
+    check_rig_psfs(rig_model, image.shape[1:], aperture_psf_sigmas=setup_options.aperture_psf_sigmas)
     homographies = rig_homographies(rig_geometry, image.shape[1:], fix="--crop the ground truth to it")
     capture = simulate_capture(
-        image, sensor_from_options(noise, sigma, sensor), seed=seed, psf=psf, dofp_layout=dofp_layout,
-        extinction_ratio=extinction_ratio, pose_ranges=PoseRanges(shift_max, rotation_max, scale_max), source=source,
-        rig=rig_model, aperture_homographies=homographies)
+        image, setup, seed=seed, pose_ranges=PoseRanges(shift_max, rotation_max, scale_max), source=source,
+        aperture_homographies=homographies)
     write_capture(output, capture, overwrite=overwrite)
     hh, ww = capture.hr_shape
     typer.echo(f"wrote {output}: GT {hh}x{ww}, 4 raw frames {hh // 2}x{ww // 2}, DoFP {hh}x{ww}, "
@@ -100,13 +72,15 @@ def design(
     depth_m: float = typer.Option(10.0, "--depth-m"),
     width_px: int = typer.Option(1280, "--width-px"),
     height_px: int = typer.Option(1024, "--height-px"),
-    as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON instead of a table."),
-    output: Optional[Path] = typer.Option(None, "-o", "--output", help="Also write the numbers to this JSON file "
-                                                                      "(atomic; an existing file is replaced)."),
+    as_json: bool = typer.Option(False, "--json", help="Print the numbers as JSON to stdout instead of a table."),
+    threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
-    """Print the system-design quantities of the paper (eq. 5-8). Defaults: the paper's prototype."""
-    if output is not None:
-        check_output_file(output, argument="-o/--output")
+    """Print the system-design quantities of the paper (eq. 5-8). Defaults: the paper's prototype.
+
+    Closed-form arithmetic on the CPU; --threads and --device are checked like every command's.
+    """
+    apply_compute(threads, device)
     d = system_design(DesignInputs(focal_length_mm, f_number, pixel_um, wavelength_nm, apertures, baseline_mm,
                                    depth_m, width_px, height_px))
     rows = [
@@ -124,13 +98,10 @@ def design(
     ]
     if as_json:
         typer.echo(json.dumps(d, indent=2, allow_nan=False))
-    else:
-        width = max(len(r[0]) for r in rows)
-        for name, value in rows:
-            typer.echo(f"{name:<{width}}  {value}")
-    if output is not None:
-        atomic_write_json(output, d)
-        typer.echo(f"wrote {output}", err=as_json)  # stdout stays pure JSON with --json
+        return
+    width = max(len(r[0]) for r in rows)
+    for name, value in rows:
+        typer.echo(f"{name:<{width}}  {value}")
 
 
 def register(app: typer.Typer) -> None:

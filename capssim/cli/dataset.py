@@ -11,7 +11,7 @@ from typing import Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from capssim.cli._options import apply_threads
+from capssim.cli._options import DeviceOption, apply_compute
 from capssim.errors import InputError
 from capssim.imageio import check_writable_location
 
@@ -44,10 +44,11 @@ def dataset(
                                                "0 runs in this process without Dask."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler",
                                             help="Address of an existing Dask scheduler, e.g. tcp://host:8786."),
-    compute_threads: Optional[int] = typer.Option(None, "--threads", "--compute-threads", min=1,
-                                                  help="torch/OpenMP/Mitsuba threads per worker, or of this process "
-                                                       "with --workers 0 (default: cores // workers locally, 1 on "
-                                                       "a cluster, $CAPSSIM_THREADS or 1 in this process)."),
+    threads: Optional[int] = typer.Option(None, "--threads", min=1,
+                                          help="torch/OpenMP/Mitsuba threads per worker, or of this process with "
+                                               "--workers 0 (default: cores // workers locally, 1 on a cluster, "
+                                               "$CAPSSIM_THREADS or 1 in this process)."),
+    device: str = DeviceOption,
     verify: bool = typer.Option(False, "--verify", help="Check every sample against the manifest (after generating, "
                                                          "if CONFIG is given); exit 1 on corruption."),
     dry_run: bool = typer.Option(False, "--dry-run", help="Check the config and print the first samples' parameters."),
@@ -57,8 +58,10 @@ def dataset(
     \b
     capssim dataset CONFIG -o OUT [--workers N | --scheduler ADDRESS] [--verify]
     capssim dataset --verify OUT
+    The samples are simulated or rendered on the CPU (Mitsuba picks its own variant); --device is checked like
+    every command's.
     """
-    apply_threads(compute_threads)
+    apply_compute(threads, device)
     if verify and output is None:
         if config is None:
             raise InputError("dataset", "nothing", "a dataset folder", "Run: capssim dataset --verify OUT")
@@ -72,7 +75,6 @@ def dataset(
     if output is not None:
         check_writable_location(output, argument="-o/--output")
     from capssim.dataset.config import load_config  # pulls torch, Dask and the scene library (start-up time)
-    from capssim.dataset.sample import check_sample  # pulls torch and the renderer (start-up time)
 
     cfg = load_config(config)
     if workers and scheduler is None:
@@ -81,17 +83,31 @@ def dataset(
         check_local_workers(workers)
     _check_disk(cfg, output if output is not None else Path.cwd())
     if dry_run:
-        typer.echo(f"config {config}: {cfg.samples} samples, {len(cfg.sources)} sources, seed {cfg.seed}, "
-                   f"fingerprint {cfg.fingerprint()[:12]}")
-        for index in range(cfg.samples):
-            spec = cfg.sample_spec(index)
-            check_sample(spec)
-            if index < 5:
-                typer.echo(f"{spec['name']}: seed {spec['seed']} {json.dumps(spec['params'], sort_keys=True)}")
-        typer.echo(f"all {cfg.samples} samples' parameters checked")
-        return
+        return _dry_run(cfg, config)
     if output is None:
         raise InputError("-o/--output", "nothing", "the dataset folder to create or finish", "Add -o OUT.")
+    status = _generate(cfg, output, workers=workers, scheduler=scheduler, threads=threads)
+    if verify:
+        status = max(status, _verify(output))
+    raise typer.Exit(status)
+
+
+def _dry_run(cfg, config: Path) -> None:
+    """``--dry-run``: check every sample's parameters and print the first five."""
+    from capssim.dataset.sample import check_sample  # pulls torch and the renderer (start-up time)
+
+    typer.echo(f"config {config}: {cfg.samples} samples, {len(cfg.sources)} sources, seed {cfg.seed}, "
+               f"fingerprint {cfg.fingerprint()[:12]}")
+    for index in range(cfg.samples):
+        spec = cfg.sample_spec(index)
+        check_sample(spec)
+        if index < 5:
+            typer.echo(f"{spec['name']}: seed {spec['seed']} {json.dumps(spec['params'], sort_keys=True)}")
+    typer.echo(f"all {cfg.samples} samples' parameters checked")
+
+
+def _generate(cfg, output: Path, *, workers: Optional[int], scheduler: Optional[str], threads: Optional[int]) -> int:
+    """Generate (or finish) the dataset under a progress bar; the exit status (1: some samples failed)."""
     if not logging.getLogger().isEnabledFor(logging.DEBUG):
         import distributed  # noqa: F401  (it configures its loggers on import; quieten them after)
 
@@ -109,7 +125,7 @@ def dataset(
             failed = f", {p.failed} failed" if p.failed else ""
             bar.update(task, completed=p.done, status=f"{rate}, ETA {_fmt_duration(p.eta_s)}{failed}")
 
-        result = generate_dataset(cfg, output, workers=workers, scheduler=scheduler, compute_threads=compute_threads,
+        result = generate_dataset(cfg, output, workers=workers, scheduler=scheduler, compute_threads=threads,
                                   progress=on_progress)
     rate = result.samples_per_hour
     where = "in this process" if result.workers == 0 else f"on {result.workers} Dask workers"
@@ -117,15 +133,12 @@ def dataset(
                f"({result.already_done} from earlier runs, {result.generated} made {where}"
                f"{f', {rate:.0f} samples/h' if rate else ''}), {len(result.removed)} leftovers removed, "
                f"{result.wall_s:.1f} s")
-    status = 0
-    if result.failed:
-        for index, error in sorted(result.failed.items()):
-            typer.echo(f"FAILED sample {index}: {error}", err=True)
-        typer.echo(f"{len(result.failed)} samples failed; rerun the same command to retry them.", err=True)
-        status = 1
-    if verify:
-        status = max(status, _verify(output))
-    raise typer.Exit(status)
+    if not result.failed:
+        return 0
+    for index, error in sorted(result.failed.items()):
+        typer.echo(f"FAILED sample {index}: {error}", err=True)
+    typer.echo(f"{len(result.failed)} samples failed; rerun the same command to retry them.", err=True)
+    return 1
 
 
 #: samples whose drawn sizes set the per-sample disk estimate (the largest of them, times ``samples``)

@@ -10,7 +10,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from capssim.cli._options import OverwriteOption, ThreadsOption, apply_threads
+from capssim.cli._options import DeviceOption, OverwriteOption, ThreadsOption, apply_compute
 from capssim.conventions import dofp_layout, dofp_layout_name
 from capssim.errors import InputError, UnknownNameError
 from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
@@ -77,20 +77,20 @@ def read_raw_mosaic(path: Path, *, white_level: Optional[float] = None, black_le
 def demosaic(
     raw: Path = typer.Argument(..., help="Raw DoFP mosaic: 8/16-bit PNG or TIFF (or float TIFF), one channel."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder to create."),
-    layout: str = typer.Option("sony", "--layout", help="2x2 polarizer cell: sony ([[90,45],[135,0]]) | 0-45-135-90 | "
-                                                         "four angles row-major like 90-45-135-0."),
-    method: str = typer.Option("dofp-eari", "--method", help=f"Demosaicking method: {' | '.join(DOFP_METHODS)}."),
+    layout: str = typer.Option("sony", "--dofp-layout", help="2x2 polarizer cell: sony ([[90,45],[135,0]]) | "
+                                                              "0-45-135-90 | four angles row-major like 90-45-135-0."),
+    method: str = typer.Option("dofp-eari", "--method", "-m", help=f"Demosaicking method: {' | '.join(DOFP_METHODS)}."),
     white_level: Optional[float] = typer.Option(None, "--white-level",
                                                 help="DN of full scale (default: 255 or 65535 by container)."),
     black_level: float = typer.Option(0.0, "--black-level", help="DN of black (subtracted)."),
     trim_odd: bool = typer.Option(False, "--trim-odd", help="Drop the last row/column of an odd-sized mosaic."),
     dolp_max: float = typer.Option(0.5, "--dolp-max", help="DoLP shown fully saturated in the AoP preview."),
-    device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
     physical_projection: bool = typer.Option(
         True, "--physical-projection/--no-physical-projection",
         help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1)."),
     overwrite: bool = OverwriteOption,
     threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
     """Demosaick a real colour-polarization DoFP raw mosaic.
 
@@ -99,10 +99,10 @@ def demosaic(
     intensity and DoLP scales and the AoP colour key), and demosaic.json (with each preview's scale).
     """
     # start-up time: the previews and the methods pull torch
-    from capssim.reconstruct.registry import StageTimer, dofp_array_function, resolve_device
+    from capssim.reconstruct.registry import StageTimer, dofp_array_function
     from capssim.visualize import preview_scales, write_previews
 
-    apply_threads(threads)
+    dev = apply_compute(threads, device)
     if method not in DOFP_METHODS:
         raise UnknownNameError("DoFP method", method, list(DOFP_METHODS))
     if not (math.isfinite(dolp_max) and 0.0 < dolp_max <= 1.0):
@@ -110,8 +110,6 @@ def demosaic(
                          "Try --dolp-max 0.5.")
     cell = dofp_layout(layout)
     check_output_free(output, overwrite=overwrite)
-
-    dev = resolve_device(device)
     t0 = time.perf_counter()
     mosaic, saturated, info = read_raw_mosaic(raw, white_level=white_level, black_level=black_level, trim_odd=trim_odd)
     timer = StageTimer(dev)

@@ -5,12 +5,12 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Optional
+from typing import List, Optional
 
 import numpy as np
 import typer
 
-from capssim.cli._options import number_in
+from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, apply_compute, number_in
 from capssim.conventions import CHANNEL_NAMES
 from capssim.errors import InputError
 from capssim.imageio import read_image
@@ -45,7 +45,8 @@ def evaluate(
     capture: Path = typer.Argument(..., help="Capture folder with gt.tiff and recon/*.tiff."),
     convention: str = typer.Option("capssim", "--convention",
                                    help="Metric definitions: capssim | tokyotech | qiu (docs: guides/scoring.md, 'Metrics')."),
-    methods: Optional[str] = typer.Option(None, "--methods", help="Comma-separated reconstructions to score (default: all)."),
+    methods: Optional[List[str]] = typer.Option(None, "--method", "-m", metavar="METHOD",
+                                                help="Reconstruction to score (repeatable; default: all)."),
     min_s0: Optional[float] = typer.Option(None, "--min-s0", help="AoP mask / DoLP guard: GT S0 above this (S0 in [0,2])."),
     min_dolp: Optional[float] = typer.Option(None, "--min-dolp", help="AoP mask: GT DoLP above this."),
     border: Optional[int] = typer.Option(None, "--border", help="Border crop in pixels (default: the convention's).",
@@ -53,21 +54,27 @@ def evaluate(
     lpips_weights: Optional[Path] = typer.Option(None, "--lpips-weights",
                                                  help="Local LPIPS-Alex weights (file or folder); never downloaded."),
     no_mtf: bool = typer.Option(False, "--no-mtf", help="Skip the Siemens-star MTF of star scenes."),
-    as_json: bool = typer.Option(False, "--json", help="Print the metrics as JSON instead of tables."),
+    as_json: bool = JsonOption,
+    threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
-    """Score every reconstruction of a capture against its ground truth; write CAPTURE/metrics.json."""
+    """Score every reconstruction of a capture against its ground truth; write CAPTURE/metrics.json.
+
+    The metrics compute on the CPU; --device is the LPIPS network's.
+    """
+    dev = apply_compute(threads, device)
     # start-up time: the scoring pulls torch and skimage
     from capssim.eval.evaluate import evaluate_capture
-    from capssim.eval.metrics import check_thresholds, json_safe
+    from capssim.eval.metric_records import json_safe
+    from capssim.eval.metrics import check_thresholds
 
     check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
     lpips = None
     if lpips_weights is not None:
         from capssim.eval.lpips import LPIPS
 
-        lpips = LPIPS.from_path(lpips_weights)
-    wanted = [m.strip() for m in methods.split(",") if m.strip()] if methods else None
-    result = evaluate_capture(capture, convention=convention, methods=wanted, min_s0=min_s0, min_dolp=min_dolp,
+        lpips = LPIPS.from_path(lpips_weights, device=dev)
+    result = evaluate_capture(capture, convention=convention, methods=methods or None, min_s0=min_s0, min_dolp=min_dolp,
                               border=border, lpips=lpips, with_mtf=not no_mtf)
     if as_json:
         typer.echo(json.dumps(json_safe(result), indent=2, allow_nan=False))
@@ -163,64 +170,45 @@ def _read_star_image(path: Path):
     raise InputError("image", f"{path} with shape {arr.shape}", "a grey, RGB or 12-channel image")
 
 
-def mtf(
-    image: Path = typer.Argument(..., help="Star image: PNG/TIFF, grey, RGB or 12-channel (capssim output)."),
-    cycles: int = typer.Option(..., "--cycles", help="Sinusoidal periods of the star per turn."),
-    center: Optional[str] = typer.Option(None, "--center", help="Star centre ROW,COL in pixels (default: found)."),
-    radius: Optional[float] = typer.Option(None, "--radius", help="Star radius in pixels (default: found).",
-                                           callback=number_in("--radius", 0.0, low_open=True, what="pixels")),
-    reference_pitch: Optional[float] = typer.Option(
-        None, "--reference-pitch",
-        help="Pixels of this image per reference pixel for the magnification (default 1; 4 for a 12-channel image).",
-        callback=number_in("--reference-pitch", 0.0, low_open=True, what="pixels per reference pixel")),
-    channel: Optional[str] = typer.Option(None, "--channel", help="Comma-separated channel names or indices (default: all)."),
-    modulation: Optional[float] = typer.Option(None, "--modulation",
-                                               help="The target's true modulation (default: extrapolated to f=0).",
-                                               callback=number_in("--modulation", 0.0, 1.0, low_open=True)),
-    threshold: float = typer.Option(0.03, "--threshold", help="MTF at the limit resolution (paper: 0.03).",
-                                    callback=number_in("--threshold", 0.0, 1.0, low_open=True, high_open=True)),
-    residual_limit: float = typer.Option(0.5, "--residual-limit",
-                                         help="Stop where residual RMS / sinusoid RMS reaches this.",
-                                         callback=number_in("--residual-limit", 0.0, low_open=True)),
-    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of tables."),
-) -> None:
-    """MTF of a sinusoidal Siemens star per segment direction, limit resolution and SR magnification."""
-    from capssim.eval.metrics import json_safe  # start-up time
-    from capssim.eval.mtf import measure_star
+def _parse_center(center: Optional[str]):
+    """``--center ROW,COL`` (one point, two components) as ``(row, col)`` pixels, or ``None``."""
+    if not center:
+        return None
+    try:
+        centre = tuple(float(v) for v in center.split(","))
+    except ValueError:
+        centre = ()
+    if len(centre) != 2:
+        raise InputError("--center", center, "ROW,COL in pixels, e.g. 255.5,255.5")
+    return centre
 
-    imgs, names = _read_star_image(image)
-    is_twelve = len(names) == 12
-    centre = None
-    if center:
-        try:
-            centre = tuple(float(v) for v in center.split(","))
-            assert len(centre) == 2
-        except (ValueError, AssertionError):
-            raise InputError("--center", center, "ROW,COL in pixels, e.g. 255.5,255.5") from None
-    if channel:
-        picked = []
-        for token in (t.strip() for t in channel.split(",") if t.strip()):
-            if token in names:
-                picked.append(names.index(token))
-            elif token.isdigit() and int(token) < len(names):
-                picked.append(int(token))
-            else:
-                raise InputError("--channel", token, f"one of {', '.join(names)} or an index < {len(names)}")
-        imgs, names = imgs[picked], [names[i] for i in picked]
-    pitch = reference_pitch if reference_pitch is not None else (4.0 if is_twelve else 1.0)
-    res = measure_star(imgs, cycles, names=names, center_rowcol=centre, radius=radius, reference_modulation=modulation,
-                       reference_pitch=pitch, threshold=threshold, residual_limit=residual_limit).results
-    if as_json:
-        typer.echo(json.dumps(json_safe({"image": str(image), "channels": {k: v.to_dict() for k, v in res.items()}}),
-                              indent=2, allow_nan=False))
-        return
+
+def _pick_channels(imgs, names: list[str], channels: Optional[List[str]]):
+    """The ``--channel`` picks (names or indices, repeatable) of ``imgs``; all without any."""
+    if not channels:
+        return imgs, names
+    picked = []
+    for token in (t.strip() for t in channels if t.strip()):
+        if token in names:
+            picked.append(names.index(token))
+        elif token.isdigit() and int(token) < len(names):
+            picked.append(int(token))
+        else:
+            raise InputError("--channel", token, f"one of {', '.join(names)} or an index < {len(names)}",
+                             "Repeat --channel for several, e.g. --channel G --channel B.")
+    return imgs[picked], [names[i] for i in picked]
+
+
+def mtf_text(res: dict, names: list[str], *, image: Path, cycles: int, given_centre: bool, pitch: float,
+             default_pitch: bool, threshold: float, residual_limit: float) -> str:
+    """The tables ``capssim mtf`` prints of a :func:`~capssim.eval.mtf.measure_star` result."""
     head = res["mean"] if "mean" in res else res[names[0]]
     lines = [f"image: {image} ({len(names)} channel{'s' if len(names) > 1 else ''}: {', '.join(names)})",
              f"star: {cycles} cycles, centre row {head.center_rowcol[0]:.2f} col {head.center_rowcol[1]:.2f}"
-             f"{' (given)' if centre else ' (found)'}, radius {head.radius_px:.1f} px",
+             f"{' (given)' if given_centre else ' (found)'}, radius {head.radius_px:.1f} px",
              f"reference pitch: {pitch:g} px of this image"
              + (" (default for a 12-channel capssim image: one Bayer sub-image pixel = 4 HR px)"
-                if reference_pitch is None and pitch == 4.0 else ""),
+                if default_pitch and pitch == 4.0 else ""),
              f"frequencies: cycles/px of this image (f) and cycles per reference pixel (f_ref = f x {pitch:g})", ""]
     label = "channel mean" if "mean" in res else names[0]
     rows = []
@@ -244,7 +232,54 @@ def mtf(
     lines.append(f"reference modulation: {head.reference_source}; the measurement never credits frequencies above "
                  "0.5 cycles/px of this grid and stops where the fit residual reaches "
                  f"{residual_limit} x the sinusoid (aliasing or noise).")
-    typer.echo("\n".join(lines))
+    return "\n".join(lines)
+
+
+def mtf(
+    image: Path = typer.Argument(..., help="Star image: PNG/TIFF, grey, RGB or 12-channel (capssim output)."),
+    cycles: int = typer.Option(..., "--cycles", help="Sinusoidal periods of the star per turn."),
+    center: Optional[str] = typer.Option(None, "--center", help="Star centre ROW,COL in pixels (default: found)."),
+    radius: Optional[float] = typer.Option(None, "--radius", help="Star radius in pixels (default: found).",
+                                           callback=number_in("--radius", 0.0, low_open=True, what="pixels")),
+    reference_pitch: Optional[float] = typer.Option(
+        None, "--reference-pitch",
+        help="Pixels of this image per reference pixel for the magnification (default 1; 4 for a 12-channel image).",
+        callback=number_in("--reference-pitch", 0.0, low_open=True, what="pixels per reference pixel")),
+    channel: Optional[List[str]] = typer.Option(None, "--channel", metavar="NAME",
+                                                help="Channel name or index (repeatable; default: all)."),
+    modulation: Optional[float] = typer.Option(None, "--modulation",
+                                               help="The target's true modulation (default: extrapolated to f=0).",
+                                               callback=number_in("--modulation", 0.0, 1.0, low_open=True)),
+    threshold: float = typer.Option(0.03, "--threshold", help="MTF at the limit resolution (paper: 0.03).",
+                                    callback=number_in("--threshold", 0.0, 1.0, low_open=True, high_open=True)),
+    residual_limit: float = typer.Option(0.5, "--residual-limit",
+                                         help="Stop where residual RMS / sinusoid RMS reaches this.",
+                                         callback=number_in("--residual-limit", 0.0, low_open=True)),
+    as_json: bool = JsonOption,
+    threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
+) -> None:
+    """MTF of a sinusoidal Siemens star per segment direction, limit resolution and SR magnification.
+
+    The measurement computes on the CPU (numpy); --device is checked like every command's.
+    """
+    from capssim.eval.metric_records import json_safe  # start-up time
+    from capssim.eval.mtf import measure_star
+
+    apply_compute(threads, device)
+    imgs, names = _read_star_image(image)
+    is_twelve = len(names) == 12
+    centre = _parse_center(center)
+    imgs, names = _pick_channels(imgs, names, channel)
+    pitch = reference_pitch if reference_pitch is not None else (4.0 if is_twelve else 1.0)
+    res = measure_star(imgs, cycles, names=names, center_rowcol=centre, radius=radius, reference_modulation=modulation,
+                       reference_pitch=pitch, threshold=threshold, residual_limit=residual_limit).results
+    if as_json:
+        typer.echo(json.dumps(json_safe({"image": str(image), "channels": {k: v.to_dict() for k, v in res.items()}}),
+                              indent=2, allow_nan=False))
+        return
+    typer.echo(mtf_text(res, names, image=image, cycles=cycles, given_centre=centre is not None, pitch=pitch,
+                        default_pitch=reference_pitch is None, threshold=threshold, residual_limit=residual_limit))
 
 
 def register(app: typer.Typer) -> None:

@@ -7,10 +7,10 @@ from typing import List, Optional
 
 import typer
 
-from capssim.cli._options import ThreadsOption, apply_threads, check_iterations
+from capssim.cli._options import DeviceOption, ThreadsOption, apply_compute, check_iterations
 from capssim.errors import InputError
 
-#: keywords of ``run_method`` that come from the command's flags, never from ``-O``
+#: keywords of ``run_method`` that come from the command's flags, never from ``-p/--param``
 COMMAND_FLAGS = {"device": "--device", "true_warps": "--true-warps", "registration": "--registration",
                  "progress": "--progress/--no-progress",
                  "physical_projection": "--physical-projection/--no-physical-projection",
@@ -23,13 +23,13 @@ def parse_options(pairs: List[str]) -> dict:
     options = {}
     for pair in pairs or []:
         if "=" not in pair:
-            raise InputError("--option", repr(pair), "KEY=VALUE (e.g. --option c1=0.002)")
+            raise InputError("--param", repr(pair), "KEY=VALUE (e.g. --param c1=0.002)")
         key, value = pair.split("=", 1)
         key = key.strip()
         if not key:
-            raise InputError("--option", repr(pair), "a non-empty KEY before '='")
+            raise InputError("--param", repr(pair), "a non-empty KEY before '='")
         if key in COMMAND_FLAGS:
-            raise InputError("--option", repr(pair), "a method option (capssim reconstruct --list shows the methods)",
+            raise InputError("--param", repr(pair), "a method option (capssim reconstruct --list shows the methods)",
                              f"'{key}' is set by the command's own flag: use {COMMAND_FLAGS[key]}.")
         options[key] = value.strip()
     return options
@@ -39,7 +39,7 @@ def expand_methods(names: List[str], capture_path: Path) -> list[str]:
     """Resolve ``all`` (every method the capture has input for) and check each name."""
     # start-up time: the capture format and the registry pull torch
     from capssim.capture import read_meta
-    from capssim.reconstruct.registry import available_methods, get_method
+    from capssim.reconstruct import available_methods, get_method
 
     meta = read_meta(capture_path)
     has_dofp = "dofp_raw" in meta.get("files", {})
@@ -60,7 +60,6 @@ def reconstruct(
     method: List[str] = typer.Option(["caps"], "--method", "-m", metavar="METHOD",
                                      help="Method name; repeat for several, or 'all'. "
                                           "'capssim reconstruct --list' shows them."),
-    device: str = typer.Option("cpu", "--device", help="cpu | cuda | auto."),
     iterations: Optional[int] = typer.Option(None, "--iterations", help="ADMM iterations (paper: 25).",
                                              callback=check_iterations),
     true_warps: bool = typer.Option(False, "--true-warps",
@@ -72,7 +71,8 @@ def reconstruct(
                                           "ri-luminance (one of the two only: faster) | stokes-subspace (Stokes-consistent data "
                                           "whose polarization texture biases the default); see the docs, "
                                           "guides/reconstruction.md."),
-    option: List[str] = typer.Option([], "--option", "-O", metavar="KEY=VALUE", help="Method option KEY=VALUE (repeatable)."),
+    param: List[str] = typer.Option([], "--param", "-p", metavar="KEY=VALUE",
+                                    help="Method option KEY=VALUE (repeatable), e.g. -p c1=0.002."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
     reuse_registration: bool = typer.Option(
@@ -89,15 +89,12 @@ def reconstruct(
         True, "--physical-projection/--no-physical-projection",
         help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1) "
              "where all four angles are observed."),
+    device: str = DeviceOption,
 ) -> None:
     """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from capssim.reconstruct import available_methods  # start-up time
 
-    from capssim.reconstruct.registry import available_methods, get_method, run_method  # start-up time
-
-    console = Console(stderr=True)
-    apply_threads(threads)
+    apply_compute(threads, device)
     if list_methods:
         for name, spec in available_methods().items():
             typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}")
@@ -105,41 +102,57 @@ def reconstruct(
     if capture is None:
         raise typer.BadParameter("missing the CAPTURE folder (e.g. 'capssim reconstruct runs/cap -m caps'); "
                                  "only --list runs without one", param_hint="CAPTURE")
-    names = expand_methods(method, capture)
-    options = parse_options(option)
+    options = parse_options(param)
     rows = []
-    for name in names:
-        method_options = dict(options)
-        if iterations is not None:  # ADMM iterations: the CAPS-input methods' option; DoFP methods take none
-            if get_method(name).input_kind == "caps":
-                method_options["iterations"] = iterations
-            else:
-                typer.echo(f"note: --iterations does not apply to the DoFP method {name}; not passed", err=True)
-        with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                      TextColumn("{task.fields[message]}"), TimeElapsedColumn(), console=console,
-                      disable=not progress, transient=False) as bar:
-            task = bar.add_task(name, total=None, message="")
-
-            def report(done: int, total: int, message: str = "", task=task) -> None:
-                bar.update(task, completed=done, total=total, message=message)
-
-            record = run_method(capture, name, device=device, true_warps=true_warps, registration=registration,
-                                progress=report, physical_projection=physical_projection,
-                                reuse_registration=reuse_registration, calibration=calibration, **method_options)
-        reg = record.get("registration", {})
-        err = reg.get("error_hr_px_median")
-        rows.append((name, record["wall_time_s"], err))
-        stages = ", ".join(f"{k} {v:.2f}s" for k, v in record["stages_s"].items())
-        typer.echo(f"{name}: {record['wall_time_s']:.2f} s ({stages}) -> {capture / 'recon' / (name + '.tiff')}")
-        if err is not None:
-            typer.echo(f"  registration ({reg.get('source')}): median error {err:.4f} HR px, "
-                       f"max {reg.get('error_hr_px_max', float('nan')):.4f}")
-        if record.get("calibration"):
-            typer.echo(f"  array model: calibration {record['calibration'].get('source')}")
+    for name in expand_methods(method, capture):
+        record = _run_one(capture, name, iterations=iterations, progress=progress, options=options,
+                          device=device, true_warps=true_warps, registration=registration,
+                          physical_projection=physical_projection, reuse_registration=reuse_registration,
+                          calibration=calibration)
+        rows.append((name, record["wall_time_s"]))
+        _echo_record(capture, name, record)
     if len(rows) > 1:
         typer.echo("method                    wall time (s)")
-        for name, wall, _ in rows:
+        for name, wall in rows:
             typer.echo(f"{name:24s}  {wall:10.2f}")
+
+
+def _run_one(capture: Path, name: str, *, iterations: Optional[int], progress: bool, options: dict,
+             **flags) -> dict:
+    """``run_method`` of one method under a progress bar (stderr); ``--iterations`` to the CAPS-input methods only."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from capssim.reconstruct import get_method, run_method  # start-up time
+
+    method_options = dict(options)
+    if iterations is not None:  # ADMM iterations: the CAPS-input methods' option; DoFP methods take none
+        if get_method(name).input_kind == "caps":
+            method_options["iterations"] = iterations
+        else:
+            typer.echo(f"note: --iterations does not apply to the DoFP method {name}; not passed", err=True)
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TextColumn("{task.fields[message]}"), TimeElapsedColumn(), console=Console(stderr=True),
+                  disable=not progress, transient=False) as bar:
+        task = bar.add_task(name, total=None, message="")
+
+        def report(done: int, total: int, message: str = "") -> None:
+            bar.update(task, completed=done, total=total, message=message)
+
+        return run_method(capture, name, progress=report, **flags, **method_options)
+
+
+def _echo_record(capture: Path, name: str, record: dict) -> None:
+    """The lines ``capssim reconstruct`` prints of one method's record."""
+    stages = ", ".join(f"{k} {v:.2f}s" for k, v in record["stages_s"].items())
+    typer.echo(f"{name}: {record['wall_time_s']:.2f} s ({stages}) -> {capture / 'recon' / (name + '.tiff')}")
+    reg = record.get("registration", {})
+    err = reg.get("error_hr_px_median")
+    if err is not None:
+        typer.echo(f"  registration ({reg.get('source')}): median error {err:.4f} HR px, "
+                   f"max {reg.get('error_hr_px_max', float('nan')):.4f}")
+    if record.get("calibration"):
+        typer.echo(f"  array model: calibration {record['calibration'].get('source')}")
 
 
 def register(app: typer.Typer) -> None:

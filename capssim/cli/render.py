@@ -12,30 +12,16 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 from capssim.cli._options import (
-    AngleOffsetsOption,
-    AperturePsfOption,
-    DofpLayoutOption,
-    ExtinctionRatiosOption,
-    GainsOption,
-    NoiseOption,
+    DeviceOption,
     OverwriteOption,
-    RigOption,
-    RigSeedOption,
     SeedOption,
-    SensorOption,
-    SigmaOption,
     ThreadsOption,
-    VignettingOption,
-    apply_threads,
-    check_rig_psfs,
+    apply_compute,
     number_in,
-    rig_from_options,
-    rig_homographies,
-    sensor_from_options,
 )
+from capssim.cli._setup_options import SetupOptions, check_rig_psfs, rig_homographies, with_setup_options
 from capssim.errors import InputError
 from capssim.imageio import check_output_file, check_output_free, write_png
-from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
 
 
 def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:
@@ -54,18 +40,6 @@ def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:
     return out
 
 
-def _psf(psf: str, sigma: float, f_number: float, wavelength_nm: float, pixel_um: float) -> PSF:
-    """The :class:`capssim.psf.PSF` the --psf options describe."""
-    kind = psf.lower()
-    if kind == "gaussian":
-        return PSF.gaussian(sigma)
-    if kind == "airy":
-        return PSF.airy(f_number, wavelength_nm, pixel_um / 2.0)
-    if kind == "none":
-        return PSF.none()
-    raise InputError("--psf", psf, "gaussian, airy or none")
-
-
 def _render_with_rig(scene: str, **options):
     """``render_capture``; the array geometry of a ``--rig`` file is refused by that flag's name."""
     from capssim.render import render_capture
@@ -80,6 +54,7 @@ def _render_with_rig(scene: str, **options):
                          "Use a planar scene or --planar on, or a rig file without geometry.") from None
 
 
+@with_setup_options
 def render(
     scene: str = typer.Argument(..., help="Scene name (see 'capssim scenes')."),
     output: Path = typer.Option(..., "-o", "--output", help="Capture folder to create."),
@@ -91,21 +66,9 @@ def render(
         callback=number_in("--target-noise", 0.0, 1.0, low_open=True, what="RMS std on [0, 1] full scale")),
     max_spp: int = typer.Option(1024, "--max-spp", help="Upper limit of spp per HR pixel for --target-noise."),
     seed: int = SeedOption,
-    noise: str = NoiseOption,
-    sigma: Optional[float] = SigmaOption,
-    sensor: Optional[str] = SensorOption,
     variant: str = typer.Option("auto", "--variant", help="Mitsuba variant: auto (cuda -> llvm -> scalar) or a name."),
-    dofp_layout: str = DofpLayoutOption,
-    psf: str = typer.Option("gaussian", "--psf", help="Optical PSF: gaussian | airy | none."),
-    psf_sigma: float = typer.Option(DEFAULT_SIGMA_HR_PX, "--psf-sigma", help="Gaussian PSF std in HR pixels.",
-                                    callback=number_in("--psf-sigma", 0.0, what="HR pixels; 0 = no blur")),
-    f_number: float = typer.Option(1.65, "--f-number", help="f-number for --psf airy.",
-                                   callback=number_in("--f-number", 0.0, low_open=True)),
-    wavelength_nm: float = typer.Option(550.0, "--wavelength-nm", help="Wavelength for --psf airy.",
-                                        callback=number_in("--wavelength-nm", 0.0, low_open=True, what="nm")),
-    pixel_um: float = typer.Option(4.8, "--pixel-um", help="Raw pixel pitch for --psf airy (HR pitch is half).",
-                                   callback=number_in("--pixel-um", 0.0, low_open=True, what="micrometres")),
-    param: Optional[List[str]] = typer.Option(None, "--param", metavar="KEY=VALUE", help="Scene parameter KEY=VALUE (repeatable)."),
+    param: Optional[List[str]] = typer.Option(None, "--param", "-p", metavar="KEY=VALUE",
+                                              help="Scene parameter KEY=VALUE (repeatable), e.g. -p cycles=36."),
     geometry: Optional[List[str]] = typer.Option(
         None, "--geometry", metavar="KEY=VALUE",
         help="Array parameter KEY=VALUE (repeatable): baseline_m, tilt_max_deg, roll_max_deg, "
@@ -113,9 +76,6 @@ def render(
     planar: str = typer.Option("auto", "--planar", help="auto | on | off: render a planar scene once and warp."),
     oversample: Optional[int] = typer.Option(None, "--oversample",
                                              help="Render grid factor for the planar warp (default 4, 2 above 512 px)."),
-    extinction_ratio: Optional[float] = typer.Option(None, "--extinction-ratio",
-                                                     help="Polarizer extinction ratio (default: ideal); with "
-                                                          "--rig realistic or a rig file, the DoFP camera's only."),
     camera: str = typer.Option("Nikon 5100 (NPL)", "--camera", help="Camera sensitivities (colour-science)."),
     no_timing: bool = typer.Option(False, "--no-timing", help="Keep wall times out of meta.json (reproducible bytes)."),
     measure_savings: bool = typer.Option(False, "--measure-savings",
@@ -127,34 +87,43 @@ def render(
     preview_dolp_max: float = typer.Option(0.5, "--preview-dolp-max", help="Preview DoLP shown saturated.",
                                            callback=number_in("--preview-dolp-max", 0.0, 1.0, low_open=True,
                                                               what="a DoLP", fix="Try --preview-dolp-max 0.5.")),
-    rig: Optional[str] = RigOption,
-    rig_seed: int = RigSeedOption,
-    angle_offsets: Optional[str] = AngleOffsetsOption,
-    extinction_ratios: Optional[str] = ExtinctionRatiosOption,
-    gains: Optional[str] = GainsOption,
-    vignetting: Optional[float] = VignettingOption,
-    aperture_psf_sigmas: Optional[str] = AperturePsfOption,
+    setup_options: SetupOptions = SetupOptions(),
     overwrite: bool = OverwriteOption,
     threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
-    """Render a library scene through the four CAPS apertures and a DoFP camera (Mitsuba 3)."""
-    apply_threads(threads, renderer=True)
-    rig_model, rig_geometry = rig_from_options(rig, rig_seed, angle_offsets=angle_offsets,
-                                               extinction_ratios=extinction_ratios, gains=gains,
-                                               vignetting=vignetting, aperture_psf_sigmas=aperture_psf_sigmas,
-                                               extinction_ratio=extinction_ratio)
-    check_rig_psfs(rig_model, (size, size), aperture_psf_sigmas=aperture_psf_sigmas)
+    """Render a library scene through the four CAPS apertures and a DoFP camera (Mitsuba 3).
+
+    Mitsuba picks its variant with --variant; --device is the torch device, checked like every command's.
+    """
+    apply_compute(threads, device, renderer=True)
+    rig_model, rig_geometry = setup_options.rig_model()
+    check_rig_psfs(rig_model, (size, size), aperture_psf_sigmas=setup_options.aperture_psf_sigmas)
     homographies = rig_homographies(rig_geometry, (size, size), fix="render at that --size")
     # these pull torch, the operators and the scene library: loaded when the command runs (start-up time)
-    import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
     from capssim.capture import write_capture
 
     t0 = time.perf_counter()
     check_output_free(output, overwrite=overwrite)
     if preview is not None:
         check_output_file(preview, argument="--preview")
-    sens = sensor_from_options(noise, sigma, sensor)
-    psf_value = _psf(psf, psf_sigma, f_number, wavelength_nm, pixel_um)
+    setup = setup_options.camera_setup(rig_model)
+    capture = _render_with_progress(
+        scene, size=size, spp=spp, seed=seed, setup=setup, variant=variant,
+        scene_params=_parse_pairs(param, "--param"), geometry_params=_parse_pairs(geometry, "--geometry"),
+        target_noise=target_noise, record_timing=not no_timing, planar=planar, oversample=oversample,
+        camera=camera, max_spp=max_spp, measure_savings=measure_savings, aperture_homographies=homographies)
+    write_capture(output, capture, overwrite=overwrite)
+    _echo_capture(capture, output, scene, seed, t0)
+    if preview is not None:
+        from capssim.visualize import preview_panel  # pulls torch (start-up time)
+
+        write_png(preview, preview_panel(capture.gt, white=preview_white, dolp_max=preview_dolp_max))
+        typer.echo(f"  preview {preview}")
+
+
+def _render_with_progress(scene: str, **options):
+    """:func:`_render_with_rig` under a progress bar per stage (transient)."""
     tasks: dict = {}
     with Progress(TextColumn("{task.description:<22}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
                   TimeElapsedColumn(), transient=True) as bar:
@@ -163,13 +132,11 @@ def render(
                 tasks[stage] = bar.add_task(stage, total=max(total, 1))
             bar.update(tasks[stage], completed=done)
 
-        capture = _render_with_rig(
-            scene, size=size, spp=spp, seed=seed, sensor=sens, variant=variant, dofp_layout=dofp_layout,
-            scene_params=_parse_pairs(param, "--param"), geometry_params=_parse_pairs(geometry, "--geometry"),
-            target_noise=target_noise, record_timing=not no_timing, progress=progress, psf=psf_value,
-            extinction_ratio=extinction_ratio, planar=planar, oversample=oversample, camera=camera,
-            max_spp=max_spp, measure_savings=measure_savings, rig=rig_model, aperture_homographies=homographies)
-    write_capture(output, capture, overwrite=overwrite)
+        return _render_with_rig(scene, progress=progress, **options)
+
+
+def _echo_capture(capture, output: Path, scene: str, seed: int, t0: float) -> None:
+    """The lines ``capssim render`` prints of a rendered capture: size, sampling, time per stage, choices."""
     r = capture.meta["render"]
     timing = capture.render_timing["timing_s"]
     hh, ww = capture.hr_shape
@@ -186,20 +153,17 @@ def render(
         saved = c.get("saved_s")
         saved_text = f"saved {saved:+.1f} s ({c['saved_how']})" if saved is not None else ""
         typer.echo(f"  choice {c['choice']}: {c['value']} instead of {c['instead_of']}; {saved_text}")
-    if preview is not None:
-        from capssim.visualize import preview_panel  # pulls torch (start-up time)
-
-        write_png(preview, preview_panel(capture.gt, white=preview_white, dolp_max=preview_dolp_max))
-        typer.echo(f"  preview {preview}")
 
 
 def scenes(
     name: Optional[str] = typer.Argument(None, help="Show one scene in detail."),
-    as_json: bool = typer.Option(False, "--json", help="Print JSON instead of a table."),
+    as_json: bool = typer.Option(False, "--json", help="Print JSON to stdout instead of a table."),
+    threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
-    """List the scene library (or describe one scene)."""
+    """List the scene library (or describe one scene); --threads and --device are checked like every command's."""
+    apply_compute(threads, device)
     # the scene library and the renderer pull torch: loaded when the command runs (start-up time)
-    import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
     from capssim.render import get_scene, list_scenes
 
     infos = list_scenes()

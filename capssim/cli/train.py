@@ -7,33 +7,32 @@ from typing import Optional
 
 import typer
 
-from capssim.cli._options import ThreadsOption, apply_threads
+from capssim.cli._options import DeviceOption, ThreadsOption, apply_compute
 from capssim.errors import InputError
 
 
 def train(
     config: Path = typer.Argument(..., help="Training config (YAML), e.g. examples/train-cpdnet-small.yaml."),
     output: Path = typer.Option(..., "-o", "--output", help="Run folder: checkpoint, model.pt, history, plot."),
-    device: str = typer.Option("auto", "--device", help="cpu, cuda, or auto (cuda when present)."),
     overwrite: bool = typer.Option(False, "--overwrite", help="Start again in an existing run folder."),
     dataset_workers: int = typer.Option(0, "--dataset-workers", min=0,
                                         help="Dask workers that generate a missing dataset (0: in this process)."),
     threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
 ) -> None:
     """Train the model of CONFIG into the run folder; the same command resumes after an interruption.
 
-    Writes RUN/model.pt (use it with: capssim reconstruct CAP -m cpdnet -O weights=RUN/model.pt, or
-    -m caps-sisr -O model=RUN/model.pt), RUN/history.jsonl and RUN/training.png.
+    Writes RUN/model.pt (use it with: capssim reconstruct CAP -m cpdnet -p weights=RUN/model.pt, or
+    -m caps-sisr -p model=RUN/model.pt), RUN/history.jsonl and RUN/training.png. Train on a GPU with
+    --device cuda (or auto).
     """
-    apply_threads(threads)
+    dev = apply_compute(threads, device)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from capssim.reconstruct.registry import resolve_device
     from capssim.reconstruct.training.config import load_train_config
     from capssim.reconstruct.training.trainer import train as run_training
 
     cfg = load_train_config(config)
-    dev = resolve_device(device)
     if output.exists() and not output.is_dir():
         raise InputError("-o/--output", str(output), "a folder for the training run")
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),

@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-import capssim.scenes  # noqa: F401  (registers the calibration-sheet scene with the renderer)
+from capssim.array_geometry import ArrayGeometry
+from capssim.camera_setup import CameraSetup, as_setup
 from capssim.capture import Capture, write_capture
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
 from capssim.homography import random_aperture_homographies
 from capssim.imageio import atomic_write_json, check_output_free
 from capssim.render import render_capture
@@ -133,7 +133,7 @@ def _remove_stale_captures(out: Path, keep: set[str]) -> None:
             shutil.rmtree(folder)
 
 
-def _simulated(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographies: np.ndarray, seed: int) -> Capture:
+def _simulated(entry: dict, size: int, setup: CameraSetup, homographies: np.ndarray, seed: int) -> Capture:
     target = entry["target"]
     if target in ("flat", "polarizer"):
         gt = polarized_field(size, entry["level"], entry.get("polarizer_deg", 0.0),
@@ -142,15 +142,15 @@ def _simulated(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographi
         gt = texture_target(size, seed)
     else:
         gt, entry["center_rowcol"] = star_target(size, entry["cycles"])
-    return simulate_capture(gt, sensor, seed=seed, rig=rig, aperture_homographies=homographies,
+    return simulate_capture(gt, setup, seed=seed, aperture_homographies=homographies,
                             source={"type": "calibration target", "target": target},
                             extra_meta={"calibration": entry})
 
 
-def _rendered(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographies: np.ndarray, seed: int,
+def _rendered(entry: dict, size: int, setup: CameraSetup, homographies: np.ndarray, seed: int,
               spp: int | None) -> Capture:
     target = entry["target"]
-    options = dict(size=size, spp=spp, seed=seed, sensor=sensor, rig=rig, aperture_homographies=homographies,
+    options = dict(size=size, spp=spp, seed=seed, setup=setup, aperture_homographies=homographies,
                    planar="on", record_timing=False)
     if target in ("flat", "polarizer"):
         params = {"level": entry["level"], "dolp": 0.0 if target == "flat" else 1.0,
@@ -168,12 +168,15 @@ def _rendered(entry: dict, size: int, sensor: Sensor, rig: RigModel, homographie
     return capture
 
 
-def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor: Sensor,
-                              renderer: str = "simulate", polarizer_angles: int = 12, seed: int = 0,
+def make_calibration_captures(out_dir, *, setup: CameraSetup | None = None, rig: RigModel | None = None,
+                              sensor: Sensor | None = None, size: int = 256, renderer: str = "simulate", polarizer_angles: int = 12, seed: int = 0,
                               aperture_homographies: np.ndarray | None = None, frames: int = 1,
                               spp: int | None = 64, overwrite: bool = False) -> dict:
-    """Write one calibration set of ``rig`` under ``out_dir``; returns its index (also ``out_dir/index.json``).
+    """Write one calibration set of a rig under ``out_dir``; returns its index (also ``out_dir/index.json``).
 
+    ``setup``: the camera set-up of every capture (:class:`~capssim.camera_setup.CameraSetup`: sensor,
+    PSF, DoFP layout, extinction ratio and the rig; ``None``: the default set-up, an ideal array);
+    ``rig`` and ``sensor``, when given, replace the set-up's.
     ``size``: HR pixels (the size of the captures the calibration is for: homographies depend on
     it); ``renderer``: ``simulate`` or ``mitsuba``; ``aperture_homographies`` ``(4, 3, 3)``
     (default: a draw of the default pose ranges from ``seed``), shared by every capture;
@@ -191,14 +194,16 @@ def make_calibration_captures(out_dir, *, rig: RigModel, size: int = 256, sensor
     aperture_homographies = _check_homographies(aperture_homographies)
     if overwrite:
         _remove_stale_captures(Path(out), {name for name, _ in entries})
+    setup = as_setup(setup if sensor is None else as_setup(setup).replace(sensor=sensor), rig=rig)
+    rig = setup.rig if setup.rig is not None else RigModel.ideal()
     index = {"format": "capssim-calibration-set", "version": 1, "renderer": renderer, "size": int(size),
              "rig": rig.to_dict(), "captures": []}
     for j, (name, entry) in enumerate(entries):
         capture_seed = int(seed) * 1000 + j
         if renderer == "simulate":
-            capture = _simulated(dict(entry), size, sensor, rig, aperture_homographies, capture_seed)
+            capture = _simulated(dict(entry), size, setup, aperture_homographies, capture_seed)
         else:
-            capture = _rendered(dict(entry), size, sensor, rig, aperture_homographies, capture_seed, spp)
+            capture = _rendered(dict(entry), size, setup, aperture_homographies, capture_seed, spp)
         write_capture(Path(out) / name, capture, overwrite=overwrite)
         index["captures"].append({"folder": name, **capture.meta["calibration"]})
     atomic_write_json(Path(out) / "index.json", index)

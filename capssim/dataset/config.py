@@ -43,124 +43,29 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
-from capssim.conventions import POLARIZER_ANGLES_DEG, dofp_layout, dofp_layout_name
-from capssim.dataset.distributions import Choice, Const, Dist, Distribution, draw_tree, key_rng
-from capssim.dataset.schema import (
-    AnyMapping,
-    Anything,
-    Boolean,
-    ConfigError,
-    Custom,
-    Integer,
-    Mapping,
-    Nullable,
-    Number,
-    Sequence,
-    String,
-    join,
-    show,
+from capssim.camera_setup import DEFAULT_DOFP_LAYOUT, DEFAULT_NOISE, DEFAULT_SENSOR_PRESET
+from capssim.conventions import POLARIZER_ANGLES_DEG
+from capssim.dataset.config_specs import (  # noqa: F401  (re-exported: the config's keys and limits)
+    DEFAULT_SCENE_SIZE,
+    GT_ONLY_KEYS,
+    GT_SOURCE_SPEC,
+    MIN_SIZE,
+    RENDER_OPTICS_KEYS,
+    SCENE_SOURCE_SPEC,
+    SHARED_KEYS,
+    SIZE_MULTIPLE,
+    TOP_SPEC,
 )
+from capssim.dataset.distributions import Choice, Const, Dist, draw_tree, key_rng
+from capssim.dataset.schema import ConfigError, join, show
 from capssim.errors import InputError
 from capssim.imageio import GT_IMAGE_SUFFIXES
 from capssim.psf import DEFAULT_SIGMA_HR_PX
 from capssim.render import list_scenes
 from capssim.rig import RigModel
-from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS
+from capssim.simulate import PoseRanges
 
 log = logging.getLogger(__name__)
-
-MIN_SIZE = 16
-SIZE_MULTIPLE = 4
-DEFAULT_SCENE_SIZE = 64
-#: keys a source may take over from ``defaults``
-SHARED_KEYS = ("sensor", "dofp_layout", "pose", "psf_sigma_hr_px", "extinction_ratio", "rig")
-#: shared keys that only ground-truth sources use (render draws its own aperture errors from geometry_params)
-GT_ONLY_KEYS = ("pose",)
-#: shared keys passed to ``render_capture`` (as ``psf=`` / ``extinction_ratio=``) when set
-RENDER_OPTICS_KEYS = ("psf_sigma_hr_px", "extinction_ratio")
-
-
-def _dofp(value):
-    """A DoFP layout name or 2x2 cell -> its canonical name (``sony``, ``0-45-135-90``, ...)."""
-    return dofp_layout_name(dofp_layout(value))
-
-
-def _size_spec(nullable: bool):
-    inner = Integer(minimum=MIN_SIZE, multiple_of=SIZE_MULTIPLE)
-    return Distribution(Nullable(inner) if nullable else inner)
-
-
-SENSOR_SPEC = Mapping({
-    "noise": Distribution(String(choices=list(NOISE_MODELS))),
-    "sigma": Distribution(Number(minimum=0, maximum=1)),
-    "preset": Distribution(String(choices=list(SENSOR_PRESETS))),
-    "exposure": Distribution(Number(minimum=0, exclusive_minimum=True)),
-    "bit_depth": Distribution(Integer(minimum=8, maximum=16)),
-}, what="a sensor description (noise, sigma, preset, exposure, bit_depth)")
-
-POSE_SPEC = Mapping({
-    "shift_max_px": Distribution(Number(minimum=0)),
-    "rotation_max_deg": Distribution(Number(minimum=0, maximum=45)),
-    "scale_max": Distribution(Number(minimum=0, maximum=0.5)),
-}, what="aperture pose error ranges (shift_max_px, rotation_max_deg, scale_max)")
-
-_ER = Distribution(Number(minimum=1, exclusive_minimum=True))
-#: an imperfect array (capssim.rig.RigModel): a preset's draw, then per-quantity overrides (lists as in the CLI)
-RIG_SPEC = Mapping({
-    "preset": Distribution(String(choices=["ideal", "realistic"])),
-    "seed": Distribution(Integer(minimum=0)),
-    "angle_offsets_deg": Sequence(Distribution(Number(minimum=-20, maximum=20)), lengths=(4,), what="degrees"),
-    "extinction_ratio": Sequence(_ER, lengths=(1, 3, 12), what="extinction ratios (all, R G B, or 4 x R G B)",
-                                 bare=_ER),
-    "gain": Sequence(Distribution(Number(minimum=1e-3)), lengths=(4,), what="gains (1 = nominal)"),
-    "vignetting_corner": Distribution(Number(minimum=0, maximum=0.9)),
-    "psf_sigmas_hr_px": Sequence(Distribution(Number(minimum=0)), lengths=(4,), what="Gaussian PSF stds (HR px)"),
-}, what="an imperfect array (preset, seed, angle_offsets_deg, extinction_ratio, gain, vignetting_corner, "
-        "psf_sigmas_hr_px)")
-
-SHARED_SPECS = {
-    "sensor": SENSOR_SPEC,
-    "dofp_layout": Distribution(Custom(_dofp, "a DoFP layout")),
-    "pose": POSE_SPEC,
-    "psf_sigma_hr_px": Distribution(Number(minimum=0)),
-    "extinction_ratio": Distribution(Nullable(Number(minimum=1, exclusive_minimum=True))),
-    "rig": RIG_SPEC,
-}
-
-GT_SOURCE_SPEC = Mapping({
-    "gt": String(),
-    "name": String(),
-    "weight": Number(minimum=0),
-    "size": _size_spec(nullable=True),
-    "crop_position": Distribution(String(choices=["center", "random"])),
-    "augment": Mapping({"rot90": Distribution(Integer(minimum=0, maximum=3)), "flip": Distribution(Boolean())},
-                       what="augmentations (rot90: quarter turns 0..3, flip: true/false)"),
-    **SHARED_SPECS,
-}, required=("gt",), what="a ground-truth source")
-
-SCENE_SOURCE_SPEC = Mapping({
-    "scene": String(),
-    "name": String(),
-    "weight": Number(minimum=0),
-    "size": _size_spec(nullable=False),
-    "spp": Distribution(Nullable(Integer(minimum=1))),
-    "variant": String(),
-    "target_noise": Distribution(Nullable(Number(minimum=0, exclusive_minimum=True, maximum=1))),
-    "scene_params": Mapping(extra=Distribution(Anything()), what="scene parameters (name: value or distribution)"),
-    "geometry_params": Mapping(extra=Distribution(Anything()), what="geometry parameters (name: value or distribution)"),
-    **{k: v for k, v in SHARED_SPECS.items() if k not in GT_ONLY_KEYS},
-}, required=("scene",), what="a rendered-scene source")
-
-TOP_SPEC = Mapping({
-    "name": String(),
-    "seed": Integer(minimum=0),
-    "samples": Integer(minimum=1),
-    "selection": String(choices=["cycle", "random"]),
-    "defaults": Mapping(SHARED_SPECS, what="default parameters (sensor, dofp_layout, pose, psf_sigma_hr_px, extinction_ratio, rig)"),
-    "sources": Sequence(AnyMapping("a source (gt: FOLDER or scene: NAME)"), min_length=1, what="sources"),
-}, required=("seed", "samples", "sources"), what="a dataset config")
-
 
 def _possible_values(dist: Dist) -> list | None:
     """Every value a discrete distribution can draw (None for a continuous one)."""
@@ -232,7 +137,7 @@ class DatasetConfig:
         shared_path = {k: (join(src.key, k) if k in src.spec else k) for k in SHARED_KEYS}
         drawn = {k: draw_tree(v, self.seed, index, shared_path[k]) for k, v in shared.items() if v is not None}
         params["sensor"] = _canonical_sensor(drawn.get("sensor") or {})
-        params["dofp_layout"] = drawn.get("dofp_layout", "sony")
+        params["dofp_layout"] = drawn.get("dofp_layout", DEFAULT_DOFP_LAYOUT)
         params["rig"] = drawn.get("rig")
         # refuses bad values before any sample is made
         rig_model(params["rig"], key_path=join(src.key, "rig") if "rig" in src.spec else "defaults.rig")
@@ -251,10 +156,8 @@ class DatasetConfig:
                 "crop_uv": [float(uv[0]), float(uv[1])],
                 "rot90": int(augment.get("rot90", 0)), "flip": bool(augment.get("flip", False)),
             }
-            pose = drawn.get("pose") or {}
-            params["pose"] = {"shift_max_px": float(pose.get("shift_max_px", 2.0)),
-                              "rotation_max_deg": float(pose.get("rotation_max_deg", 0.5)),
-                              "scale_max": float(pose.get("scale_max", 0.005))}
+            pose = {**PoseRanges().__dict__, **(drawn.get("pose") or {})}
+            params["pose"] = {key: float(value) for key, value in pose.items()}
             params["psf_sigma_hr_px"] = float(drawn.get("psf_sigma_hr_px", DEFAULT_SIGMA_HR_PX))
             params["extinction_ratio"] = drawn.get("extinction_ratio")
             resolved["gt_path"] = src.gt_resolved[k]
@@ -287,14 +190,14 @@ def rig_model(spec: dict | None, *, key_path: str = "rig") -> RigModel | None:
 
 def _canonical_sensor(drawn: dict) -> dict:
     """Keep only the sensor fields that apply to the drawn noise model."""
-    noise = drawn.get("noise", "none")
+    noise = drawn.get("noise", DEFAULT_NOISE)
     out: dict = {"noise": noise}
     if noise == "gaussian":
         out["sigma"] = float(drawn["sigma"])
         if "bit_depth" in drawn:
             out["bit_depth"] = int(drawn["bit_depth"])
     elif noise == "poisson-gaussian":
-        out["preset"] = drawn.get("preset", "imx250myr")
+        out["preset"] = drawn.get("preset", DEFAULT_SENSOR_PRESET)
         for key in ("exposure", "bit_depth"):
             if key in drawn:
                 out[key] = drawn[key]

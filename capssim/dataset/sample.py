@@ -21,16 +21,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
-import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
+from capssim.camera_setup import CameraSetup
 from capssim.capture import write_capture
 from capssim.dataset.augment import rotate_flip_twelve
 from capssim.dataset.config import rig_model
+from capssim.dataset.config_specs import SETUP_KEYS_IN_DATASETS
 from capssim.errors import InputError
 from capssim.imageio import read_gt_scene
-from capssim.psf import PSF
 from capssim.render import render_capture
 from capssim.render.pipeline import check_render
-from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
 from capssim.threads import set_threads
 
@@ -142,22 +141,21 @@ def fsync_folder(folder: Path) -> None:
             os.close(fd)
 
 
-def make_sample_sensor(sensor_params: dict):
-    """A :class:`capssim.sensor.Sensor` from a sample's canonical sensor parameters."""
-    p = dict(sensor_params)
-    noise = p.pop("noise")
-    if noise == "none":
-        return make_sensor("none")
-    if noise == "gaussian":
-        return make_sensor("gaussian", sigma=p.pop("sigma"), **p)
-    return make_sensor("poisson-gaussian", preset=p.pop("preset"), **p)
+def sample_setup(params: dict) -> CameraSetup:
+    """The :class:`~capssim.camera_setup.CameraSetup` of a sample's drawn parameters
+    (:meth:`DatasetConfig.sample_spec`): its set-up keys, as the config spells them; a key drawn as
+    ``None`` takes the set-up's default. Errors name the key, as in ``defaults.rig.gain``."""
+    mapping = {k: params[k] for k in SETUP_KEYS_IN_DATASETS if params.get(k) is not None}
+    if mapping.get("rig"):
+        rig_model(mapping["rig"])  # refuses bad values, naming the config key
+    return CameraSetup.from_mapping(mapping, where="sample")
 
 
 def build_capture(spec: dict):
     """The :class:`~capssim.capture.Capture` of a sample spec, and a timing dict (seconds)."""
     params = spec["params"]
     src = params["source"]
-    sensor = make_sample_sensor(params["sensor"])
+    setup = sample_setup(params)
     dataset_meta = {"name": spec["dataset"], "index": spec["index"], "master_seed": spec["master_seed"],
                     "params": params}
     timing: dict = {}
@@ -170,34 +168,25 @@ def build_capture(spec: dict):
         if "files" in info:
             source["files"] = info["files"]
         t = time.perf_counter()
-        capture = simulate_capture(gt, sensor, seed=spec["seed"], psf=PSF.gaussian(params["psf_sigma_hr_px"]), dofp_layout=params["dofp_layout"],
-                                   extinction_ratio=params["extinction_ratio"], pose_ranges=PoseRanges(**params["pose"]),
-                                   source=source, extra_meta={"dataset": dataset_meta}, rig=rig_model(params.get("rig")))
+        capture = simulate_capture(gt, setup, seed=spec["seed"], pose_ranges=PoseRanges(**params["pose"]),
+                                   source=source, extra_meta={"dataset": dataset_meta})
         timing["simulate_s"] = time.perf_counter() - t
     else:
         _apply_render_threads()
         t = time.perf_counter()
-        capture = render_capture(src["scene"], **_render_options(spec, sensor))
+        capture = render_capture(src["scene"], **_render_options(spec, setup))
         timing["render_s"] = time.perf_counter() - t
         capture.meta["dataset"] = dataset_meta
     return capture, timing
 
 
-def _render_options(spec: dict, sensor) -> dict:
+def _render_options(spec: dict, setup: CameraSetup) -> dict:
     """The keyword options of :func:`~capssim.render.render_capture` for a rendered-scene sample."""
-    params = spec["params"]
-    src = params["source"]
-    optics = {}
-    if params.get("psf_sigma_hr_px") is not None:
-        optics["psf"] = PSF.gaussian(params["psf_sigma_hr_px"])
-    if params.get("extinction_ratio") is not None:
-        optics["extinction_ratio"] = params["extinction_ratio"]
-    if params.get("rig"):
-        optics["rig"] = rig_model(params["rig"])
-    return dict(size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]), sensor=sensor,
-                variant=src["variant"], dofp_layout=params["dofp_layout"], scene_params=src["scene_params"] or None,
+    src = spec["params"]["source"]
+    return dict(size=src["size"], spp=src["spp"], seed=render_seed(spec["seed"]), setup=setup,
+                variant=src["variant"], scene_params=src["scene_params"] or None,
                 geometry_params=src["geometry_params"] or None, target_noise=src["target_noise"],
-                record_timing=False, **optics)
+                record_timing=False)
 
 
 @functools.lru_cache(maxsize=None)
@@ -214,17 +203,16 @@ def check_sample(spec: dict) -> None:
     """
     params = spec["params"]
     src = params["source"]
-    sensor = make_sample_sensor(params["sensor"])
+    setup = sample_setup(params)
     if src["type"] == "gt":
         _check_crop_size(src, *_gt_shape(spec["resolved"]["gt_path"]))
         PoseRanges(**params["pose"])
-        PSF.gaussian(params["psf_sigma_hr_px"])
-        rig = rig_model(params.get("rig"))
+        rig = setup.rig
         hr_shape = (src["size"], src["size"]) if src.get("size") else _gt_shape(spec["resolved"]["gt_path"])
         for n, aperture_psf in enumerate((rig.psf_objects() if rig is not None else None) or []):
             aperture_psf.check_extent(hr_shape, option=f"rig psf_sigmas_hr_px[{n}]", memory=False)
     else:
-        check_render(src["scene"], **_render_options(spec, sensor))
+        check_render(src["scene"], **_render_options(spec, setup))
 
 
 #: bytes a sample's files take per HR pixel, at most: gt.tiff (12 float32), caps_raw.tiff and dofp_raw.tiff

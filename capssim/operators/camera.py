@@ -12,7 +12,7 @@ Low-resolution image m = 4n + q (eq. 11, ``M_m``), for its channel's HR image::
     y_m = Decimate_2^{(oy_q, ox_q)}( IntegrateDecimate_2( Blur_psf( Warp_{H_n}(x_c(m)) ) ) )  -> (h, w)
 
 with ``h = H/2`` and ``n = m // 4``: its pixels land where the sub-image homography
-``H_m = S_q @ H_n`` of :class:`capssim.geometry.ArrayGeometry` says, so ``BayerSplit(raw)``
+``H_m = S_q @ H_n`` of :class:`capssim.array_geometry.ArrayGeometry` says, so ``BayerSplit(raw)``
 equals the 16 ``y_m`` exactly (a test pins this).
 
 DoFP raw frame (same total pixel count ``4HW``, pixel pitch = HR pitch)::
@@ -26,6 +26,7 @@ from typing import Sequence
 
 import numpy as np
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.conventions import (
     BAYER_OFFSETS,
     LR_IMAGE_CHANNELS,
@@ -35,7 +36,6 @@ from capssim.conventions import (
     POLARIZER_ANGLES_DEG,
 )
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
 from capssim.operators.analyzer import Analyzer, ChannelMix, analyzer_matrix
 from capssim.operators.base import Composition, Multiply, Reshape
 from capssim.operators.blur import Convolve

@@ -2,8 +2,8 @@
 
 ``render_capture(scene, ...)`` renders a registered scene through the four apertures and the
 DoFP camera and returns a :class:`~capssim.capture.Capture` of kind ``rendered``;
-``list_scenes()`` lists the registered scenes. Scenes register themselves
-(:mod:`capssim.render.scene_registry`): import :mod:`capssim.scenes` for the library.
+``list_scenes()`` lists the registered scenes. Scenes register in its registry
+(:mod:`capssim.render.scene_registry`), which loads the scene library through its entry point.
 Importing this package points ``DRJIT_LIBLLVM_PATH`` at libLLVM 19 when it is installed
 (Mitsuba's LLVM variants need it); Mitsuba itself is imported lazily.
 """

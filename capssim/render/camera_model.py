@@ -30,9 +30,9 @@ import torch
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.measurement import CameraArrayMeasurement
 from capssim.operators import Analyzer, BayerMosaic, ChannelMix, Convolve, IntegrateDecimate, Multiply, Warp
-from capssim.render.geometry import scale_matrix, shift_matrix
 from capssim.render.integrator import stokes_to_twelve
-from capssim.render.sampling import to_tensor
+from capssim.render.pinhole_array import scale_matrix, shift_matrix
+from capssim.render.sample_budget import to_tensor
 from capssim.rig import RigModel
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from capssim.conventions import N_APERTURES
 from capssim.render.camera_model import warp_margin
 from capssim.render.integrator import derive_seed, render_view
-from capssim.render.sampling import SamplePlan, square_at_least
+from capssim.render.sample_budget import SamplePlan, square_at_least
 from capssim.render.scene_base import SceneInfo, register_plugins
 from capssim.render.spectral import CameraResponse
 from capssim.render.variants import VariantChoice, variant_name
@@ -32,7 +32,7 @@ VARIANT_RELATIVE_COST = {"mono": 0.45, "mono_polarized": 0.96, "spectral": 0.91,
 class RenderPath:
     """How the views were rendered: ``use_warp`` (planar warp) or per aperture, the reference
     render's ``fine`` grid factor and ``margin`` (HR pixels), and the measured parallax ``depth``
-    (:func:`capssim.render.geometry.parallax_residual`)."""
+    (:func:`capssim.render.pinhole_array.parallax_residual`)."""
 
     use_warp: bool
     fine: int

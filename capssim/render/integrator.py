@@ -13,7 +13,7 @@ broken in Mitsuba 3.9.1 (``docs/notes/rendering-internals.md``). So this module 
    stratifies every path dimension across a pixel's samples (far fewer samples for the same
    noise than ``independent``). ``spp`` must therefore be a perfect square (1, 4, 9, ...).
    Rays come from our own pinhole model
-   (:class:`~capssim.render.geometry.PinholeCamera`, pinned against Mitsuba's
+   (:class:`~capssim.render.pinhole_array.PinholeCamera`, pinned against Mitsuba's
    ``perspective`` sensor by a test), so the stored homographies and the renders agree.
 2. Wavelengths: four per ray, importance-sampled from the camera sensitivities
    (:mod:`capssim.render.spectral`).
@@ -46,7 +46,7 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.polarization import twelve_from_stokes
-from capssim.render.geometry import PinholeCamera
+from capssim.render.pinhole_array import PinholeCamera
 from capssim.render.spectral import CameraResponse
 
 log = logging.getLogger(__name__)

@@ -5,7 +5,7 @@ Pipeline (each choice is recorded in ``meta.json["render"]["choices"]`` with the
 
 1. **Variant** (:mod:`capssim.render.variants`): the cheapest variant the scene needs
    (mono / spectral, polarized or not) on the fastest working backend (cuda -> llvm -> scalar).
-2. **Array** (:mod:`capssim.render.geometry`): four apertures with baseline, tilt, roll and
+2. **Array** (:mod:`capssim.render.pinhole_array`): four apertures with baseline, tilt, roll and
    focal-scale errors, drawn from the pose stream of
    :class:`~capssim.measurement.CameraArrayMeasurement`; the stored homographies are the exact
    plane-induced ones for the scene's reference plane. A one-ray-per-pixel depth pass measures
@@ -16,7 +16,7 @@ Pipeline (each choice is recorded in ``meta.json["render"]["choices"]`` with the
    each aperture's view is its exact plane homography (:mod:`capssim.render.camera_model`).
    Otherwise apertures 1-3 are rendered from their own positions, each only through its own
    polarizer angle; aperture 0's view is the ground-truth render itself.
-4. **spp from a target noise** (:mod:`capssim.render.sampling`): pilot renders measure the
+4. **spp from a target noise** (:mod:`capssim.render.sample_budget`): pilot renders measure the
    Monte-Carlo noise and its convergence rate; the main spp is the smallest square that
    reaches the target, and the pilots are pooled into the ground truth.
 5. **One observation model** (paper eq. 9): everything after the renderer uses the shared
@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from capssim.camera_setup import as_setup
 from capssim.capture import Capture, build_meta
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
@@ -44,9 +45,9 @@ from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import PSF
 from capssim.render.camera_model import aperture_kernels, observe, warp_margin
 from capssim.render.choices import RenderPath, apply_measured, choice_records, measure_savings
-from capssim.render.geometry import ArrayCameras, PinholeCamera, RigTolerances, build_array, parallax_residual
 from capssim.render.integrator import ViewRender, derive_seed, render_view
-from capssim.render.sampling import ReferenceRender, ReferenceView, SamplePlan, plan_samples, render_reference
+from capssim.render.pinhole_array import ArrayCameras, PinholeCamera, RigTolerances, build_array, parallax_residual
+from capssim.render.sample_budget import ReferenceRender, ReferenceView, SamplePlan, plan_samples, render_reference
 from capssim.render.scene_base import Scene, register_plugins
 from capssim.render.scene_registry import get_scene
 from capssim.render.settings import RenderSettings
@@ -124,8 +125,7 @@ def _load(sc: Scene, params: dict, settings: RenderSettings) -> _Loaded:
     response = CameraResponse(settings.camera).calibrate()
     pose = sc.camera_pose(params)
     # the optical PSF is applied to the rendered views (camera_model), so the measurement has none
-    measurement = CameraArrayMeasurement(settings.sensor, psf=PSF.none(), dofp_layout=settings.dofp_layout,
-                                         extinction_ratio=settings.extinction_ratio, seed=settings.seed)
+    measurement = settings.setup.measurement(settings.seed, psf=PSF.none())
     array = build_array(origin=pose.origin, target=pose.target, up=pose.up, fov_deg=pose.fov_deg, size=settings.size,
                         geometry=RigTolerances.from_params(settings.geometry_params), rng=measurement.pose_rng,
                         plane_point=pose.plane_point, plane_normal=pose.plane_normal)
@@ -149,8 +149,8 @@ def _choose_path(loaded: _Loaded, info, settings: RenderSettings, timer: _Timer)
     if not use_warp and settings.aperture_homographies is not None:
         raise InputError("aperture_homographies", "given for a scene rendered per aperture",
                          "explicit homographies only on the planar warp path", "Use a planar scene or --planar on.")
-    psf_radius = max(k.shape[0] // 2 for k in aperture_kernels(settings.psf.kernel(), settings.rig))
-    psf_radius = max(psf_radius, settings.psf.kernel().shape[0] // 2)
+    psf_radius = max(k.shape[0] // 2 for k in aperture_kernels(settings.setup.psf.kernel(), settings.setup.rig))
+    psf_radius = max(psf_radius, settings.setup.psf.kernel().shape[0] // 2)
     margin = warp_margin(_homographies(loaded, settings), settings.size, psf_radius) if use_warp else psf_radius
     camera = loaded.array.cameras[0].expanded(margin)
     fine = settings.oversample if use_warp else 1
@@ -186,21 +186,27 @@ def _render_apertures(loaded: _Loaded, path: RenderPath, spp: int, settings: Ren
 def _aperture_polarizer(settings: RenderSettings, n: int) -> tuple[float, object]:
     """Aperture n's polarizer for the renderer: its angle in the camera frame (degrees; nominal plus
     the rig's offset) and extinction ratio (the rig's 3 per colour, else the settings' one value)."""
-    rig = settings.rig
+    rig = settings.setup.rig
     if rig is None or rig.is_ideal:
-        return POLARIZER_ANGLES_DEG[n], settings.extinction_ratio
+        return POLARIZER_ANGLES_DEG[n], settings.setup.extinction_ratio
     return POLARIZER_ANGLES_DEG[n] + float(rig.angle_offsets_deg[n]), rig.extinction_ratio[n].tolist()
 
 
-def _rig_meta(rig, extra: dict) -> dict:
-    """``extra`` with the true rig (``meta.json["rig"]``) of an imperfect array.
+#: keyword options of render_capture that replace a field of the settings' camera set-up
+SETUP_OPTIONS = ("sensor", "psf", "dofp_layout", "extinction_ratio", "rig")
 
-    The rig's PSFs are the whole optical blur of a rendered capture with them (its ground truth
-    has none); without them the ground truth and the raw frames share ``render.optics_psf``.
-    """
-    if rig is not None and not rig.is_ideal:
-        extra["rig"] = rig.to_dict()
-    return extra
+
+def _with_options(settings: RenderSettings | None, options: dict) -> RenderSettings:
+    """``settings`` with the keyword ``options`` of :func:`render_capture`: fields of
+    :class:`RenderSettings`, or of its camera set-up (:data:`SETUP_OPTIONS`, given as themselves)."""
+    fields = {k: v for k, v in options.items() if k not in SETUP_OPTIONS}
+    settings = replace(settings or RenderSettings(), **fields)
+    changes = {k: options[k] for k in SETUP_OPTIONS if options.get(k) is not None}
+    if not changes:
+        return settings
+    setup = as_setup(settings.setup)
+    setup = setup.replace(sensor=changes.pop("sensor")) if "sensor" in changes else setup
+    return replace(settings, setup=as_setup(setup, **changes))
 
 
 def check_render(scene: str, *, settings: RenderSettings | None = None, **options) -> tuple[dict, RenderSettings]:
@@ -211,7 +217,7 @@ def check_render(scene: str, *, settings: RenderSettings | None = None, **option
     (or :class:`~capssim.errors.UnknownNameError`) naming the first bad option. A dry run
     (``capssim dataset --dry-run``) calls it for every drawn sample.
     """
-    settings = replace(settings or RenderSettings(), **options)
+    settings = _with_options(settings, options)
     params = get_scene(scene).params(settings.scene_params)
     return params, settings.checked()
 
@@ -221,7 +227,9 @@ def render_capture(scene: str, *, settings: RenderSettings | None = None, **opti
 
     ``settings`` (a :class:`~capssim.render.settings.RenderSettings`) and/or its fields as
     keyword ``options`` (which replace those of ``settings``), e.g.
-    ``render_capture("siemens-star", size=64, spp=16)``. The scene must be registered
+    ``render_capture("siemens-star", size=64, spp=16, setup=setup)``. The camera set-up's fields
+    (:data:`SETUP_OPTIONS`: ``sensor``, ``psf``, ``dofp_layout``, ``extinction_ratio``, ``rig``) may
+    also be given as options; they replace the set-up's. The scene must be registered
     (import :mod:`capssim.scenes`). The wall times are on ``capture.render_timing`` either way.
 
     Returns a :class:`~capssim.capture.Capture` of kind ``rendered`` (not yet written).
@@ -249,11 +257,11 @@ def render_capture(scene: str, *, settings: RenderSettings | None = None, **opti
     aperture_views = {} if path.use_warp else _render_apertures(loaded, path, plan.aperture_spp, settings, say, timer)
 
     t0 = time.perf_counter()
-    kernel = settings.psf.kernel()
+    kernel = settings.setup.psf.kernel()
     irradiance = observe(reference.pooled.mean, {n: v.mean for n, v in aperture_views.items()},
                          _homographies(loaded, settings), measurement=loaded.measurement, kernel=kernel,
                          size=settings.size, fine=path.fine, margin=path.margin, use_warp=path.use_warp,
-                         rig=settings.rig)
+                         rig=settings.setup.rig)
     # irradiance cannot be negative: clip float rounding (about -1e-8) before the sensor
     gt = np.clip(irradiance.gt.numpy(), 0.0, None).astype(np.float32)
     timer.add("camera_model_s", time.perf_counter() - t0)
@@ -281,10 +289,8 @@ def render_capture(scene: str, *, settings: RenderSettings | None = None, **opti
                       aperture_homographies=_homographies(loaded, settings),
                       psf={"type": "none", "note": "the optical PSF is already in gt.tiff and in the raw frames; "
                                                    "see render.optics_psf"},
-                      sensor=settings.sensor, dofp_layout_spec=settings.dofp_layout,
-                      extinction_ratio=settings.extinction_ratio, seed=settings.seed,
-                      source={"scene": info.name, "renderer": "mitsuba"},
-                      extra=_rig_meta(settings.rig, {"render": render_meta, "scene": scene_meta}))
+                      setup=settings.setup, seed=settings.seed, source={"scene": info.name, "renderer": "mitsuba"},
+                      extra={"render": render_meta, "scene": scene_meta})
     capture = Capture(meta=meta, caps_raw=caps_raw, dofp_raw=dofp_raw, gt=gt)
     capture.render_timing = {"timing_s": timing, "choices": choices}
     log.info("rendered %s (%s, %s, %d spp/HR px) in %.1f s", info.name, loaded.choice.variant, path.name,
@@ -311,9 +317,9 @@ def _render_meta(loaded: _Loaded, path: RenderPath, plan: SamplePlan, reference:
         "mc_noise_rms_estimate": reference.noise_rms,
         "nonfinite_samples": int(sum(v.nonfinite_samples for v in views)),
         "camera_response": loaded.response.to_meta(),
-        "optics_psf": settings.psf.to_spec(),
+        "optics_psf": settings.setup.psf.to_spec(),
         "pixel_filter": "box (exact pixel-area integration)",
-        "extinction_ratio": settings.extinction_ratio,
+        "extinction_ratio": settings.setup.extinction_ratio,
         "array": array.to_meta(),
         "depth": {"reference_depth_m": array.reference_depth_m, "depth_min_m": depth.get("depth_min_m"),
                   "depth_max_m": depth.get("depth_max_m"), "hit_fraction": depth["valid_fraction"],

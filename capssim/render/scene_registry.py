@@ -1,18 +1,34 @@
-"""The scene registry: library scenes register themselves here, and the renderer finds them by name.
+"""The scene registry: scene libraries register here, and the renderer finds their scenes by name.
 
-The renderer never imports the scene library. Each module of :mod:`capssim.scenes` decorates
-its :class:`~capssim.render.scene_base.Scene` subclass with :func:`register` when it is
-imported, and importing :mod:`capssim.scenes` imports them all; so whoever renders or lists
-library scenes by name (the command line, the dataset, the evaluation) imports
-:mod:`capssim.scenes` first.
+The renderer never imports the scene library. A library registers through one call: the
+functions of the entry-point group :data:`ENTRY_POINT_GROUP` (capssim's own is
+``capssim.scenes:register_library``, declared in pyproject.toml) are called once, with
+:func:`register`, the first time a scene is looked up or listed. Nobody imports
+:mod:`capssim.scenes` for its side effects.
 """
 
 from __future__ import annotations
 
+from importlib.metadata import entry_points
+
 from capssim.errors import InputError, UnknownNameError
 from capssim.render.scene_base import Scene
 
+#: the entry-point group whose functions ``fn(register)`` register scene libraries
+ENTRY_POINT_GROUP = "capssim.scenes"
+
 _SCENES: dict[str, Scene] = {}
+_LIBRARIES_LOADED = False
+
+
+def _load_libraries() -> None:
+    """Call every registration function of :data:`ENTRY_POINT_GROUP` once per process."""
+    global _LIBRARIES_LOADED
+    if _LIBRARIES_LOADED:
+        return
+    _LIBRARIES_LOADED = True
+    for point in entry_points(group=ENTRY_POINT_GROUP):
+        point.load()(register)
 
 
 def register(cls: type[Scene]) -> type[Scene]:
@@ -30,10 +46,12 @@ def get_scene(name: str) -> Scene:
 
     Raises :class:`~capssim.errors.UnknownNameError` for a name that is not registered.
     """
+    _load_libraries()
     key = str(name).strip().lower()
     if not _SCENES:
-        raise InputError("scene", name, "the name of a registered scene (none is registered yet)",
-                         "Import capssim.scenes (the scene library) before rendering a library scene by name.")
+        raise InputError("scene", name, "the name of a registered scene (none is registered)",
+                         f"Reinstall capssim (pip install -e .): its scene library registers through the entry-point "
+                         f"group {ENTRY_POINT_GROUP!r}.")
     if key not in _SCENES:
         raise UnknownNameError("scene", name, list(_SCENES))
     return _SCENES[key]
@@ -41,7 +59,8 @@ def get_scene(name: str) -> Scene:
 
 def all_scenes() -> dict[str, Scene]:
     """``name -> Scene`` for every registered scene, sorted by name."""
+    _load_libraries()
     return dict(sorted(_SCENES.items()))
 
 
-__all__ = ["all_scenes", "get_scene", "register"]
+__all__ = ["ENTRY_POINT_GROUP", "all_scenes", "get_scene", "register"]

@@ -8,14 +8,13 @@ from typing import Callable
 
 import numpy as np
 
+from capssim.array_geometry import ArrayGeometry
+from capssim.camera_setup import CameraSetup, as_setup
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
-from capssim.psf import PSF, as_psf
-from capssim.render.geometry import RigTolerances
+from capssim.render.pinhole_array import RigTolerances
 from capssim.render.spectral import DEFAULT_CAMERA
 from capssim.resources import check_memory
-from capssim.rig import RigModel
-from capssim.sensor import NoNoiseSensor, Sensor, noise_sigma_estimate
+from capssim.sensor import noise_sigma_estimate
 
 #: smallest HR ground-truth size (pixels)
 MIN_SIZE = 16
@@ -48,59 +47,52 @@ class RenderSettings:
     noise with it), at most ``max_spp``. ``seed``: the array errors and the sensor noise
     (:func:`capssim.measurement.seed_streams`); ``render_seed`` (default ``seed``) seeds only
     the Monte-Carlo sampling, so two renders of the same array geometry can differ in noise
-    alone. ``sensor`` ``None`` is noiseless. ``variant``: Mitsuba variant or ``auto``.
-    ``scene_params`` / ``geometry_params``: the scene's parameters and the array's
-    :class:`~capssim.render.geometry.RigTolerances`. ``psf``: the optical PSF (default
-    :data:`capssim.psf.DEFAULT_PSF`). ``extinction_ratio``: of the polarizers (``None``:
-    ideal). ``planar``: ``auto`` (scene flag + measured parallax), ``on`` or ``off``;
-    ``oversample``: the planar warp's render grid factor (``None``: 4 up to
-    :data:`OVERSAMPLE_4_MAX_SIZE` px, else 2). ``camera``: the camera sensitivities.
+    alone. ``setup``: the camera set-up (:class:`~capssim.camera_setup.CameraSetup`: sensor, optical
+    PSF, DoFP layout, extinction ratio, rig; ``None``: the default set-up). ``variant``: Mitsuba
+    variant or ``auto``. ``scene_params`` / ``geometry_params``: the scene's parameters and the array's
+    :class:`~capssim.render.pinhole_array.RigTolerances`. ``planar``: ``auto`` (scene flag + measured
+    parallax), ``on`` or ``off``; ``oversample``: the planar warp's render grid factor (``None``: 4 up
+    to :data:`OVERSAMPLE_4_MAX_SIZE` px, else 2). ``camera``: the camera sensitivities.
     ``progress(stage, done, total)`` is called as rays finish. With ``record_timing=False``
     ``meta.json`` holds no wall times (byte-identical regeneration). ``measure_savings`` also
     renders the alternatives each choice avoided and records the measured times (slow).
-    ``rig``: an imperfect array (:class:`capssim.rig.RigModel`), on both paths: the planar warp
+    The set-up's rig (:class:`capssim.rig.RigModel`) applies on both paths: the planar warp
     path applies its analyzer rows, PSFs and flat field to the warped reference render; the
     per-aperture path renders apertures 1-3 through polarizers at the rig's angles and
     per-colour extinction ratios, then applies the PSFs and flat field. A non-ideal rig's
-    extinction ratios replace ``extinction_ratio`` for the CAPS frames (the DoFP camera keeps
-    it). ``aperture_homographies`` ``(4, 3, 3)``: replaces the array's drawn homographies
+    extinction ratios replace the set-up's ``extinction_ratio`` for the CAPS frames (the DoFP
+    camera keeps it). ``aperture_homographies`` ``(4, 3, 3)``: replaces the array's drawn homographies
     (planar warp path only; e.g. a calibrated rig's geometry, at ``size``).
     """
 
     size: int = 256
     spp: int | None = None
     seed: int = 0
-    sensor: Sensor | None = None
+    setup: CameraSetup | None = None
     variant: str = "auto"
-    dofp_layout: object = "sony"
     scene_params: dict | None = None
     geometry_params: dict | None = None
     target_noise: float | None = None
     record_timing: bool = True
     progress: Callable[[str, int, int], None] | None = None
-    psf: PSF | dict | None = None
-    extinction_ratio: float | None = None
     planar: str = "auto"
     oversample: int | None = None
     camera: str = DEFAULT_CAMERA
     max_spp: int = DEFAULT_MAX_SPP
     measure_savings: bool = False
     render_seed: int | None = None
-    rig: RigModel | None = None
     aperture_homographies: np.ndarray | None = None
 
     def checked(self) -> "RenderSettings":
         """These settings checked (:class:`~capssim.errors.InputError` otherwise), with defaults filled in.
 
-        The result has an integer ``size``, a ``sensor``, a :class:`~capssim.psf.PSF`, the
+        The result has an integer ``size``, a :class:`~capssim.camera_setup.CameraSetup`, the
         ``oversample`` factor in effect and an integer ``render_seed``.
         """
         size = _check_size(self.size)
-        sensor = self.sensor if self.sensor is not None else NoNoiseSensor()
-        if not isinstance(sensor, Sensor):
-            raise InputError("sensor", type(sensor).__name__, "a capssim.sensor.Sensor or None")
+        setup = as_setup(self.setup)
         RigTolerances.from_params(self.geometry_params)
-        psf = as_psf(self.psf)
+        psf = setup.psf
         if self.planar not in ("auto", "on", "off"):
             raise InputError("planar", self.planar, "'auto', 'on' or 'off'")
         oversample = (4 if size <= OVERSAMPLE_4_MAX_SIZE else 2) if self.oversample is None else self.oversample
@@ -111,19 +103,15 @@ class RenderSettings:
             raise InputError("spp", spp, "an integer in [1, 65536] (samples per HR pixel), or None for --target-noise")
         if self.target_noise is not None and not (math.isfinite(self.target_noise) and self.target_noise > 0):
             raise InputError("target_noise", self.target_noise, "a positive number (RMS std on [0, 1] full scale)")
-        if self.extinction_ratio is not None and not self.extinction_ratio >= 1.0:
-            raise InputError("extinction_ratio", self.extinction_ratio, "a number >= 1, or None for ideal polarizers")
         if not (isinstance(self.max_spp, (int, np.integer)) and not isinstance(self.max_spp, bool)
                 and 1 <= self.max_spp <= 1 << 16):
             raise InputError("max_spp", self.max_spp, "an integer in [1, 65536] (samples per HR pixel)")
-        if self.rig is not None and not isinstance(self.rig, RigModel):
-            raise InputError("rig", type(self.rig).__name__, "a capssim.rig.RigModel or None")
-        for n, aperture_psf in enumerate((self.rig.psf_objects() if self.rig is not None else None) or []):
+        for n, aperture_psf in enumerate((setup.rig.psf_objects() if setup.rig is not None else None) or []):
             aperture_psf.check_extent((size, size), option=f"rig psf[{n}]", memory=False)
         if self.aperture_homographies is not None:
             ArrayGeometry(self.aperture_homographies, (size, size))  # refuses a bad stack, naming it
         render_seed = self.seed if self.render_seed is None else int(self.render_seed)
-        checked = replace(self, size=size, sensor=sensor, psf=psf, oversample=oversample, render_seed=render_seed)
+        checked = replace(self, size=size, setup=setup, oversample=oversample, render_seed=render_seed)
         psf.check_extent((size, size), option="psf", memory=False)
         check_memory("size", checked.memory_estimate_bytes(), what=f"a {size}x{size} render",
                      fix="Use a smaller --size.")
@@ -138,7 +126,7 @@ class RenderSettings:
         path, at :data:`RENDER_BYTES_PER_PIXEL`; the camera model adds
         :data:`HR_BYTES_PER_PIXEL` per ground-truth pixel.
         """
-        margin = self.psf.kernel_radius() + WARP_MARGIN_ESTIMATE
+        margin = self.setup.psf.kernel_radius() + WARP_MARGIN_ESTIMATE
         fine = 1 if self.planar == "off" else self.oversample
         render_side = (self.size + 2 * margin) * fine
         return render_side * render_side * RENDER_BYTES_PER_PIXEL + self.size * self.size * HR_BYTES_PER_PIXEL
@@ -147,7 +135,7 @@ class RenderSettings:
         """The Monte-Carlo target: ``target_noise``, or the default for this sensor (checked settings)."""
         if self.target_noise is not None:
             return self.target_noise
-        sigma = noise_sigma_estimate(self.sensor, 0.5)
+        sigma = noise_sigma_estimate(self.setup.sensor, 0.5)
         if sigma <= 0:
             return DEFAULT_TARGET_NOISE
         return max(1e-3, TARGET_NOISE_FRACTION_OF_SENSOR * sigma)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from capssim.errors import InputError
 from capssim.eval.benchmarks.suite import BenchRun
-from capssim.eval.metrics import metric_direction
+from capssim.eval.metric_records import metric_direction
 from capssim.imageio import atomic_write_json
 
 BASELINE_SCHEMA = "capssim.bench-baseline"

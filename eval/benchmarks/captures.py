@@ -24,9 +24,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
+from capssim.camera_setup import CameraSetup, sensor_from_mapping
 from capssim.capture import Capture, read_capture, read_meta, write_capture
-from capssim.errors import CapssimError
+from capssim.errors import CapssimError, InputError
 from capssim.eval.benchmarks.provenance import REPO_ROOT, code_fingerprint, content_hash, shared_data_dir
 from capssim.eval.benchmarks.rigs import (
     CALIBRATION_FILE,
@@ -37,10 +37,9 @@ from capssim.eval.benchmarks.rigs import (
 from capssim.eval.synthetic import synthetic_scene
 from capssim.imageio import atomic_write_json, read_gt_scene
 from capssim.measurement import CameraArrayMeasurement
-from capssim.psf import DEFAULT_SIGMA_HR_PX, PSF
+from capssim.psf import PSF
 from capssim.render import list_scenes, render_capture
 from capssim.rig import RigModel
-from capssim.sensor import make_sensor
 from capssim.simulate import prepare_ground_truth, simulate_capture
 
 log = logging.getLogger(__name__)
@@ -53,9 +52,31 @@ class Unavailable(Exception):
     """A scene's data or renderer is missing: the case is skipped, not failed."""
 
 
+def suite_noise(entry) -> dict:
+    """A suite's ``noise`` entry, checked: ``{name, noise: none|gaussian|poisson-gaussian, sigma, preset, ...}``
+    (the sensor keys of :class:`capssim.camera_setup.CameraSetup`; ``model``, the old spelling of
+    ``noise``, is read as it)."""
+    if not isinstance(entry, dict) or "name" not in entry or not ("noise" in entry or "model" in entry):
+        raise InputError("suite noise", repr(entry)[:80], "{name, noise: none|gaussian|poisson-gaussian, sigma, preset}",
+                         "For example {name: gauss-0.01, noise: gaussian, sigma: 0.01}.")
+    entry = dict(entry)
+    if "noise" not in entry:
+        entry = {"name": entry.pop("name"), "noise": entry.pop("model"), **entry}
+    _sensor(entry)  # refuses bad values before any capture is made
+    return entry
+
+
 def _sensor(noise: dict):
-    extra = {k: v for k, v in noise.items() if k not in ("name", "model", "sigma", "preset")}
-    return make_sensor(noise["model"], sigma=noise.get("sigma"), preset=noise.get("preset"), **extra)
+    """The sensor of a suite's ``noise`` entry (:func:`capssim.camera_setup.sensor_from_mapping`)."""
+    return sensor_from_mapping({k: v for k, v in noise.items() if k != "name"}, where=f"suite noise {noise['name']}")
+
+
+def _setup(scene: dict, noise: dict) -> CameraSetup:
+    """The camera set-up of a suite scene under a ``noise`` entry: its sensor, and the scene's
+    ``psf_sigma_hr_px`` (default :data:`capssim.psf.DEFAULT_SIGMA_HR_PX`) and ``rig``."""
+    sigma = scene.get("psf_sigma_hr_px")
+    return CameraSetup(sensor=_sensor(noise), psf=None if sigma is None else PSF.gaussian(float(sigma)),
+                       rig=RigModel.from_spec(scene["rig"]) if scene.get("rig") else None)
 
 
 def _file_digest(path: Path) -> str:
@@ -94,6 +115,7 @@ def apply_sensor(clean: Capture, sensor, seed: int) -> Capture:
     """Noise a noise-free capture with the CAPS and DoFP streams of ``seed`` (as :func:`simulate_capture`)."""
     measurement = CameraArrayMeasurement(sensor, seed=seed)
     meta = copy.deepcopy(clean.meta)
+    meta["setup"] = clean.setup.replace(sensor=sensor).to_meta()
     meta["sensor"] = sensor.to_meta()
     meta["seed"] = seed
     meta.setdefault("bench", {})["noise_applied_by"] = ("capssim.eval.benchmarks.captures.apply_sensor "
@@ -107,8 +129,7 @@ def _rig_options(scene: dict, hr_shape) -> dict:
     """``rig`` and ``aperture_homographies`` of a scene with a ``rig`` entry (:mod:`~capssim.eval.benchmarks.rigs`)."""
     if not scene.get("rig"):
         return {}
-    spec = scene["rig"]
-    return {"rig": RigModel.from_spec(spec), "aperture_homographies": rig_geometry(spec, hr_shape).aperture_homographies}
+    return {"aperture_homographies": rig_geometry(scene["rig"], hr_shape).aperture_homographies}
 
 
 @dataclass
@@ -167,14 +188,13 @@ class CaptureFactory:
         return CaptureEntry(key, path, scene["name"], info)
 
     def _build(self, scene: dict, noise: dict, seed: int):
-        sensor = _sensor(noise)
-        psf = PSF.gaussian(float(scene.get("psf_sigma", DEFAULT_SIGMA_HR_PX)))
+        setup = _setup(scene, noise)
         src = scene["source"]
         info: dict[str, Any] = {"scene": scene["name"], "source": src, "noise": noise, "seed": seed}
         if src == "render":
             clean, render_info = self._render(scene, seed)
             info.update(render_info)
-            return apply_sensor(clean, sensor, seed), info
+            return apply_sensor(clean, setup.sensor, seed), info
         if src == "synthetic":
             gt, scene_meta = synthetic_scene(scene.get("generator", "texture"), size=int(scene.get("size", 128)),
                                              seed=int(scene.get("scene_seed", seed)), cycles=int(scene.get("cycles", 36)))
@@ -186,7 +206,7 @@ class CaptureFactory:
             source.update(crop_info)
         extra = {"scene": {"name": scene["name"], **scene_meta}}
         rig_options = _rig_options(scene, gt.shape[1:])
-        capture = simulate_capture(gt, sensor, seed=seed, psf=psf, source=source, extra_meta=extra, **rig_options)
+        capture = simulate_capture(gt, setup, seed=seed, source=source, extra_meta=extra, **rig_options)
         return capture, info
 
     def _render(self, scene: dict, seed: int):
@@ -211,10 +231,10 @@ class CaptureFactory:
         t0 = time.perf_counter()
         extra = {"scene_params": scene["scene_params"]} if scene.get("scene_params") else {}
         extra.update(_rig_options(scene, (params["size"], params["size"])))
+        setup = _setup(scene, {"name": "clean", "noise": "none"})
         try:
-            clean = render_capture(name, size=params["size"], spp=params["spp"], seed=seed,
-                                     sensor=make_sensor("none"), variant=params["variant"], record_timing=True,
-                                     **extra)
+            clean = render_capture(name, size=params["size"], spp=params["spp"], seed=seed, setup=setup,
+                                   variant=params["variant"], record_timing=True, **extra)
         except ImportError as exc:
             raise Unavailable(f"rendering unavailable ({exc})") from None
         elapsed = time.perf_counter() - t0

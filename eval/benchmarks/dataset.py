@@ -1,6 +1,6 @@
 """Throughput benchmark of dataset generation: samples/hour for 1, 2, ... local workers.
 
-    capssim bench dataset examples/dataset-bench-gt.yaml --workers 1,2
+    capssim bench dataset examples/dataset-bench-gt.yaml -w 1 -w 2
 
 For each worker count it generates the config's dataset into a fresh temporary folder (on a
 local Dask cluster, or in this process for 0) and prints one row: the steady rate (samples

@@ -5,7 +5,7 @@ ICIP 2020): the full 1024x1024 ground truth, a noise-free DoFP mosaic sampled di
 (no optical blur: the published comparisons sample the mosaic from the ground-truth images
 without a PSF, so any blur would make the numbers incomparable), Sony layout
 ``[[90, 45], [135, 0]]``. The mosaic is the capture's ``dofp_raw`` of ``capssim simulate --noise
-none --psf-sigma 0``, built here in memory by the same code.
+none --psf-sigma-hr-px 0``, built here in memory by the same code.
 
 Scores: the Tokyo Tech / EARI columns of :func:`capssim.eval.metrics.tokyotech_scores` (their
 MATLAB border crop), with the wall time of each method (minimum over ``repeats``).
@@ -48,12 +48,17 @@ def default_gt_root() -> Path:
     return shared_data_dir() / "gt"
 
 
-def make_capture(gt_dir: Path, *, layout: str = "sony", psf_sigma: float = 0.0) -> Capture:
+#: the Gaussian PSF std (HR px) of the published DoFP protocol (Tokyo Tech, EARI): no optical blur, unlike the
+#: camera set-up's default (:data:`capssim.psf.DEFAULT_SIGMA_HR_PX`)
+PUBLISHED_PSF_SIGMA_HR_PX = 0.0
+
+
+def make_capture(gt_dir: Path, *, layout: str = "sony", psf_sigma_hr_px: float = PUBLISHED_PSF_SIGMA_HR_PX) -> Capture:
     """Noise-free DoFP (and CAPS) capture of a ground-truth folder, as ``capssim simulate`` makes it."""
     image, source = read_gt_scene(gt_dir)
     image, info = prepare_ground_truth(image)
     source.update(info)
-    return simulate_capture(image, make_sensor("none"), seed=0, psf=PSF.gaussian(psf_sigma), dofp_layout=layout,
+    return simulate_capture(image, make_sensor("none"), seed=0, psf=PSF.gaussian(psf_sigma_hr_px), dofp_layout=layout,
                             source=source)
 
 
@@ -68,7 +73,7 @@ def run_one(capture: Capture, method: str, *, device: str, repeats: int, options
 
 
 def run_dofp_benchmark(scenes=DEFAULT_SCENES, methods=DEFAULT_METHODS, *, gt_root: Path | None = None,
-                       layout: str = "sony", psf_sigma: float = 0.0, border: int | None = None, device: str = "cpu",
+                       layout: str = "sony", psf_sigma_hr_px: float = PUBLISHED_PSF_SIGMA_HR_PX, border: int | None = None, device: str = "cpu",
                        repeats: int = 1, eari_variants: bool = False) -> list[dict]:
     """One row per (scene, method): the Tokyo Tech columns and ``time_s``.
 
@@ -80,8 +85,8 @@ def run_dofp_benchmark(scenes=DEFAULT_SCENES, methods=DEFAULT_METHODS, *, gt_roo
     for scene in scenes:
         gt_dir = root / scene
         if not gt_dir.is_dir():
-            raise InputError("scene", str(gt_dir), "a ground-truth scene folder", "See --gt-root.")
-        capture = make_capture(gt_dir, layout=layout, psf_sigma=psf_sigma)
+            raise InputError("scene", str(gt_dir), "a ground-truth scene folder", "Give the folder holding it: capssim bench dofp GT_ROOT.")
+        capture = make_capture(gt_dir, layout=layout, psf_sigma_hr_px=psf_sigma_hr_px)
         runs = [(m, m, {}) for m in methods]
         if eari_variants:
             runs = [("dofp-eari", f"dofp-eari {label}", opts) for label, opts in EARI_VARIANTS.items()]

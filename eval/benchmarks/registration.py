@@ -6,7 +6,7 @@ parameters of a named registration mode, and compared with the homographies stor
 ``meta.json`` by :func:`capssim.homography.registration_error_hr_px` (HR pixels). Captures
 simulated from a real ground truth can also be compared with their *content* warps: the stored
 warps composed with the offsets between the ground truth's analyzer images that
-``capssim gt-check -o`` measured (:func:`content_lr_homographies`).
+``capssim gt-check --json`` measured (:func:`content_lr_homographies`).
 """
 
 from __future__ import annotations
@@ -18,25 +18,25 @@ from pathlib import Path
 
 import numpy as np
 
+from capssim.array_geometry import lr_homographies
 from capssim.capture import Capture, read_capture
 from capssim.conventions import N_APERTURES
 from capssim.errors import InputError
-from capssim.geometry import lr_homographies
 from capssim.homography import registration_error_hr_px
 from capssim.reconstruct.registration import estimate_lr_homographies
-from capssim.reconstruct.registration_parameters import registration_parameters
+from capssim.reconstruct.registration.parameters import registration_parameters
 
 
 def content_lr_homographies(capture: Capture, alignment_matrices) -> np.ndarray:
     """``(16, 3, 3)`` *content* warps of a capture simulated from a real ground truth.
 
-    ``alignment_matrices``: the three ``(3, 3)`` matrices of ``capssim gt-check -o``
+    ``alignment_matrices``: the three ``(3, 3)`` matrices of ``capssim gt-check --json``
     (``alignment_matrices``: where the 45/90/135 deg ground-truth images' content lies relative to the
     0 deg image). Aperture n's content warp is its stored warp composed with that offset.
     """
     g = np.asarray(alignment_matrices, dtype=np.float64)
     if g.shape != (N_APERTURES - 1, 3, 3) or not np.all(np.isfinite(g)):
-        raise InputError("alignment_matrices", f"shape {g.shape}", "three finite 3x3 matrices from gt-check -o")
+        raise InputError("alignment_matrices", f"shape {g.shape}", "three finite 3x3 matrices from gt-check --json")
     aperture = capture.aperture_homographies().copy()
     for n in range(1, N_APERTURES):
         aperture[n] = aperture[n] @ g[n - 1]
@@ -44,7 +44,7 @@ def content_lr_homographies(capture: Capture, alignment_matrices) -> np.ndarray:
 
 
 def load_alignment_record(content_alignment) -> dict:
-    """A ``capssim gt-check -o`` record given as a dict or a JSON file path; it must hold
+    """A ``capssim gt-check --json`` record given as a dict or a JSON file path; it must hold
     ``alignment_matrices``."""
     record = content_alignment
     if not isinstance(record, dict):
@@ -52,10 +52,10 @@ def load_alignment_record(content_alignment) -> dict:
             record = json.loads(Path(record).read_text())
         except (OSError, ValueError) as exc:
             raise InputError("content_alignment", str(content_alignment),
-                             "a readable JSON file written by capssim gt-check -o") from exc
+                             "a readable JSON file written by capssim gt-check --json") from exc
     if "alignment_matrices" not in record:
         raise InputError("content_alignment", "a record without 'alignment_matrices'",
-                         "the JSON of capssim gt-check -o")
+                         "the JSON of capssim gt-check --json")
     return record
 
 
@@ -69,7 +69,7 @@ def check_alignment_record(record: dict, capture: Capture, label) -> None:
     source = capture.meta.get("source") or {}
     if source.get("renderer"):
         raise InputError("content_alignment", f"a gt-check record for the rendered capture {label}",
-                         "captures simulated by capssim simulate --gt from a real ground truth",
+                         "captures simulated by capssim simulate from a real ground truth",
                          "Leave it out: a rendered capture's stored warps are its content warps.")
     gt, crop = record.get("gt"), record.get("crop")
     if gt is not None and source.get("path") and Path(gt).name != Path(source["path"]).name:
@@ -111,9 +111,9 @@ def run_registration_bench(captures, *, mode: str = "local-correlation", content
         capture folders (paths) or :class:`~capssim.capture.Capture` objects with true homographies
         (simulated or rendered).
     mode
-        a :data:`capssim.reconstruct.registration_parameters.REGISTRATION_MODES` name.
+        a :data:`capssim.reconstruct.registration.parameters.REGISTRATION_MODES` name.
     content_alignment
-        a ``capssim gt-check -o`` record (path or dict) of the ground truth the captures were
+        a ``capssim gt-check --json`` record (path or dict) of the ground truth the captures were
         simulated from; rows then also give the error against the content warps
         (:func:`content_lr_homographies`).
     stokes_weight

@@ -17,11 +17,10 @@ import numpy as np
 import torch
 
 import capssim.render.integrator as integrator
-import capssim.scenes  # noqa: F401  (registers the scene library with the renderer)
 from capssim.operators import caps_raw_operator
 from capssim.psf import PSF
 from capssim.render import get_scene, render_capture
-from capssim.render.geometry import RigTolerances, build_array
+from capssim.render.pinhole_array import RigTolerances, build_array
 from capssim.render.scene_base import register_plugins
 from capssim.render.spectral import CameraResponse
 from capssim.render.variants import select_variant

@@ -20,11 +20,11 @@ import shutil
 import time
 from pathlib import Path
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.dataset.calibration_captures import make_calibration_captures, seeded_aperture_homographies
 from capssim.errors import InputError
 from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash
 from capssim.eval.calibration import calibrate_captures
-from capssim.geometry import ArrayGeometry
 from capssim.imageio import atomic_write_json
 from capssim.rig import RigModel
 

@@ -8,11 +8,11 @@ A suite (``eval/suites/NAME.yaml`` or any YAML path; the scoring guide's "Benchm
   ``gt`` (a ground-truth folder or 12-channel TIFF anywhere: ``path``, ``crop``),
   ``synthetic`` (:mod:`capssim.eval.synthetic`: ``generator``, ``size``, ``cycles``);
   optionally ``fallback: OTHER_SCENE_NAME`` (a scene of the same file used, and reported,
-  when this one's data or renderer is unavailable) and ``psf_sigma`` (HR px, default 0.5);
-* ``noise``: ``{name, model: none|gaussian|poisson-gaussian, sigma, preset}``;
+  when this one's data or renderer is unavailable) and ``psf_sigma_hr_px`` (HR px, default 0.5);
+* ``noise``: ``{name, noise: none|gaussian|poisson-gaussian, sigma, preset}`` (the sensor keys of the camera set-up);
 * ``seeds``: list of integers (poses, noise and render seeds);
 * ``methods``: names, or ``{name, label, options, true_warps, registration}`` for variants
-  (``registration``: a :data:`capssim.reconstruct.registration_parameters.REGISTRATION_MODES` name).
+  (``registration``: a :data:`capssim.reconstruct.registration.parameters.REGISTRATION_MODES` name).
 
 Every case is ``(scene, noise, seed, method)``; its capture comes from
 :mod:`capssim.eval.benchmarks.captures` and its scores from the one scoring path,
@@ -48,14 +48,14 @@ from typing import Callable
 import yaml
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.eval.benchmarks.captures import expand_render_scenes
+from capssim.eval.benchmarks.captures import expand_render_scenes, suite_noise
 from capssim.eval.benchmarks.cases import capture_task, forget_captures, method_task
 from capssim.eval.benchmarks.executors import check_execution, open_executor
 from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash, environment
 from capssim.eval.benchmarks.results import ResultsLog
 from capssim.eval.benchmarks.rigs import METHOD_CALIBRATIONS, check_rig_spec
 from capssim.eval.metrics import get_convention
-from capssim.reconstruct.registration_parameters import registration_parameters
+from capssim.reconstruct.registration.parameters import registration_parameters
 from capssim.reconstruct.registry import available_methods, resolve_device
 
 log = logging.getLogger(__name__)
@@ -128,15 +128,13 @@ def load_suite(name_or_path: str | Path) -> dict:
     spec["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
     spec.setdefault("convention", "capssim")
     spec.setdefault("seeds", [0])
-    spec.setdefault("noise", [{"name": "clean", "model": "none"}])
+    spec.setdefault("noise", [{"name": "clean", "noise": "none"}])
     for key in ("scenes", "methods"):
         if not spec.get(key):
             raise InputError("suite", f"{path} without '{key}'", f"a non-empty '{key}' list")
     _check_scenes(spec["scenes"])
     spec["methods"] = _method_entries(spec["methods"])
-    for nz in spec["noise"]:
-        if not isinstance(nz, dict) or "name" not in nz or "model" not in nz:
-            raise InputError("suite noise", repr(nz), "{name, model: none|gaussian|poisson-gaussian, sigma, preset}")
+    spec["noise"] = [suite_noise(nz) for nz in spec["noise"]]
     return spec
 
 

@@ -4,8 +4,8 @@ One estimator per module, each with its reference:
 
 * :mod:`~capssim.eval.calibration.flat_field`: gain and vignetting (flat field);
 * :mod:`~capssim.eval.calibration.malus`: polarizer angles and extinction ratios (Malus's law);
-* :mod:`~capssim.eval.calibration.geometry`: aperture homographies (planar target);
-* :mod:`~capssim.eval.calibration.psf`: per-aperture PSF width (Siemens star);
+* :mod:`~capssim.eval.calibration.geometry_fit`: aperture homographies (planar target);
+* :mod:`~capssim.eval.calibration.psf_fit`: per-aperture PSF width (Siemens star);
 * :mod:`~capssim.eval.calibration.calibrate`: all of them from a set of captures, into a
   ``capssim-rig`` file (:func:`capssim.rig.write_rig_json`).
 """

@@ -29,9 +29,9 @@ import numpy as np
 from capssim.capture import Capture, read_capture
 from capssim.errors import InputError
 from capssim.eval.calibration.flat_field import MAX_SATURATED_FRACTION, fit_flat_field
-from capssim.eval.calibration.geometry import fit_geometry
+from capssim.eval.calibration.geometry_fit import fit_geometry
 from capssim.eval.calibration.malus import fit_malus
-from capssim.eval.calibration.psf import fit_psf_sigmas
+from capssim.eval.calibration.psf_fit import fit_psf_sigmas
 from capssim.psf import PSF
 from capssim.rig import RigFile, RigModel, write_rig_json
 
@@ -51,7 +51,7 @@ def load_calibration_set(paths) -> dict[str, list[Capture]]:
             folders += sorted(c for c in p.iterdir() if (c / "meta.json").is_file())
         else:
             raise InputError("CAPTURES", str(p), "capture folders (with meta.json) or a folder of them",
-                             "Make a set with `capssim calibration-captures OUT`.")
+                             "Make a set with `capssim calibration-captures -o OUT`.")
     groups: dict[str, list[Capture]] = {t: [] for t in TARGETS}
     for f in folders:
         cap = read_capture(f, load_gt=True)

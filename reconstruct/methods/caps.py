@@ -5,19 +5,19 @@ tensor for color polarization super-resolution imaging", Optics Express 32(2), 2
 
 Pipeline (each step its own module):
 
-1. rearrangement of the 4 RGGB frames into 16 observations (``capssim.reconstruct.rearrange``, 3.1);
+1. rearrangement of the 4 RGGB frames into 16 observations (``capssim.reconstruct.model.rearrange``, 3.1);
 2. registration: the stored homographies (``--true-warps``) or ``capssim.reconstruct.registration``;
-3. CAGF confidence between all channel pairs (``capssim.reconstruct.cagf``, eq. 12-14);
-4. initialization fusing all 16 observations on the HR grid (``capssim.reconstruct.init_fusion``);
-5. ADMM (``capssim.reconstruct.admm``, eq. 20-30) with the confidence-guided data term
-   (``capssim.reconstruct.data_term``, eq. 15-16, 25-26) and the NLSTR prior
-   (``capssim.reconstruct.nlstr_prior`` with ``capssim.reconstruct.nlstr``, 3.3).
+3. CAGF confidence between all channel pairs (``capssim.reconstruct.model.cagf``, eq. 12-14);
+4. initialization fusing all 16 observations on the HR grid (``capssim.reconstruct.model.init_fusion``);
+5. ADMM (``capssim.reconstruct.solvers.admm``, eq. 20-30) with the confidence-guided data term
+   (``capssim.reconstruct.model.data_term``, eq. 15-16, 25-26) and the NLSTR prior
+   (``capssim.reconstruct.priors.nlstr_prior`` with ``capssim.reconstruct.priors.nlstr``, 3.3).
 
 Ablations (section 5.2), the same code with one switch each:
 
 * ``caps-no-cagf``: the data term uses only the observations of the same channel;
 * ``caps-no-nlstr``: data term only (steepest descent of eq. 16 from the same initialization,
-  ``capssim.reconstruct.descent``).
+  ``capssim.reconstruct.solvers.descent``).
 
 ``caps-iccp`` (the cascade) lives in :mod:`capssim.reconstruct.methods.caps_iccp`.
 
@@ -26,7 +26,7 @@ The sampling operator ``M`` is the shared observation model
 isotropic Gaussian kernel; simulated captures store a Gaussian PSF, and ``psf_sigma``
 overrides it, e.g. for real captures).
 
-With a calibration (``capssim reconstruct --calibration``; :mod:`capssim.reconstruct.observation_model`)
+With a calibration (``capssim reconstruct --calibration``; :mod:`capssim.reconstruct.model.observation_model`)
 ``M`` takes the per-aperture PSFs and multiplies each observation by its flat field, the data term
 mixes the channels by the calibrated analyzer (``(16, 12)``, exact adjoint), the geometry is the
 calibration's (when it has one), and CAGF and the initialization work on flat-field-corrected
@@ -45,15 +45,10 @@ import torch
 from capssim.allocator import reuse_freed_memory
 from capssim.errors import InputError, UnknownNameError
 from capssim.operators.camera import lr_sampling_operator
-from capssim.reconstruct.admm import ADMMParameters, admm
-from capssim.reconstruct.cagf import CAGFParameters, cagf_confidence
-from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
-from capssim.reconstruct.descent import steepest_descent
-from capssim.reconstruct.init_fusion import fuse_initial_estimate
-from capssim.reconstruct.interfaces import DivergenceError
-from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor
-from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
-from capssim.reconstruct.observation_model import (
+from capssim.reconstruct.model.cagf import CAGFParameters, cagf_confidence
+from capssim.reconstruct.model.data_term import ConfidenceDataTerm, field_of_view_mask
+from capssim.reconstruct.model.init_fusion import fuse_initial_estimate
+from capssim.reconstruct.model.observation_model import (
     CAPTURE_PSF_SIGMA,
     calibrated_analyzer,
     lr_flat_field,
@@ -61,8 +56,13 @@ from capssim.reconstruct.observation_model import (
     method_psf_kernels,
     unmix_analyzer,
 )
-from capssim.reconstruct.rearrange import observations_from_capture
+from capssim.reconstruct.model.rearrange import observations_from_capture
+from capssim.reconstruct.priors.nlstr import NLSTRParameters, NonlocalSparseTensor
+from capssim.reconstruct.priors.nlstr_prior import MatchSchedule, NLSTRPrior
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.solvers.admm import ADMMParameters, admm
+from capssim.reconstruct.solvers.descent import steepest_descent
+from capssim.reconstruct.solvers.interfaces import DivergenceError
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +76,7 @@ class CapsOptions:
     The paper's defaults (section 5.1, DESIGN.md) live in the parameter classes:
     :class:`ADMMParameters` (eq. 27-28), :class:`MatchSchedule` (NLSTR's block matching
     across iterations), :class:`NLSTRParameters` (section 3.3) and :class:`CAGFParameters`
-    (section 3.2). The user-facing option names (``-O NAME=VALUE``, the ``params`` of the
+    (section 3.2). The user-facing option names (``-p NAME=VALUE``, the ``params`` of the
     JSON record) are :meth:`option_names`: the fields of those classes, except that CAGF's
     ``radius`` and ``eps`` are ``cagf_radius`` and ``cagf_eps`` and NLSTR's ``eps`` is not an
     option.
@@ -135,7 +135,7 @@ class CapsOptions:
                 for name, (group, attr) in _OPTIONS.items()}
 
 
-#: named settings of the CAPS methods (``-O preset=NAME``): the options each sets; explicit options win.
+#: named settings of the CAPS methods (``-p preset=NAME``): the options each sets; explicit options win.
 #: ``default``: the paper's parameters (section 5.1), dictionaries every 5th iteration; ``literal``:
 #: Algorithm 1 as written, dictionaries at every iteration (same metrics within 0.08 dB, slower);
 #: ``fast``: 7 iterations, block matching on the 3 leading principal components of the channels and at

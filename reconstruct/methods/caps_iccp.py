@@ -6,8 +6,8 @@ employed the joint constraints of (2) and (3)" with ``c1 = 0.001``, ``c2 = 0.01`
 
 1. each aperture's RGGB frame is demosaicked on its own by the Bayer demosaicking of [15]
    (Morimatsu et al., EARI), i.e. its colour stage, the residual interpolation of Kiku et al.
-   (:func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`, the settings of ``dofp-eari``);
-   ``-O bayer_method=menon2007`` (or ``malvar2004``, ``bilinear``) swaps it
+   (:func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic`, the settings of ``dofp-eari``);
+   ``-p bayer_method=menon2007`` (or ``malvar2004``, ``bilinear``) swaps it
    (:func:`capssim.reconstruct.methods.caps_naive.demosaic_apertures`);
 2. for each colour k, the 4 demosaicked frames (one per polarizer angle, raw resolution
    ``H x W``) are the observations of a 4-channel SR problem (polarizer angles of colour k)
@@ -31,30 +31,30 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.conventions import N_APERTURES
-from capssim.geometry import ArrayGeometry
 from capssim.operators.base import Composition, Reshape
 from capssim.operators.blur import Convolve
 from capssim.operators.sampling import IntegrateDecimate
 from capssim.operators.warp import Warp
-from capssim.reconstruct.admm import admm
-from capssim.reconstruct.cagf import cagf_confidence
-from capssim.reconstruct.data_term import ConfidenceDataTerm, field_of_view_mask
-from capssim.reconstruct.init_fusion import fuse_initial_estimate
-from capssim.reconstruct.interfaces import DivergenceError
 from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, explain_divergence, mean_psnr
 from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function, flat_corrected_raw
 from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
-from capssim.reconstruct.nlstr import NonlocalSparseTensor
-from capssim.reconstruct.nlstr_prior import NLSTRPrior
-from capssim.reconstruct.observation_model import (
+from capssim.reconstruct.model.cagf import cagf_confidence
+from capssim.reconstruct.model.data_term import ConfidenceDataTerm, field_of_view_mask
+from capssim.reconstruct.model.init_fusion import fuse_initial_estimate
+from capssim.reconstruct.model.observation_model import (
     calibrated_analyzer,
     method_geometry,
     method_psf_kernels,
     unmix_analyzer,
 )
-from capssim.reconstruct.rearrange import Observations
+from capssim.reconstruct.model.rearrange import Observations
+from capssim.reconstruct.priors.nlstr import NonlocalSparseTensor
+from capssim.reconstruct.priors.nlstr_prior import NLSTRPrior
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from capssim.reconstruct.solvers.admm import admm
+from capssim.reconstruct.solvers.interfaces import DivergenceError
 
 #: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
 DEFAULT_BAYER_METHOD = "ri"

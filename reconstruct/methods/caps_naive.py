@@ -8,32 +8,32 @@ posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
 
 1. Demosaick each aperture's RGGB raw frame ``(H, W)`` on its own (``bayer_method``:
    ``menon2007`` (default), ``malvar2004`` or ``bilinear``, from ``colour-demosaicing``, or
-   ``ri``, the residual interpolation of :func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`),
+   ``ri``, the residual interpolation of :func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic`),
    clipped to [0, 1] -> ``(4, 3, H, W)``; each frame is mirror-padded by 6 pixels with its
    Bayer phase kept (:func:`demosaic_apertures`), so constant images stay exact at the border.
 2. Registration: the array geometry of the CAPS method
-   (:func:`capssim.reconstruct.observation_model.method_geometry`: estimated by
+   (:func:`capssim.reconstruct.model.observation_model.method_geometry`: estimated by
    :mod:`capssim.reconstruct.registration`, or the stored one under ``--true-warps``), whose
    aperture warps ``H_n`` map the HR reference to each aperture-HR grid.
 3. One bicubic resampling per aperture onto the HR reference grid ``(2H, 2W)``: HR pixel
    ``(x, y)`` samples the demosaicked frame at raw coordinates ``R H_n (x, y, 1)``, where
-   ``R = capssim.geometry.raw_matrix()`` (aperture-HR -> raw pixel), i.e. the x2 upsampling
+   ``R = capssim.array_geometry.raw_matrix()`` (aperture-HR -> raw pixel), i.e. the x2 upsampling
    and the registration warp composed into one map (torch ``grid_sample``, bicubic with
    ``a = -0.75``, replicate border; the same kernel as ``F.interpolate(mode='bicubic')``).
    Pixels of the reference grid outside an aperture's field of view get its border values.
    The result is clipped to [0, 1] (``clip=false`` keeps the bicubic overshoot).
 
-With a calibration (``--calibration``, :mod:`capssim.reconstruct.observation_model`): each aperture's
+With a calibration (``--calibration``, :mod:`capssim.reconstruct.model.observation_model`): each aperture's
 raw frame is divided by its flat field ``gain_n V_n`` before step 1 (:func:`flat_corrected_raw`), step 2
 takes the calibration's geometry when it has one, and after step 3 the 12 registered images are
 ``y = A x`` per pixel with ``A`` the calibrated analyzer (row ``3n + k``: aperture n's polarizer in
 colour k; one 4x4 block per colour): ``x = A^-1 y`` per pixel, the exact inverse of the mixing
-(:func:`~capssim.reconstruct.observation_model.unmix_analyzer`), before clipping.
+(:func:`~capssim.reconstruct.model.observation_model.unmix_analyzer`), before clipping.
 
 Output ``(12, 2H, 2W)`` float32, channel ``c = 3 p + k`` (aperture/polarizer p, colour k).
 Saturated pixels are used as they are (no masking): this is the naive pipeline.
 
-Options (``-O KEY=VALUE``): ``bayer_method``, ``clip``. Options of ``caps`` (e.g. ``iterations``
+Options (``-p KEY=VALUE``): ``bayer_method``, ``clip``. Options of ``caps`` (e.g. ``iterations``
 from ``capssim reconstruct -m all --iterations N``) are ignored with a warning; others are errors.
 
 :func:`caps_sisr` in :mod:`capssim.reconstruct.methods.caps_sisr` replaces step 3's upsampling by a
@@ -50,11 +50,11 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError, UnknownNameError
+from capssim.reconstruct.dofp.residual_interpolation import ri_bayer_demosaic_frames
 from capssim.reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
 from capssim.reconstruct.methods.caps import CapsOptions, _coerce, mean_psnr
-from capssim.reconstruct.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
+from capssim.reconstruct.model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
-from capssim.reconstruct.residual_interpolation import ri_bayer_demosaic_frames
 
 log = logging.getLogger(__name__)
 
@@ -62,13 +62,13 @@ REFERENCE = (CAPS_REFERENCE + " (camera-array baseline, 5.2); Bayer demosaicking
              "IEEE TIP 16(1) 2007 (colour-demosaicing)")
 
 #: the selectable Bayer demosaicking algorithms: residual interpolation (``ri``, Kiku et al. 2016, the
-#: colour stage of EARI [15]; :func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`) and three of colour-demosaicing
+#: colour stage of EARI [15]; :func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic`) and three of colour-demosaicing
 BAYER_METHODS = ("ri", "menon2007", "malvar2004", "bilinear")
 
 
 def ri_demosaic_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
     """``(H, W)`` RGGB frame -> ``(H, W, 3)`` RGB by residual interpolation (colour-demosaicing's signature):
-    :func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic_frames`, ``dofp-eari``'s colour stage."""
+    :func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic_frames`, ``dofp-eari``'s colour stage."""
 
     if pattern != "RGGB":
         raise InputError("pattern", pattern, "'RGGB' (the CAPS sensors' Bayer layout)")

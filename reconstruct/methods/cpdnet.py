@@ -17,9 +17,9 @@ import numpy as np
 import torch
 
 from capssim.capture import Capture
-from capssim.reconstruct.dofp_common import check_mosaic
-from capssim.reconstruct.dofp_method import reject_unknown_options
-from capssim.reconstruct.methods.dofp_bilinear import dofp_unobserved
+from capssim.reconstruct.dofp.bilinear import dofp_unobserved
+from capssim.reconstruct.dofp.method_body import reject_unknown_options
+from capssim.reconstruct.dofp.mosaic import check_mosaic
 from capssim.reconstruct.networks import load_model, shipped_weights
 from capssim.reconstruct.networks.cpdnet import dofp_network_input
 from capssim.reconstruct.networks.tiling import apply_tiled

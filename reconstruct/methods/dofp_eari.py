@@ -11,7 +11,7 @@ Steps, for a mosaic ``M`` ``(H, W)`` on [0, 1]:
 
 1. Colour (CPFA stage 1). Each polarizer sub-mosaic ``M[dr::2, dc::2]`` is an RGGB Bayer
    image; demosaick it by residual interpolation
-   (:func:`capssim.reconstruct.residual_interpolation.ri_bayer_demosaic`): directional (horizontal/vertical) MLRI
+   (:func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic`): directional (horizontal/vertical) MLRI
    estimates of the colour differences ``G - R``, ``G - B``, combined with gradient weights into
    a full green; then R and B by MLRI guided upsampling under the green, with bilinear residuals.
 2. Put the RGB of each sub-mosaic back at its own lattice: the "RGB polarization mosaic" ``P``
@@ -25,7 +25,7 @@ Steps, for a mosaic ``M`` ``(H, W)`` on [0, 1]:
    responds to intensity edges between the two rows (columns); averaged over the 3x5 (5x3)
    half-window on that side it gives ``w_d``. Guide ``= sum_d X_d / (w_d + eps_e) / sum_d 1 / (w_d + eps_e)``.
 4. Residual interpolation of every (angle, colour) lattice under that colour's guide
-   (:func:`capssim.reconstruct.residual_interpolation.residual_interpolation`): MLRI tentative estimate in 11x11
+   (:func:`capssim.reconstruct.dofp.residual_interpolation.residual_interpolation`): MLRI tentative estimate in 11x11
    windows with the step-2 Laplacian, clipped, plus the bilinearly interpolated residual.
 
 Numerical choices where the descriptions are silent (their measured cost: docs, notes/dofp-eari.md):
@@ -46,7 +46,9 @@ from contextlib import nullcontext
 import torch
 
 from capssim.capture import Capture
-from capssim.reconstruct.dofp_common import (
+from capssim.reconstruct.dofp.bilinear import dofp_unobserved
+from capssim.reconstruct.dofp.method_body import run_dofp_method
+from capssim.reconstruct.dofp.mosaic import (
     as_output,
     check_mosaic,
     clip_ceiling,
@@ -54,15 +56,13 @@ from capssim.reconstruct.dofp_common import (
     split_submosaics,
     stack_12,
 )
-from capssim.reconstruct.dofp_method import run_dofp_method
-from capssim.reconstruct.filters import correlate
-from capssim.reconstruct.methods.dofp_bilinear import dofp_unobserved
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
-from capssim.reconstruct.residual_interpolation import (
+from capssim.reconstruct.dofp.residual_interpolation import (
     RI_BAYER_DEFAULTS,
     polarization_residual_interpolation,
     ri_bayer_demosaic,
 )
+from capssim.reconstruct.filters import correlate
+from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "
              "residual interpolation', IEEE ICIP 2020; colour stage: Kiku et al., 'Beyond color difference: residual "

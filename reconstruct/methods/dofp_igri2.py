@@ -17,7 +17,7 @@ For each colour plane ``P`` of the RGB polarization mosaic (after EARI's colour 
    -> ``((y + x') / 2, (x' - y) / 2 + offset)``, ``x' = x - parity``); there the two angles of
    the pair form a checkerboard, like G against R/B in a Bayer image. Estimate each angle at the
    other's sites with the residual-interpolation green step of Kiku et al. (TIP 2016;
-   :func:`capssim.reconstruct.residual_interpolation.ri_green`), which interpolates along the rotated axes, i.e. the
+   :func:`capssim.reconstruct.dofp.residual_interpolation.ri_green`), which interpolates along the rotated axes, i.e. the
    image diagonals. Now each quincunx holds both angles of its pair.
 2. Intensity. ``(I_a + I_(a+90)) / 2`` on each quincunx (= ``S0 / 2``).
 3. Horizontal/vertical pass. For each angle: an image with that angle on its quincunx and the
@@ -40,7 +40,9 @@ import torch
 from capssim.capture import Capture
 from capssim.conventions import dofp_layout
 from capssim.errors import InputError
-from capssim.reconstruct.dofp_common import (
+from capssim.reconstruct.dofp.bilinear import dofp_unobserved
+from capssim.reconstruct.dofp.method_body import run_dofp_method
+from capssim.reconstruct.dofp.mosaic import (
     angle_offsets,
     as_output,
     check_mosaic,
@@ -49,11 +51,13 @@ from capssim.reconstruct.dofp_common import (
     split_submosaics,
     stack_12,
 )
-from capssim.reconstruct.dofp_method import run_dofp_method
-from capssim.reconstruct.methods.dofp_bilinear import dofp_unobserved
+from capssim.reconstruct.dofp.residual_interpolation import (
+    polarization_residual_interpolation,
+    ri_bayer_demosaic,
+    ri_green,
+)
 from capssim.reconstruct.methods.dofp_eari import DEFAULTS
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
-from capssim.reconstruct.residual_interpolation import polarization_residual_interpolation, ri_bayer_demosaic, ri_green
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking based on "
              "intensity-guided residual interpolation', IEEE Sensors Journal 21(23) 2021 (IGRI2); colour stage: "

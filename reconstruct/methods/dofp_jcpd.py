@@ -19,13 +19,13 @@ by the layout (:func:`capssim.conventions.dofp_channel_map`, 4x4 period). Output
    ``weights/jcpd-dictionary.npz`` (``P = 8``; 9 constant atoms and 256 atoms learned from the
    ground truths of the training dataset by MOD, :mod:`capssim.reconstruct.training.dictionary`,
    as JCPD learns its dictionary from full images). ``dictionary=analytic``: the joint dictionary
-   (:func:`capssim.reconstruct.sparse_coding.joint_dictionary`) ``kron(polarization, colour, DCT2)``,
+   (:func:`capssim.reconstruct.priors.sparse_coding.joint_dictionary`) ``kron(polarization, colour, DCT2)``,
    ``K = 9 P^2`` orthonormal atoms, each physically consistent (``I0 + I90 = I45 + I135``).
    ``dictionary=PATH``: a ``.npz`` holding ``D`` of that shape (e.g. ``capssim train`` with
    ``network: jcpd-dictionary``), columns normalized on load.
 3. Observation. Patch ``y`` ``(P^2,)`` = the mosaic samples; as all patches share one sampling
    pattern, the masked dictionary ``D_m = D[c(q) * P^2 + q, :]`` ``(P^2, K)`` is one matrix.
-4. Sparse coding. Batched OMP (:func:`~capssim.reconstruct.sparse_coding.omp`) of every patch on
+4. Sparse coding. Batched OMP (:func:`~capssim.reconstruct.priors.sparse_coding.omp`) of every patch on
    ``D_m`` (column-normalized for the selection, least squares on the support). The spatially
    constant ("DC") atoms of ``D`` (9 for the analytic dictionary) are always in the support: the
    local mean colour-polarization state; without them the periodic sampling lets OMP explain a
@@ -58,12 +58,12 @@ import torch.nn.functional as F
 from capssim.capture import Capture
 from capssim.conventions import dofp_channel_map
 from capssim.errors import InputError
-from capssim.reconstruct.dofp_common import angle_offsets, as_output, check_mosaic, clip_ceiling
-from capssim.reconstruct.dofp_method import reject_unknown_options
-from capssim.reconstruct.methods.dofp_bilinear import dofp_unobserved
+from capssim.reconstruct.dofp.bilinear import dofp_unobserved
+from capssim.reconstruct.dofp.method_body import reject_unknown_options
+from capssim.reconstruct.dofp.mosaic import angle_offsets, as_output, check_mosaic, clip_ceiling
 from capssim.reconstruct.networks import WEIGHTS_DIR
+from capssim.reconstruct.priors.sparse_coding import constant_atoms, joint_dictionary, omp
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
-from capssim.reconstruct.sparse_coding import constant_atoms, joint_dictionary, omp
 
 REFERENCE = ("Wen, Zheng, Lu, 'A Sparse Representation Based Joint Demosaicing Method for Single-Chip Polarized "
              "Color Sensor', IEEE Trans. Image Processing 30, 2021 (JCPD)")
@@ -105,15 +105,15 @@ def parse_options(options: dict) -> dict:
     :class:`~capssim.errors.UnknownNameError`).
     """
     opts = dict(options)
-    patch = _int_option("patch", opts.pop("patch", DEFAULTS["patch"]), 4, 16, "Pass e.g. -O patch=8.")
+    patch = _int_option("patch", opts.pop("patch", DEFAULTS["patch"]), 4, 16, "Pass e.g. -p patch=8.")
     if patch % 2:
-        raise InputError("patch", patch, "an even patch side in [4, 16]", "Pass e.g. -O patch=8.")
-    stride = _int_option("stride", opts.pop("stride", DEFAULTS["stride"]), 4, 8, "Pass -O stride=4 or 8.")
+        raise InputError("patch", patch, "an even patch side in [4, 16]", "Pass e.g. -p patch=8.")
+    stride = _int_option("stride", opts.pop("stride", DEFAULTS["stride"]), 4, 8, "Pass -p stride=4 or 8.")
     if stride % 4 or stride > patch:
         raise InputError("stride", stride, f"4 or 8 (a multiple of the 4x4 DoFP period), at most patch={patch}",
-                         "Pass -O stride=4.")
+                         "Pass -p stride=4.")
     sparsity = _int_option("sparsity", opts.pop("sparsity", DEFAULTS["sparsity"]), 1, 64,
-                           "Pass e.g. -O sparsity=12.")
+                           "Pass e.g. -p sparsity=12.")
     raw_sigma = opts.pop("sigma", DEFAULTS["sigma"])
     sigma = None
     if not (isinstance(raw_sigma, str) and raw_sigma.lower() == "auto") and raw_sigma is not None:
@@ -123,7 +123,7 @@ def parse_options(options: dict) -> dict:
             sigma = float("nan")
         if not (math.isfinite(sigma) and 0.0 <= sigma <= 1.0):
             raise InputError("sigma", raw_sigma, "auto or a noise std in [0, 1] (on the [0, 1] scale)",
-                             "Pass -O sigma=auto or e.g. -O sigma=0.01.")
+                             "Pass -p sigma=auto or e.g. -p sigma=0.01.")
     dictionary = opts.pop("dictionary", DEFAULTS["dictionary"])
     precision = opts.pop("precision", DEFAULTS["precision"])
     if precision not in ("float32", "float64"):
@@ -142,7 +142,7 @@ def load_dictionary(source, patch: int, *, dtype=torch.float64, device=None) -> 
     if isinstance(source, str) and source == "analytic":
         return joint_dictionary(patch, dtype=dtype, device=device)
     n = 12 * patch * patch
-    fix = (f"Pass -O dictionary=analytic, or a .npz with an array 'D' of shape ({n}, atoms) for patch={patch}; "
+    fix = (f"Pass -p dictionary=analytic, or a .npz with an array 'D' of shape ({n}, atoms) for patch={patch}; "
            f"the shipped learned dictionary is for patch={LEARNED_PATCH}.")
     if source is None or isinstance(source, str) and source == "learned":
         source = LEARNED_DICTIONARY

@@ -33,8 +33,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from capssim.conventions import BAYER_RGGB
-from capssim.reconstruct.dofp_common import angle_offsets
-from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
+from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear
+from capssim.reconstruct.dofp.mosaic import angle_offsets
 from capssim.reconstruct.networks.edsr import ResidualBlock
 
 

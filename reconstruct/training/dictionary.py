@@ -3,7 +3,7 @@
 JCPD (Wen, Zheng, Lu, IEEE TIP 30 2021) codes each ``P x P x 12`` patch of the mosaic over a
 dictionary learned from full 12-channel images. Here it is learned from the ground truths of a
 capssim dataset by the method of optimal directions
-(:func:`capssim.reconstruct.sparse_coding.learn_dictionary`, Engan, Aase, Husoy 1999):
+(:func:`capssim.reconstruct.priors.sparse_coding.learn_dictionary`, Engan, Aase, Husoy 1999):
 
 1. patches: every ``P x P`` window (stride 4) of the training samples' ground truths ``(12, H, W)``,
    vectorized as ``dofp-jcpd`` does (channel, row, column); their projection on the 9 spatially
@@ -33,7 +33,7 @@ from capssim.dataset.torch import CaptureDataset
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_bytes, atomic_write_json
 from capssim.reconstruct.methods.dofp_jcpd import demosaic_dofp_jcpd
-from capssim.reconstruct.sparse_coding import constant_atoms, joint_dictionary, learn_dictionary
+from capssim.reconstruct.priors.sparse_coding import constant_atoms, joint_dictionary, learn_dictionary
 from capssim.reconstruct.training.config import DICTIONARY_DEFAULTS
 
 DICTIONARY_FILE = "dictionary.npz"

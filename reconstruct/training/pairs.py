@@ -106,7 +106,7 @@ class AperturePairs(PairSet):
 
     @staticmethod
     def baseline(inputs):
-        """What the network refines: bicubic x2 interpolation (``caps-sisr -O model=bicubic``)."""
+        """What the network refines: bicubic x2 interpolation (``caps-sisr -p model=bicubic``)."""
         return F.interpolate(inputs[0], scale_factor=2, mode="bicubic", align_corners=False)
 
 

@@ -26,7 +26,7 @@ def test_reconstruct_writes_tiff_and_json(capture_dir):
     from capssim.imageio import read_tiff
 
     res = CliRunner().invoke(app, ["reconstruct", str(capture_dir), "-m", "caps", "-m", "caps-no-nlstr",
-                                   "--true-warps", "--iterations", "3", "-O", "c2=0.02", "--no-progress"])
+                                   "--true-warps", "--iterations", "3", "-p", "c2=0.02", "--no-progress"])
     assert res.exit_code == 0, res.output
     for name in ("caps", "caps-no-nlstr"):
         image = read_tiff(capture_dir / "recon" / f"{name}.tiff")
@@ -42,7 +42,7 @@ def test_reconstruct_errors_are_clear(capture_dir):
     runner = CliRunner()
     res = runner.invoke(app, ["reconstruct", str(capture_dir), "-m", "no-such-method", "--true-warps"])
     assert res.exit_code != 0 and "no-such-method" in str(res.exception)
-    res = runner.invoke(app, ["reconstruct", str(capture_dir), "--true-warps", "-O", "nokey"])
+    res = runner.invoke(app, ["reconstruct", str(capture_dir), "--true-warps", "-p", "nokey"])
     assert res.exit_code != 0 and "KEY=VALUE" in str(res.exception)
     res = runner.invoke(app, ["reconstruct", str(capture_dir), "--true-warps", "--device", "tpu"])
     assert res.exit_code != 0

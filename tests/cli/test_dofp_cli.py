@@ -37,7 +37,7 @@ def test_demosaic_writes_tiff_previews_and_record(tmp_path, scene64, method, bit
     raw = tmp_path / "raw.png"
     data = _raw_png(raw, scene64, bits=bits)
     out = tmp_path / "out"
-    result = _invoke("demosaic", str(raw), "--layout", "sony", "--method", method, "-o", str(out))
+    result = _invoke("demosaic", str(raw), "--dofp-layout", "sony", "--method", method, "-o", str(out))
     assert result.exit_code == 0, result.output
     assert sorted(p.name for p in out.iterdir()) == ["aop.png", "demosaic.json", "demosaicked.tiff", "dolp.png",
                                                      "intensity.png", "panel.png"]
@@ -67,7 +67,7 @@ def test_demosaic_white_and_black_level(tmp_path, scene64):
     dn = np.round(64 + mosaic * (4095 - 64)).astype(np.uint16)  # 12-bit data, black level 64
     tifffile.imwrite(raw, dn)
     out = tmp_path / "out"
-    result = _invoke("demosaic", str(raw), "--layout", "0-45-135-90", "--method", "dofp-bilinear",
+    result = _invoke("demosaic", str(raw), "--dofp-layout", "0-45-135-90", "--method", "dofp-bilinear",
                      "--white-level", "4095", "--black-level", "64", "--no-physical-projection", "-o", str(out))
     assert result.exit_code == 0, result.output
     image = tifffile.imread(out / "demosaicked.tiff")
@@ -99,7 +99,7 @@ def test_bad_inputs_give_clear_errors(tmp_path, scene64):
         (["demosaic", str(colour), "-o", str(tmp_path / "o1")], "single-channel raw mosaic"),
         (["demosaic", str(broken), "-o", str(tmp_path / "o2")], "unreadable image"),
         (["demosaic", str(tmp_path / "missing.png"), "-o", str(tmp_path / "o3")], "existing image file"),
-        (["demosaic", str(raw), "--layout", "sideways", "-o", str(tmp_path / "o4")], "dofp_layout"),
+        (["demosaic", str(raw), "--dofp-layout", "sideways", "-o", str(tmp_path / "o4")], "dofp_layout"),
         (["demosaic", str(raw), "--method", "magic", "-o", str(tmp_path / "o5")], "unknown DoFP method"),
         (["demosaic", str(raw), "--white-level", "300", "-o", str(tmp_path / "o6")], "0 <= black < white <= 255"),
     ]
@@ -133,7 +133,7 @@ def test_real_raw_mosaics(shared_data, tmp_path):
     """The two real raws of ../shared/data: sensible previews (valid range, real polarization)."""
     for name in ("album", "carlight"):
         out = tmp_path / name
-        result = _invoke("demosaic", str(shared_data / "dofp-real" / f"{name}.png"), "--layout", "sony",
+        result = _invoke("demosaic", str(shared_data / "dofp-real" / f"{name}.png"), "--dofp-layout", "sony",
                          "--method", "dofp-bilinear", "-o", str(out))
         assert result.exit_code == 0, result.output
         image = tifffile.imread(out / "demosaicked.tiff")

@@ -3,10 +3,10 @@
 =====  ==========================================================  ==================================================================
 case   what the issue found                                        test (module::function)
 =====  ==========================================================  ==================================================================
-1      ``-O search_radius=1000`` grew to 23 GB                     test_hardening_resources::test_nlstr_search_radius_past_the_image_is_refused
+1      ``-p search_radius=1000`` grew to 23 GB                     test_hardening_resources::test_nlstr_search_radius_past_the_image_is_refused
 1      the same at the command line, one-line error                test_fuzz_cli::test_issue_cases_are_one_line_errors
 1      NLSTR working set past the memory limit                     test_hardening_resources::test_nlstr_working_set_past_the_limit_is_refused
-1      ``simulate --psf-sigma 1000`` asked for 1.6 TB              test_hardening_resources::test_psf_wider_than_the_image_is_refused
+1      ``simulate --psf-sigma-hr-px 1000`` asked for 1.6 TB              test_hardening_resources::test_psf_wider_than_the_image_is_refused
 1      ``render --psf airy --f-number 1000`` asked for 44 TB       test_hardening_resources::test_render_refuses_a_huge_airy_psf
 1      ``render --size 100000``: MemoryError traceback             test_hardening_resources::test_render_size_past_the_memory_limit_is_refused
 1      a forged TIFF header as large as meta.json says             test_fuzz_capture::test_a_forged_huge_tiff_header_is_refused_before_reading
@@ -15,7 +15,7 @@ case   what the issue found                                        test (module:
 3      all-saturated capture gives zeros silently                  test_hardening_reconstruct::test_an_all_saturated_capture_warns_on_the_command_line
 3      one saturated aperture gives zeros silently                 test_hardening_reconstruct::test_a_saturated_aperture_is_reported_not_silent
 3      ``simulate --shift-max 1000`` leaves channels at 0          test_hardening_resources::test_pose_ranges_are_checked
-4      ``-O dt=100`` diverges, ``-O c2=1e30`` FloatingPointError   test_hardening_reconstruct::test_divergence_is_an_error_naming_the_option
+4      ``-p dt=100`` diverges, ``-p c2=1e30`` FloatingPointError   test_hardening_reconstruct::test_divergence_is_an_error_naming_the_option
 4      divergence at the command line                              test_hardening_reconstruct::test_divergence_on_the_command_line_exits_2
 4      a horizon across the image                                  test_hardening_reconstruct::test_a_horizon_across_the_image_is_refused
 4      ``caps`` output below 0 on a DoLP = 1 scene                 test_physical_validity::test_caps_on_a_fully_polarized_scene_is_never_negative
@@ -27,11 +27,11 @@ case   what the issue found                                        test (module:
 5      any meta.json field of any type, any odd TIFF               test_fuzz_capture::test_mutated_meta_json_reads_or_is_a_one_line_error
 5      (same)                                                      test_fuzz_capture::test_odd_tiffs_read_or_are_a_one_line_error
 5      ``render --preview FILE/p.png`` fails after writing         test_hardening_messages::test_preview_path_is_checked_before_rendering
-6      ``--psf-sigma -1`` or ``nan`` taken as no PSF               test_fuzz_cli::test_issue_cases_are_one_line_errors
+6      ``--psf-sigma-hr-px -1`` or ``nan`` taken as no PSF               test_fuzz_cli::test_issue_cases_are_one_line_errors
 6      ``--scale-max 2``                                           test_hardening_resources::test_pose_ranges_are_checked
 6      ``--max-spp 0``                                             test_hardening_resources::test_render_max_spp_is_checked
 6      ``--geometry converge=maybe``                               test_hardening_resources::test_geometry_values_are_type_checked
-6      ``-O psf_sigma=-1``                                         test_hardening_resources::test_psf_sigma_minus_one_is_the_capture_psf_and_other_negatives_are_refused
+6      ``-p psf_sigma=-1``                                         test_hardening_resources::test_psf_sigma_minus_one_is_the_capture_psf_and_other_negatives_are_refused
 6      ``evaluate --min-s0 nan`` writes bare NaN                   test_hardening_resources::test_evaluate_cli_refuses_nan_min_s0
 6      ``demosaic --dolp-max -1``                                  test_hardening_resources::test_demosaic_cli_refuses_bad_dolp_max
 6      ground truth outside [0, 1]                                 test_hardening_resources::test_ground_truth_outside_unit_range_is_refused

@@ -1,6 +1,6 @@
 """Fuzz suite, command line: every numeric option of every command survives odd values (issue 21).
 
-For each command, each numeric option (``-O KEY=VALUE`` method options of ``capssim reconstruct``
+For each command, each numeric option (``-p KEY=VALUE`` method options of ``capssim reconstruct``
 included) gets odd values (non-finite, negative, zero, huge, tiny, not a number at all) while
 every other argument is valid and small (a 32 px ground truth and capture, ``--iterations 1``).
 The outcome must be exit 0 or exit 2 with one line (:func:`fuzz_support.invoke`): never a
@@ -35,18 +35,18 @@ from capssim.resources import MEMORY_LIMIT_ENV
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
-#: the numeric -O options of the CAPS methods (their types from the defaults)
-CAPS_OPTIONS = [f"-O {name}" for name, value in CapsOptions().to_dict().items()
+#: the numeric -p options of the CAPS methods (their types from the defaults)
+CAPS_OPTIONS = [f"-p {name}" for name, value in CapsOptions().to_dict().items()
                 if isinstance(value, (int, float)) and not isinstance(value, bool)]
-#: the numeric -O options of the DoFP baselines, as METHOD:KEY
-DOFP_OPTIONS = [f"-O dofp-eari:{k}" for k in ("eps", "weight_floor", "edge_eps", "bayer_sigma")] + \
-               [f"-O dofp-igri2:{k}" for k in ("eps", "weight_floor", "bayer_sigma")]
+#: the numeric -p options of the DoFP baselines, as METHOD:KEY
+DOFP_OPTIONS = [f"-p dofp-eari:{k}" for k in ("eps", "weight_floor", "edge_eps", "bayer_sigma")] + \
+               [f"-p dofp-igri2:{k}" for k in ("eps", "weight_floor", "bayer_sigma")]
 
 #: every numeric option of every compute command
 OPTIONS = {
-    "simulate": ["--crop", "--seed", "--sigma", "--psf-sigma", "--shift-max", "--rotation-max", "--scale-max",
+    "simulate": ["--crop", "--seed", "--sigma", "--psf-sigma-hr-px", "--shift-max", "--rotation-max", "--scale-max",
                  "--extinction-ratio", "--threads"],
-    "render": ["--size", "--spp", "--target-noise", "--max-spp", "--seed", "--sigma", "--psf-sigma", "--f-number",
+    "render": ["--size", "--spp", "--target-noise", "--max-spp", "--seed", "--sigma", "--psf-sigma-hr-px", "--f-number",
                "--wavelength-nm", "--pixel-um", "--oversample", "--extinction-ratio", "--preview-white",
                "--preview-dolp-max", "--threads"],
     "reconstruct": ["--iterations", "--threads", *CAPS_OPTIONS, *DOFP_OPTIONS],
@@ -61,14 +61,14 @@ OPTIONS = {
 #: the benchmarks (each valid run takes seconds): swept with values that are all invalid
 BENCH_OPTIONS = {
     "bench reconstruct": ["--size", "--iterations", "--repeats"],
-    "bench dofp": ["--psf-sigma", "--border", "--repeats"],
+    "bench dofp": ["--psf-sigma-hr-px", "--border", "--repeats"],
     "bench render": ["--size", "--spp", "--target-noise", "--warp-spp"],
     "bench registration": ["--stokes-weight"],
 }
 #: fixed values every option gets, besides the drawn ones
 SWEEP = ["nan", "inf", "-inf", "-1", "0", "1e300", "1000000000", "abc", "2.5"]
 #: options for which -1 is valid: the caps methods' psf_sigma (-1 = the capture's PSF)
-MINUS_ONE_VALID = {"-O psf_sigma"}
+MINUS_ONE_VALID = {"-p psf_sigma"}
 
 
 class World:
@@ -98,7 +98,7 @@ class World:
         """The valid, cheap command line ``command``'s options are fuzzed on."""
         out = self.fresh()
         return {
-            "simulate": ["simulate", "--gt", self.gt, "-o", out, "--crop", 32],
+            "simulate": ["simulate", self.gt, "-o", out, "--crop", 32],
             "render": ["render", "siemens-star", "-o", out, "--size", 32, "--spp", 1],
             "reconstruct": ["reconstruct", self.cap, "-m", "caps", "--iterations", 1, "--true-warps", "--no-progress"],
             "evaluate": ["evaluate", self.scored, "--no-mtf"],
@@ -107,23 +107,22 @@ class World:
             "gt-check": ["gt-check", self.gt],
             "design": ["design"],
             "dataset": ["dataset", self.config, "-o", out, "--workers", 0],
-            "bench reconstruct": ["bench", "reconstruct", "--gt", self.gt, "--size", 32, "--iterations", 1],
-            "bench dofp": ["bench", "dofp", "--scenes", "tiny", "--gt-root", self.root / "gt-root",
-                           "--methods", "dofp-bilinear"],
-            "bench render": ["bench", "render", "--scenes", "siemens-star", "--size", 32, "--spp", 1],
+            "bench reconstruct": ["bench", "reconstruct", self.gt, "--size", 32, "--iterations", 1],
+            "bench dofp": ["bench", "dofp", self.root / "gt-root", "--scene", "tiny", "-m", "dofp-bilinear"],
+            "bench render": ["bench", "render", "--scene", "siemens-star", "--size", 32, "--spp", 1],
             "bench registration": ["bench", "registration", self.cap],
         }[command]
 
     def command_line(self, command: str, option: str, value: str) -> list:
         """``command``'s valid line with ``option`` set to ``value`` (and what makes the option act)."""
         args = [str(a) for a in self.base(command)]
-        if option.startswith("-O "):
+        if option.startswith("-p "):
             method, _, key = option[3:].rpartition(":")
             if method:
                 args[args.index("caps")] = method
             if key == "iterations":  # --iterations would replace it
                 del args[args.index("--iterations"):args.index("--iterations") + 2]
-            return [*args, "-O", f"{key}={value}"]
+            return [*args, "-p", f"{key}={value}"]
         extra = {"--sigma": ["--noise", "gaussian"], "--f-number": ["--psf", "airy"], "--wavelength-nm": ["--psf", "airy"],
                  "--pixel-um": ["--psf", "airy"], "--preview-white": ["--preview", str(self.fresh()) + ".png"],
                  "--preview-dolp-max": ["--preview", str(self.fresh()) + ".png"],
@@ -174,24 +173,24 @@ def test_drawn_odd_values_never_crash_a_command(world, command):
 
 #: issue 21's cases at the command line: (case, arguments after the command, a fragment of the message)
 ISSUE_CASES = [
-    ("1", ["reconstruct", "{cap}", "-m", "caps", "-O", "search_radius=1000", "--iterations", "2", "--true-warps"],
+    ("1", ["reconstruct", "{cap}", "-m", "caps", "-p", "search_radius=1000", "--iterations", "2", "--true-warps"],
      "search_radius"),
-    ("1", ["simulate", "--gt", "{gt}", "-o", "{out}", "--psf-sigma", "1000"], "psf"),
+    ("1", ["simulate", "{gt}", "-o", "{out}", "--psf-sigma-hr-px", "1000"], "psf"),
     ("1", ["render", "siemens-star", "-o", "{out}", "--psf", "airy", "--f-number", "1000", "--size", "64", "--spp", "4"],
      "airy"),
     ("1", ["render", "siemens-star", "-o", "{out}", "--size", "100000"], "size"),
-    ("3", ["simulate", "--gt", "{gt}", "-o", "{out}", "--shift-max", "1000"], "shift_max_px"),
-    ("4", ["reconstruct", "{cap}", "-m", "caps", "-O", "dt=100", "--iterations", "3", "--true-warps"], "option dt"),
-    ("4", ["reconstruct", "{cap}", "-m", "caps", "-O", "c2=1e30", "--iterations", "3", "--true-warps"], "c2"),
-    ("5", ["simulate", "--gt", "{gt}", "-o", "{out}", "--seed", "-1"], "--seed"),
+    ("3", ["simulate", "{gt}", "-o", "{out}", "--shift-max", "1000"], "shift_max_px"),
+    ("4", ["reconstruct", "{cap}", "-m", "caps", "-p", "dt=100", "--iterations", "3", "--true-warps"], "option dt"),
+    ("4", ["reconstruct", "{cap}", "-m", "caps", "-p", "c2=1e30", "--iterations", "3", "--true-warps"], "c2"),
+    ("5", ["simulate", "{gt}", "-o", "{out}", "--seed", "-1"], "--seed"),
     ("5", ["render", "siemens-star", "-o", "{out}", "--seed", "-1"], "--seed"),
     ("5", ["render", "polarization-star", "-o", "{out}", "--size", "16", "--param", "cycles=abc"], "cycles"),
-    ("6", ["simulate", "--gt", "{gt}", "-o", "{out}", "--psf-sigma", "-1"], "sigma_hr_px"),
-    ("6", ["simulate", "--gt", "{gt}", "-o", "{out}", "--psf-sigma", "nan"], "sigma_hr_px"),
-    ("6", ["simulate", "--gt", "{gt}", "-o", "{out}", "--scale-max", "2"], "scale_max"),
+    ("6", ["simulate", "{gt}", "-o", "{out}", "--psf-sigma-hr-px", "-1"], "--psf-sigma-hr-px"),
+    ("6", ["simulate", "{gt}", "-o", "{out}", "--psf-sigma-hr-px", "nan"], "--psf-sigma-hr-px"),
+    ("6", ["simulate", "{gt}", "-o", "{out}", "--scale-max", "2"], "scale_max"),
     ("6", ["render", "siemens-star", "-o", "{out}", "--size", "32", "--max-spp", "0"], "max_spp"),
     ("6", ["render", "siemens-star", "-o", "{out}", "--size", "32", "--geometry", "converge=maybe"], "converge"),
-    ("6", ["reconstruct", "{cap}", "-m", "caps", "-O", "psf_sigma=-2", "--true-warps"], "psf_sigma"),
+    ("6", ["reconstruct", "{cap}", "-m", "caps", "-p", "psf_sigma=-2", "--true-warps"], "psf_sigma"),
     ("6", ["evaluate", "{scored}", "--min-s0", "nan"], "min_s0"),
     ("6", ["demosaic", "{raw}", "-o", "{out}", "--dolp-max", "-1"], "--dolp-max"),
 ]

@@ -65,7 +65,7 @@ def a_file(tmp_path) -> Path:
 @pytest.mark.parametrize("command", ["simulate", "demosaic", "render", "dataset"])
 def test_output_under_a_file_is_refused_before_any_work(command, gt_dir, a_file, tmp_path, capsys, monkeypatch):
     out = a_file / "out"
-    args = {"simulate": ["simulate", "--gt", gt_dir, "-o", out, "--crop", 16],
+    args = {"simulate": ["simulate", gt_dir, "-o", out, "--crop", 16],
             "demosaic": ["demosaic", tmp_path / "missing.png", "-o", out],
             "render": ["render", "siemens-star", "-o", out, "--size", 16, "--spp", 1],
             "dataset": ["dataset", tmp_path / "missing.yaml", "-o", out]}[command]
@@ -75,7 +75,7 @@ def test_output_under_a_file_is_refused_before_any_work(command, gt_dir, a_file,
 def test_output_in_a_system_folder_is_refused(gt_dir, capsys, monkeypatch):
     if not Path("/sys").is_dir():
         pytest.skip("no /sys on this system")
-    assert_user_error(*run_cli(["simulate", "--gt", gt_dir, "-o", "/sys/capssim-test"], capsys, monkeypatch),
+    assert_user_error(*run_cli(["simulate", gt_dir, "-o", "/sys/capssim-test"], capsys, monkeypatch),
                       "-o/--output", "/sys")
 
 
@@ -84,7 +84,7 @@ def test_output_in_a_read_only_folder_is_refused(gt_dir, tmp_path, capsys, monke
     locked = tmp_path / "locked"
     locked.mkdir(mode=0o500)
     try:
-        assert_user_error(*run_cli(["simulate", "--gt", gt_dir, "-o", locked / "out"], capsys, monkeypatch),
+        assert_user_error(*run_cli(["simulate", gt_dir, "-o", locked / "out"], capsys, monkeypatch),
                           "-o/--output", str(locked))
     finally:
         locked.chmod(0o700)
@@ -101,7 +101,7 @@ def test_preview_path_is_checked_before_rendering(a_file, tmp_path, capsys, monk
 # -- seeds and scene parameters ------------------------------------------------------------------------------
 @pytest.mark.parametrize("command", ["simulate", "render"])
 def test_negative_seed_is_refused(command, gt_dir, tmp_path, capsys, monkeypatch):
-    head = ["simulate", "--gt", gt_dir] if command == "simulate" else ["render", "siemens-star"]
+    head = ["simulate", gt_dir] if command == "simulate" else ["render", "siemens-star"]
     status, err = run_cli([*head, "-o", tmp_path / "out", "--seed", -1], capsys, monkeypatch)
     assert_user_error(status, err, "--seed", "-1", str(2**63 - 1))
 
@@ -271,7 +271,7 @@ def test_a_rerun_with_fewer_samples_is_refused_and_changes_nothing(gt_dir, tmp_p
 
 def test_valid_seed_and_output_still_work(gt_dir, tmp_path, capsys, monkeypatch):
     out = tmp_path / "cap"
-    status, err = run_cli(["simulate", "--gt", gt_dir, "-o", out, "--crop", 16, "--seed", 2**63 - 1],
+    status, err = run_cli(["simulate", gt_dir, "-o", out, "--crop", 16, "--seed", 2**63 - 1],
                           capsys, monkeypatch)
     assert status == 0, err
     assert json.loads((out / "meta.json").read_text())["seed"] == 2**63 - 1
@@ -311,13 +311,13 @@ def test_option_placeholders_name_what_to_type_not_python_types():
                                         ("device=cuda", "--device"), ("true_warps=1", "--true-warps"),
                                         ("progress=0", "--progress")])
 def test_method_option_that_is_a_command_flag_names_the_flag(pair, flag, capture_dir, capsys, monkeypatch):
-    status, err = run_cli(["reconstruct", capture_dir, "-m", "caps-naive", "-O", pair, "--no-progress"],
+    status, err = run_cli(["reconstruct", capture_dir, "-m", "caps-naive", "-p", pair, "--no-progress"],
                           capsys, monkeypatch)
-    assert_user_error(status, err, "--option", pair.split("=")[0], flag)
+    assert_user_error(status, err, "--param", pair.split("=")[0], flag)
 
 
 def test_every_keyword_of_reconstruct_is_a_named_command_flag():
-    """A new keyword of ``registry.reconstruct`` given as ``-O KEY=...`` would clash with the flag passing it."""
+    """A new keyword of ``registry.reconstruct`` given as ``-p KEY=...`` would clash with the flag passing it."""
     import inspect
 
     from capssim.cli.reconstruct import COMMAND_FLAGS

@@ -15,11 +15,11 @@ from typer.testing import CliRunner
 
 from capssim.capture import write_capture, write_reconstruction
 from capssim.cli import app
-from capssim.errors import InputError
 from capssim.eval import plots as P
 from capssim.eval.evaluate import EstimateScore
-from capssim.eval.metrics import PSNR_CAP_DB, flatten, psnr, score
-from capssim.eval.report import TABLE_LEGEND, dark_scene_line, results_table
+from capssim.eval.metric_records import flatten
+from capssim.eval.metrics import PSNR_CAP_DB, psnr, score
+from capssim.eval.suite_report import TABLE_LEGEND, dark_scene_line, results_table
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 from capssim.visualize import panel_figure, preview_panel
@@ -35,7 +35,7 @@ def _commands(command: click.Command, path: str = "capssim"):
 
 
 def test_every_json_option_is_a_flag_that_prints():
-    """``--json`` is a flag (stdout) in every command; writing a file is ``-o/--output``."""
+    """``--json`` is a flag (stdout) in every command; ``-o/--output`` is what the command makes."""
     seen = []
     for path, command in _commands(typer.main.get_command(app)):
         for param in command.params:
@@ -45,20 +45,17 @@ def test_every_json_option_is_a_flag_that_prints():
     assert {"capssim design", "capssim evaluate", "capssim mtf", "capssim scenes"} <= set(seen)
 
 
-def test_design_json_prints_and_output_writes(tmp_path):
+def test_design_json_prints_to_stdout(tmp_path):
     printed = runner.invoke(app, ["design", "--json"])
     assert printed.exit_code == 0, printed.output
     numbers = json.loads(printed.stdout)
     assert numbers["r_sr"] == 2.0
-    out = tmp_path / "sub" / "design.json"
-    both = runner.invoke(app, ["design", "--json", "-o", str(out)])
-    assert both.exit_code == 0 and json.loads(both.stdout) == numbers  # "wrote" goes to stderr
-    assert json.loads(out.read_text()) == numbers and list(out.parent.iterdir()) == [out]  # atomic: no temporary
-    table = runner.invoke(app, ["design", "--output", str(out)])
-    assert table.exit_code == 0 and "r_SR (eq. 5)" in table.stdout and f"wrote {out}" in table.stdout
-    assert runner.invoke(app, ["design", "--json", str(out)]).exit_code == 2  # the former form is refused
-    refused = runner.invoke(app, ["design", "-o", str(tmp_path)])
-    assert isinstance(refused.exception, InputError) and "-o/--output" in str(refused.exception)  # exit 2 in main
+    table = runner.invoke(app, ["design"])
+    assert table.exit_code == 0 and "r_SR (eq. 5)" in table.stdout
+    out = tmp_path / "design.json"
+    assert runner.invoke(app, ["design", "--json", str(out)]).exit_code == 2  # --json takes no value
+    assert runner.invoke(app, ["design", "-o", str(out)]).exit_code == 2  # 0.2.0: design makes nothing; no -o
+    assert not out.exists()
 
 
 # -- case 8: pictures explain themselves ---------------------------------------------------------

@@ -13,15 +13,17 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from capssim.camera_setup import CameraSetup
 from capssim.capture import Capture
 from capssim.cli import app
 from capssim.errors import InputError, ResourceError
-from capssim.eval.metrics import check_thresholds, json_safe, score
+from capssim.eval.metric_records import json_safe
+from capssim.eval.metrics import check_thresholds, score
 from capssim.homography import random_aperture_homographies
 from capssim.psf import PSF
-from capssim.reconstruct.nlstr import NLSTRParameters, NonlocalSparseTensor
-from capssim.reconstruct.observation_model import method_psf
-from capssim.render.geometry import RigTolerances
+from capssim.reconstruct.model.observation_model import method_psf
+from capssim.reconstruct.priors.nlstr import NLSTRParameters, NonlocalSparseTensor
+from capssim.render.pinhole_array import RigTolerances
 from capssim.render.settings import RenderSettings
 from capssim.resources import MEMORY_LIMIT_ENV, available_memory_bytes, check_memory, memory_limit
 from capssim.sensor import NoNoiseSensor
@@ -101,7 +103,7 @@ def test_kernel_radius_without_building_it(psf):
 
 def test_psf_wider_than_the_image_is_refused():
     with pytest.raises(ResourceError, match="gaussian PSF's kernel side.*7001.*at most 64"):
-        PSF.gaussian(1000).check_extent((64, 64), option="--psf-sigma")
+        PSF.gaussian(1000).check_extent((64, 64), option="--psf-sigma-hr-px")
     with pytest.raises(ResourceError, match="airy PSF's kernel side"):
         PSF.airy(1000, 550, 2.4).check_extent((64, 64))
 
@@ -124,7 +126,7 @@ def test_render_size_past_the_memory_limit_is_refused():
 
 def test_render_refuses_a_huge_airy_psf():
     with pytest.raises(ResourceError, match="airy"):
-        RenderSettings(size=64, psf=PSF.airy(1000, 550, 2.4)).checked()
+        RenderSettings(size=64, setup=CameraSetup(psf=PSF.airy(1000, 550, 2.4))).checked()
 
 
 @pytest.mark.parametrize("max_spp", [0, -4, 1 << 20, 2.5, True])
@@ -174,7 +176,7 @@ def test_simulate_cli_refuses_a_ground_truth_above_full_scale(tmp_path):
     gt = _gt()
     gt[0, 0, 0] = 2.5
     tifffile.imwrite(tmp_path / "gt.tiff", gt)
-    result = runner.invoke(app, ["simulate", "--gt", str(tmp_path / "gt.tiff"), "-o", str(tmp_path / "cap")])
+    result = runner.invoke(app, ["simulate", str(tmp_path / "gt.tiff"), "-o", str(tmp_path / "cap")])
     assert isinstance(result.exception, InputError) and "2.5" in str(result.exception)
     assert not (tmp_path / "cap").exists()
 

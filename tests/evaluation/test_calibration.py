@@ -16,12 +16,12 @@ from capssim.errors import InputError
 from capssim.eval.calibration import calibrate_captures
 from capssim.eval.calibration.flat_field import fit_flat_field
 from capssim.eval.calibration.malus import fit_malus
-from capssim.eval.calibration.psf import lanczos_warp
+from capssim.eval.calibration.psf_fit import lanczos_warp
 from capssim.eval.metrics import score
 from capssim.homography import registration_error_hr_px
 from capssim.reconstruct import reconstruct
-from capssim.reconstruct.data_term import ConfidenceDataTerm
-from capssim.reconstruct.rearrange import rearrange_raw
+from capssim.reconstruct.model.data_term import ConfidenceDataTerm
+from capssim.reconstruct.model.rearrange import rearrange_raw
 from capssim.rig import RigModel, write_rig_json
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
@@ -110,7 +110,7 @@ def test_lanczos_warp_is_exact_for_integer_shifts():
 def test_calibrated_data_term_is_the_adjoint_of_its_forward(rig):
     obs = rearrange_raw(np.random.default_rng(0).random((4, 16, 16)).astype(np.float32))
     obs.images, obs.weights = obs.images.double(), obs.weights.double()
-    from capssim.geometry import ArrayGeometry
+    from capssim.array_geometry import ArrayGeometry
     from capssim.operators import lr_sampling_operator
 
     geo = ArrayGeometry(np.tile(np.eye(3), (4, 1, 1)), (32, 32))
@@ -183,7 +183,7 @@ def test_reconstruct_refuses_bad_calibrations(scene_capture, tmp_path):
     with pytest.raises(InputError, match="--calibration"):
         reconstruct(scene_capture, "caps-naive", calibration=str(tmp_path / "nope.json"))
     small = write_rig_json(tmp_path / "small.json", RigModel.ideal(),
-                           geometry=__import__("capssim.geometry", fromlist=["ArrayGeometry"]).ArrayGeometry(
+                           geometry=__import__("capssim.array_geometry", fromlist=["ArrayGeometry"]).ArrayGeometry(
                                np.tile(np.eye(3), (4, 1, 1)), (64, 64)))
     with pytest.raises(InputError, match="HR size"):
         reconstruct(scene_capture, "caps-naive", calibration=str(small))
@@ -198,14 +198,14 @@ def test_cli_calibration_round_trip(tmp_path):
     from capssim.cli import app
 
     runner = CliRunner()
-    result = runner.invoke(app, ["calibration-captures", str(tmp_path / "set"), "--size", "64", "--rig", "realistic",
+    result = runner.invoke(app, ["calibration-captures", "-o", str(tmp_path / "set"), "--size", "64", "--rig", "realistic",
                                  "--polarizer-angles", "6", "--noise", "gaussian", "--sigma", "0.01"])
     assert result.exit_code == 0, result.output
     result = runner.invoke(app, ["calibrate", str(tmp_path / "set"), "-o", str(tmp_path / "c.json"),
                                  "--report", str(tmp_path / "report")])
     assert result.exit_code == 0, result.output
     assert (tmp_path / "report" / "malus.png").is_file() and "aperture 3" in result.output
-    bad = runner.invoke(app, ["calibration-captures", str(tmp_path / "x"), "--polarizer-angles", "2"])
+    bad = runner.invoke(app, ["calibration-captures", "-o", str(tmp_path / "x"), "--polarizer-angles", "2"])
     assert bad.exit_code != 0 and "--polarizer-angles" in str(bad.exception or bad.output)
 
 

@@ -18,7 +18,7 @@ def _scene_and_mosaic(shared_data, name):
 def test_bilinear_matches_published_scores_on_kettle(shared_data):
     """Published-style two-step bilinear on qiu-kettle: S0 39.8 dB, DoLP 33.6 dB, AoP RMSE 12.0 deg."""
     from capssim.eval.metrics import tokyotech_scores
-    from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
+    from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear
 
     gt, mosaic = _scene_and_mosaic(shared_data, "qiu-kettle")
     scores = tokyotech_scores(demosaic_dofp_bilinear(mosaic, layout="sony"), gt)
@@ -29,7 +29,7 @@ def test_bilinear_matches_published_scores_on_kettle(shared_data):
 
 @pytest.mark.slow
 def test_simulated_capture_mosaic_is_the_direct_sampling(shared_data, tmp_path):
-    """``capssim simulate --noise none --psf-sigma 0`` gives exactly the directly sampled mosaic."""
+    """``capssim simulate --noise none --psf-sigma-hr-px 0`` gives exactly the directly sampled mosaic."""
     from capssim.eval.benchmarks.dofp import make_capture
 
     gt, mosaic = _scene_and_mosaic(shared_data, "qiu-cellphonecases")
@@ -41,7 +41,7 @@ def test_simulated_capture_mosaic_is_the_direct_sampling(shared_data, tmp_path):
 @pytest.mark.parametrize("scene", ["qiu-kettle", "qiu-cellphonecases"])
 def test_eari_beats_bilinear(shared_data, scene):
     from capssim.eval.metrics import tokyotech_scores
-    from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
+    from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear
     from capssim.reconstruct.methods.dofp_eari import demosaic_dofp_eari
 
     gt, mosaic = _scene_and_mosaic(shared_data, scene)

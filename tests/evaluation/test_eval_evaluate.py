@@ -104,7 +104,7 @@ def test_mtf_command_on_grey_rgb_and_twelve_channel_images(tmp_path):
     assert d["limit_cyc_per_px"]["hv"] == pytest.approx(0.4215, abs=0.01)  # Gaussian sigma 1: exp(-2 pi^2 f^2) = 0.03
     rgb = tmp_path / "star_rgb.png"
     cv2.imwrite(str(rgb), np.round(np.stack([star] * 3, -1) * 255).astype(np.uint8))
-    r = runner.invoke(app, ["mtf", str(rgb), "--cycles", "36", "--channel", "G,B"])
+    r = runner.invoke(app, ["mtf", str(rgb), "--cycles", "36", "--channel", "G", "--channel", "B"])
     assert r.exit_code == 0 and "channel mean" in r.output
     tw = tmp_path / "star12.tiff"
     write_tiff(tw, np.stack([star] * 12).astype(np.float32))

@@ -131,15 +131,17 @@ def test_cli_reports_and_writes_an_aligned_tiff(tmp_path):
 
     src = tmp_path / "moved.tiff"
     write_tiff(src, shifted_scene(0.25, 0.0))
-    out, rep = tmp_path / "aligned.tiff", tmp_path / "report.json"
-    result = CliRunner().invoke(app, ["gt-check", str(src), "-o", str(rep), "--write-aligned", str(out)])
+    out = tmp_path / "aligned.tiff"
+    result = CliRunner().invoke(app, ["gt-check", str(src), "--write-aligned", str(out)])
     assert result.exit_code == 0, result.output
     assert "inconsistent" in result.output and " 90 deg" in result.output
-    report = json.loads(rep.read_text())
+    printed = CliRunner().invoke(app, ["gt-check", str(src), "--json"])
+    assert printed.exit_code == 0, printed.output
+    report = json.loads(printed.stdout)  # stdout holds the JSON alone
     assert report["alignment"][1]["shift_x_px"] == pytest.approx(0.25, abs=0.02)
     aligned, _ = read_gt_scene(out)
     assert check_ground_truth(aligned)["alignment"][1]["mean_displacement_px"] < 0.02
-    again = CliRunner().invoke(app, ["gt-check", str(src), "-o", str(rep)])
+    again = CliRunner().invoke(app, ["gt-check", str(src), "--write-aligned", str(out)])
     assert again.exit_code != 0 and "--overwrite" in str(again.exception)
 
 

@@ -10,7 +10,8 @@ import torch
 from conftest import smooth_random_scene
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.eval.metrics import PSNR_CAP_DB, crop_border, flatten, metric_direction, score
+from capssim.eval.metric_records import flatten, metric_direction
+from capssim.eval.metrics import PSNR_CAP_DB, crop_border, score
 from capssim.polarization import twelve_from_stokes
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
 from capssim.homography import random_aperture_homographies, similarity
 from capssim.operators import (
     Analyzer,

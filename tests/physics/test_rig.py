@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
 from capssim.homography import random_aperture_homographies
 from capssim.operators import (
     BayerSplit,

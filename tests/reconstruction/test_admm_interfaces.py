@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.admm import ADMMParameters, admm
-from capssim.reconstruct.descent import steepest_descent
-from capssim.reconstruct.tikhonov import TikhonovPrior
+from capssim.reconstruct.priors.tikhonov import TikhonovPrior
+from capssim.reconstruct.solvers.admm import ADMMParameters, admm
+from capssim.reconstruct.solvers.descent import steepest_descent
 
 
 class Denoising:
@@ -48,8 +48,8 @@ def imported_modules(module: str) -> set[str]:
     return names
 
 
-@pytest.mark.parametrize("module", ["capssim.reconstruct.admm", "capssim.reconstruct.descent",
-                                    "capssim.reconstruct.interfaces"])
+@pytest.mark.parametrize("module", ["capssim.reconstruct.solvers.admm", "capssim.reconstruct.solvers.descent",
+                                    "capssim.reconstruct.solvers.interfaces"])
 def test_solvers_import_neither_nlstr_nor_the_data_term(module):
     for name in imported_modules(module):
         assert "nlstr" not in name and "data_term" not in name, (module, name)

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.admm import ADMMParameters, admm, mu_schedule
+from capssim.reconstruct.solvers.admm import ADMMParameters, admm, mu_schedule
 
 
 def tiny_capture(size=48, sigma=0.01, seed=0):
@@ -82,7 +82,7 @@ def test_data_only_descent_decreases_every_iteration():
 
 
 def test_admm_rejects_bad_init():
-    from capssim.reconstruct.data_term import ConfidenceDataTerm
+    from capssim.reconstruct.model.data_term import ConfidenceDataTerm
 
     class Dummy:
         image_shape = (12, 8, 8)

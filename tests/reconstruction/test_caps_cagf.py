@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.reconstruct.cagf import (
+from capssim.reconstruct.model.cagf import (
     align_to_reference,
     box_mean,
     cagf_confidence,
@@ -97,8 +97,8 @@ def test_align_recovers_shift_and_resize_positions():
 def test_cagf_confidence_shape():
     rng = np.random.default_rng(3)
     images = torch.as_tensor(rng.random((16, 6, 6)), dtype=torch.float32)
+    from capssim.array_geometry import lr_homographies
     from capssim.conventions import LR_IMAGE_CHANNELS
-    from capssim.geometry import lr_homographies
 
     hm = lr_homographies(np.stack([np.eye(3)] * 4))
     conf = cagf_confidence(images, hm, torch.tensor(LR_IMAGE_CHANNELS), 12, (24, 24))

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.geometry import raw_matrix
-from capssim.reconstruct.init_fusion import fuse_initial_estimate, normalized_convolution, sample_positions, splat
-from capssim.reconstruct.rearrange import observations_from_capture
+from capssim.array_geometry import raw_matrix
+from capssim.reconstruct.model.init_fusion import fuse_initial_estimate, normalized_convolution, sample_positions, splat
+from capssim.reconstruct.model.rearrange import observations_from_capture
 
 
 def scene(size=64, seed=0):
@@ -54,7 +54,7 @@ def bicubic_per_image(cap):
 
 
 def test_sample_positions_of_reference_r_image():
-    from capssim.geometry import lr_homographies
+    from capssim.array_geometry import lr_homographies
 
     hm = lr_homographies(np.stack([np.eye(3)] * 4))
     pos = sample_positions(hm, (4, 5))

@@ -74,7 +74,7 @@ def test_smooth_scene_with_true_warps_is_accurate():
     # registration matters: ignoring the warps (all identity) must be clearly worse
     import copy
 
-    from capssim.geometry import ArrayGeometry
+    from capssim.array_geometry import ArrayGeometry
 
     shifted = copy.deepcopy(capture)
     identity = ArrayGeometry.identity(capture.hr_shape).to_meta()  # identity aperture warps
@@ -104,7 +104,7 @@ def test_cli_writes_tiff_and_json_with_timings(tmp_path):
 
     path = write_capture(tmp_path / "cap", _capture(smooth_random_scene(48, seed=2)))
     result = CliRunner().invoke(app, ["reconstruct", str(path), "-m", "caps-naive", "--true-warps",
-                                      "--no-progress", "-O", "bayer_method=malvar2004"])
+                                      "--no-progress", "-p", "bayer_method=malvar2004"])
     assert result.exit_code == 0, result.output
     image = tifffile.imread(path / "recon" / "caps-naive.tiff")
     assert image.shape == (12, 48, 48) and image.dtype == np.float32

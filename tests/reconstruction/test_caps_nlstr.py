@@ -6,14 +6,13 @@ import torch
 
 from capssim.errors import InputError
 from capssim.reconstruct.filters import sliding_window_sum
-from capssim.reconstruct.interfaces import no_stage
-from capssim.reconstruct.nlstr import (
+from capssim.reconstruct.priors.nlstr import (
     NLSTRParameters,
     NonlocalSparseTensor,
     reference_positions,
     shrink_core,
 )
-from capssim.reconstruct.nlstr_blocks import (
+from capssim.reconstruct.priors.nlstr_blocks import (
     gram_maps,
     mode_products,
     principal_channels,
@@ -21,7 +20,8 @@ from capssim.reconstruct.nlstr_blocks import (
     weighted_block_sums,
     window_sums_at,
 )
-from capssim.reconstruct.nlstr_prior import MatchSchedule, NLSTRPrior
+from capssim.reconstruct.priors.nlstr_prior import MatchSchedule, NLSTRPrior
+from capssim.reconstruct.solvers.interfaces import no_stage
 
 
 def piecewise_scene(c=12, h=48, w=56, seed=0):

@@ -6,7 +6,7 @@ import torch
 
 from capssim.conventions import LR_IMAGE_CHANNELS, split_bayer
 from capssim.errors import InputError
-from capssim.reconstruct.rearrange import rearrange_raw
+from capssim.reconstruct.model.rearrange import rearrange_raw
 
 
 def test_split_bayer_sites_and_order():

@@ -9,7 +9,8 @@ from scipy.ndimage import correlate as nd_correlate
 
 from capssim.conventions import POLARIZER_ANGLES_DEG, dofp_channel_map
 from capssim.errors import InputError
-from capssim.reconstruct.dofp_common import (
+from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear
+from capssim.reconstruct.dofp.mosaic import (
     angle_offsets,
     check_mosaic,
     merge_submosaics,
@@ -17,7 +18,6 @@ from capssim.reconstruct.dofp_common import (
     split_submosaics,
 )
 from capssim.reconstruct.filters import box_sum, correlate
-from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
 from capssim.reconstruct.methods.dofp_eari import demosaic_dofp_eari
 from capssim.reconstruct.methods.dofp_igri2 import QuincunxRotation, demosaic_dofp_igri2
 

@@ -13,8 +13,8 @@ from scipy.ndimage import gaussian_filter
 
 from capssim.capture import Capture, build_meta, read_capture, write_capture
 from capssim.errors import CapssimError, CaptureFormatError
-from capssim.reconstruct.interfaces import DivergenceError
 from capssim.reconstruct.registry import finite_or_null, reconstruct
+from capssim.reconstruct.solvers.interfaces import DivergenceError
 from capssim.sensor import make_sensor, sensor_from_meta
 from capssim.simulate import simulate_capture
 
@@ -147,7 +147,7 @@ def test_divergence_on_the_command_line_exits_2(noisy_capture, tmp_path):
 
     write_capture(tmp_path / "cap", noisy_capture)
     res = CliRunner().invoke(app, ["reconstruct", str(tmp_path / "cap"), "-m", "caps", "--iterations", "3",
-                                   "--true-warps", "--no-progress", "-O", "dt=100"])
+                                   "--true-warps", "--no-progress", "-p", "dt=100"])
     # a CapssimError: the console entry point prints it on one line and exits 2
     assert isinstance(res.exception, DivergenceError) and "option dt" in str(res.exception)
 
@@ -156,7 +156,7 @@ def test_a_horizon_across_the_image_is_refused(noisy_capture):
     warps = noisy_capture.aperture_homographies()
     warps[2] = warps[2] @ np.array([[1, 0, 0], [0, 1, 0], [-0.05, 0, 1.0]])
     meta = build_meta(kind="simulated", hr_shape=noisy_capture.hr_shape, aperture_homographies=warps,
-                      psf=noisy_capture.meta["psf"], sensor=noisy_capture.sensor)
+                      setup=noisy_capture.setup)
     bad = Capture(meta=meta, caps_raw=noisy_capture.caps_raw, dofp_raw=noisy_capture.dofp_raw)
     with pytest.raises(CaptureFormatError, match=r"aperture_homographies\[2\]: its horizon"):
         reconstruct(bad, "caps", iterations=1, true_warps=True)

@@ -9,7 +9,7 @@ from scipy.ndimage import zoom
 
 from capssim.conventions import dofp_channel_map
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
+from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear
 from capssim.reconstruct.methods.dofp_jcpd import (
     demosaic_dofp_jcpd,
     estimate_sigma,
@@ -17,7 +17,7 @@ from capssim.reconstruct.methods.dofp_jcpd import (
     patch_grid,
     phase_padding_index,
 )
-from capssim.reconstruct.sparse_coding import (
+from capssim.reconstruct.priors.sparse_coding import (
     constant_atoms,
     joint_dictionary,
     learn_dictionary,

@@ -6,7 +6,7 @@ import sys
 import pytest
 import torch
 
-from capssim.reconstruct.lbfgs import Memory, cubic_minimizer, minimize_lbfgs
+from capssim.reconstruct.registration.lbfgs import Memory, cubic_minimizer, minimize_lbfgs
 
 
 def rosenbrock(x: torch.Tensor) -> torch.Tensor:
@@ -111,7 +111,7 @@ def test_cubic_minimizer():
 
 def test_registration_does_not_import_torch_dynamo():
     code = ("import sys, numpy as np\n"
-            "from capssim.reconstruct.registration_core import register_stack\n"
+            "from capssim.reconstruct.registration.engine import register_stack\n"
             "import torch\n"
             "g = torch.Generator().manual_seed(0)\n"
             "ref = torch.nn.functional.avg_pool2d(torch.rand(1, 72, 72, generator=g, dtype=torch.float64), 3, 1)[0]\n"
@@ -124,7 +124,7 @@ def test_registration_does_not_import_torch_dynamo():
 
 
 def test_registration_runs_under_no_grad():
-    from capssim.reconstruct.registration_core import register_stack
+    from capssim.reconstruct.registration.engine import register_stack
 
     g = torch.Generator().manual_seed(0)
     ref = torch.nn.functional.avg_pool2d(torch.rand(1, 72, 72, generator=g, dtype=torch.float64), 3, 1)[0]
@@ -137,7 +137,7 @@ def test_registration_runs_under_no_grad():
 
 
 def test_registration_box_sum_gradient_is_exact():
-    from capssim.reconstruct.registration_filters import box_sum
+    from capssim.reconstruct.registration.image_ops import box_sum
 
     x = torch.rand(2, 7, 9, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda t: box_sum(t, 2), (x,))

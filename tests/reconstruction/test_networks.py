@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.methods.dofp_bilinear import demosaic_dofp_bilinear
+from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear
 from capssim.reconstruct.networks import NETWORKS, WEIGHTS_DIR, build_network, load_model, save_model
 from capssim.reconstruct.networks.cpdnet import dofp_network_input, sparse_channels, stokes_linear
 from capssim.reconstruct.networks.tiling import apply_tiled

@@ -18,9 +18,9 @@ from capssim.eval.synthetic import star_scene
 from capssim.homography import registration_error_hr_px
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registration import estimate_lr_homographies
-from capssim.reconstruct.registration_core import register_stack, stokes_residual_rms
-from capssim.reconstruct.registration_filters import box_sum
-from capssim.reconstruct.registration_parameters import RegistrationParameters
+from capssim.reconstruct.registration.engine import register_stack, stokes_residual_rms
+from capssim.reconstruct.registration.image_ops import box_sum
+from capssim.reconstruct.registration.parameters import RegistrationParameters
 from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
 

@@ -7,14 +7,14 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_filter
 
-import capssim.reconstruct.registration as registration
-import capssim.reconstruct.registration_core as core
+import capssim.reconstruct.registration.engine as core
+import capssim.reconstruct.registration.estimate as registration
 from capssim.errors import InputError, UnknownNameError
 from capssim.homography import registration_error_hr_px, similarity
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registration import estimate_lr_homographies
-from capssim.reconstruct.registration_images import mosaic_from_sub_images, ri_binomial_luminance
-from capssim.reconstruct.registration_parameters import RegistrationParameters, registration_parameters
+from capssim.reconstruct.registration.luminance import mosaic_from_sub_images, ri_binomial_luminance
+from capssim.reconstruct.registration.parameters import RegistrationParameters, registration_parameters
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
 from tests.conftest import smooth_random_scene

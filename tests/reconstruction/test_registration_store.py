@@ -10,11 +10,12 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from capssim.array_geometry import lr_homographies
 from capssim.capture import read_capture, write_capture
-from capssim.geometry import lr_homographies
 from capssim.imageio import read_tiff, write_tiff
-from capssim.reconstruct import observation_model, registration_store
+from capssim.reconstruct.model import observation_model
 from capssim.reconstruct.registration import RegistrationResult
+from capssim.reconstruct.registration import store as registration_store
 from capssim.reconstruct.registry import RunContext, StageTimer
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
@@ -151,7 +152,7 @@ def test_in_memory_capture_computes(capture_dir, estimator):
 
 
 def test_key_covers_input_mode_parameters_and_code():
-    from capssim.reconstruct.registration_parameters import registration_parameters
+    from capssim.reconstruct.registration.parameters import registration_parameters
 
     images = np.zeros((16, 8, 8), np.float32)
     sat = np.zeros((16, 8, 8), bool)

@@ -194,7 +194,7 @@ def test_cli_makes_a_set_and_refuses_bad_input(tmp_path):
     from capssim.cli import app
 
     runner = CliRunner()
-    good = runner.invoke(app, ["calibration-captures", str(tmp_path / "set"), "--size", "32", "--rig", "realistic",
+    good = runner.invoke(app, ["calibration-captures", "-o", str(tmp_path / "set"), "--size", "32", "--rig", "realistic",
                                "--rig-seed", "4", "--polarizer-angles", "3", "--noise", "gaussian", "--sigma", "0.01",
                                "--seed", "2"])
     assert good.exit_code == 0, good.output
@@ -203,17 +203,17 @@ def test_cli_makes_a_set_and_refuses_bad_input(tmp_path):
     cap = read_capture(tmp_path / "set" / "flat")
     assert cap.meta["sensor"]["model"] == "gaussian" and cap.meta["sensor"]["sigma"] == 0.01
     assert np.allclose(cap.rig.gain, RigModel.preset("realistic", seed=4).gain)
-    listed = runner.invoke(app, ["calibration-captures", str(tmp_path / "set2"), "--size", "32", "--frames", "2",
+    listed = runner.invoke(app, ["calibration-captures", "-o", str(tmp_path / "set2"), "--size", "32", "--frames", "2",
                                  "--polarizer-angles", "3", "--json"])
     assert listed.exit_code == 0, listed.output
     index = json.loads(listed.stdout)
     assert index == json.loads((tmp_path / "set2" / "index.json").read_text()) and len(index["captures"]) == 10
     for args, flag in ((["--polarizer-angles", "2"], "--polarizer-angles"), (["--size", "30"], "--size"),
                        (["--renderer", "blender"], "--renderer"), (["--frames", "9"], "--frames")):
-        bad = runner.invoke(app, ["calibration-captures", str(tmp_path / "bad"), *args])
+        bad = runner.invoke(app, ["calibration-captures", "-o", str(tmp_path / "bad"), *args])
         assert bad.exit_code != 0 and isinstance(bad.exception, InputError) and flag in str(bad.exception)
     # the console entry point: one line, no traceback
-    run = subprocess.run([sys.executable, "-m", "capssim", "calibration-captures", str(tmp_path / "set"),
+    run = subprocess.run([sys.executable, "-m", "capssim", "calibration-captures", "-o", str(tmp_path / "set"),
                           "--size", "32"], capture_output=True, text=True, timeout=120)
     assert run.returncode == 2 and "Traceback" not in run.stderr and "overwrite" in run.stderr
 

@@ -200,21 +200,19 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     from conftest import smooth_random_scene
 
     import capssim.dataset.sample as sample_module
-    from capssim.psf import PSF
-    from capssim.sensor import make_sensor
+    from capssim.psf import DEFAULT_PSF, PSF
     from capssim.simulate import simulate_capture
 
     calls = []
 
-    def render_capture(scene, *, size=256, spp=None, seed=0, sensor=None, variant="auto", dofp_layout="sony",
-                       scene_params=None, geometry_params=None, target_noise=None, record_timing=True, progress=None,
-                       psf=None, extinction_ratio=None):
+    def render_capture(scene, *, size=256, spp=None, seed=0, setup=None, variant="auto", scene_params=None,
+                       geometry_params=None, target_noise=None, record_timing=True, progress=None):
         calls.append(dict(scene=scene, size=size, spp=spp, seed=seed, variant=variant, scene_params=scene_params,
-                          geometry_params=geometry_params, record_timing=record_timing, psf=psf,
-                          extinction_ratio=extinction_ratio))
+                          geometry_params=geometry_params, record_timing=record_timing, psf=setup.psf,
+                          extinction_ratio=setup.extinction_ratio))
         gt = smooth_random_scene(size, seed=seed % 1000)
-        return simulate_capture(gt, sensor or make_sensor("none"), seed=seed, dofp_layout=dofp_layout,
-                                kind="rendered", source={"scene": scene})
+        return simulate_capture(gt, setup.replace(psf=PSF.none()), seed=seed, kind="rendered",
+                                source={"scene": scene})
 
     monkeypatch.setattr(sample_module, "render_capture", render_capture)
     path = tmp_path / "config.yaml"
@@ -243,7 +241,7 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     assert 2 <= first["geometry_params"]["depth_m"] < 10 and 2 <= first["scene_params"]["scale"] < 4
     assert first["extinction_ratio"] == 50 and first["psf"] == PSF.gaussian(0.7)
     assert calls[1]["scene_params"] is None and calls[1]["spp"] is None
-    assert calls[1]["psf"] is None and calls[1]["extinction_ratio"] is None  # the renderer's defaults
+    assert calls[1]["psf"] == DEFAULT_PSF and calls[1]["extinction_ratio"] is None  # the set-up's defaults
     records = records_by_index(out)
     assert "render_s" in records[0]["timing"]
     meta = json.loads((out / "samples" / "000000" / "meta.json").read_text())

@@ -10,11 +10,11 @@ import torch
 from test_dataset_config import write_gt_folder
 from torch.utils.data import DataLoader
 
+from capssim.array_geometry import ArrayGeometry, lr_homographies
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
 from capssim.dataset.torch import CaptureDataset, crop_homographies
 from capssim.errors import CaptureFormatError, InputError
-from capssim.geometry import ArrayGeometry, lr_homographies
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
 from capssim.psf import gaussian_psf_kernel
 

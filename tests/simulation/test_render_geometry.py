@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from capssim.errors import InputError
-from capssim.render.geometry import (
+from capssim.render.pinhole_array import (
     PinholeCamera,
     RigTolerances,
     axis_rotation,

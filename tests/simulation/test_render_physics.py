@@ -11,10 +11,9 @@ import pytest
 import torch
 
 import capssim.render  # noqa: F401  (sets DRJIT_LIBLLVM_PATH)
-import capssim.scenes  # noqa: F401  (registers the scene library)
 from capssim.polarization import angle_difference_deg, aop_deg, dolp
-from capssim.render.geometry import PinholeCamera, look_at_rotation
 from capssim.render.integrator import render_view
+from capssim.render.pinhole_array import PinholeCamera, look_at_rotation
 from capssim.render.scene_base import register_plugins
 from capssim.render.spectral import CameraResponse
 from capssim.render.variants import select_variant

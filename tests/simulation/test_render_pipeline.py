@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-import capssim.scenes  # noqa: F401  (registers the scene library)
+import capssim.scenes
 from capssim.capture import read_capture, write_capture
 from capssim.errors import InputError, UnknownNameError
 from capssim.render import RenderSettings, list_scenes, render_capture

@@ -11,11 +11,11 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
+from capssim.array_geometry import ArrayGeometry
 from capssim.capture import CaptureFormatError, read_capture, write_capture
 from capssim.cli import app
 from capssim.conventions import BAYER_OFFSETS, BAYER_SITE_COLOUR, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
-from capssim.geometry import ArrayGeometry
 from capssim.homography import random_aperture_homographies
 from capssim.imageio import write_tiff
 from capssim.measurement import CameraArrayMeasurement
@@ -140,11 +140,11 @@ def gt_file(tmp_path):
 
 def test_cli_rig_preset_and_overrides(tmp_path, gt_file):
     runner = CliRunner()
-    res = runner.invoke(app, ["simulate", "--gt", str(gt_file), "-o", str(tmp_path / "a"), "--rig", "realistic",
+    res = runner.invoke(app, ["simulate", str(gt_file), "-o", str(tmp_path / "a"), "--rig", "realistic",
                               "--rig-seed", "4"])
     assert res.exit_code == 0, res.output
     assert read_capture(tmp_path / "a").rig.to_dict() == RigModel.preset("realistic", seed=4).to_dict()
-    res = runner.invoke(app, ["simulate", "--gt", str(gt_file), "-o", str(tmp_path / "b"),
+    res = runner.invoke(app, ["simulate", str(gt_file), "-o", str(tmp_path / "b"),
                               "--angle-offsets", "1,-1,0.5,0", "--extinction-ratios", "300,100,30",
                               "--gains", "1.05,0.95,1,1", "--vignetting", "0.2", "--aperture-psf-sigmas",
                               "0.4,0.5,0.6,0.5"])
@@ -156,7 +156,7 @@ def test_cli_rig_preset_and_overrides(tmp_path, gt_file):
     corner = rig.flat_field((HR // 2, HR // 2))[:, 0, 0]
     assert np.allclose(corner, 0.8 * rig.gain, atol=0.01)
     # the one --extinction-ratio stays the CAPS polarizers' on the ideal array with overrides
-    res = runner.invoke(app, ["simulate", "--gt", str(gt_file), "-o", str(tmp_path / "c"), "--extinction-ratio",
+    res = runner.invoke(app, ["simulate", str(gt_file), "-o", str(tmp_path / "c"), "--extinction-ratio",
                               "80", "--gains", "1.05,0.95,1,1"])
     assert res.exit_code == 0, res.output
     assert np.array_equal(read_capture(tmp_path / "c").rig.extinction_ratio, np.full((4, 3), 80.0))
@@ -166,7 +166,7 @@ def test_cli_rig_file_gives_its_geometry(tmp_path, gt_file):
     geometry = ArrayGeometry(simulate_capture(textured(5), NoNoiseSensor(), seed=7).aperture_homographies(), (HR, HR))
     rig = RigModel.preset("realistic", seed=6)
     write_rig_json(tmp_path / "rig.json", rig, geometry=geometry)
-    res = CliRunner().invoke(app, ["simulate", "--gt", str(gt_file), "-o", str(tmp_path / "a"), "--rig",
+    res = CliRunner().invoke(app, ["simulate", str(gt_file), "-o", str(tmp_path / "a"), "--rig",
                                    str(tmp_path / "rig.json"), "--gains", "1,1,1,1.1"])
     assert res.exit_code == 0, res.output
     cap = read_capture(tmp_path / "a")
@@ -174,7 +174,7 @@ def test_cli_rig_file_gives_its_geometry(tmp_path, gt_file):
     assert np.array_equal(cap.rig.gain, [1, 1, 1, 1.1]) and np.array_equal(cap.rig.angle_offsets_deg,
                                                                             rig.angle_offsets_deg)
     write_rig_json(tmp_path / "big.json", rig, geometry=ArrayGeometry(geometry.aperture_homographies, (64, 64)))
-    res = CliRunner().invoke(app, ["simulate", "--gt", str(gt_file), "-o", str(tmp_path / "b"), "--rig",
+    res = CliRunner().invoke(app, ["simulate", str(gt_file), "-o", str(tmp_path / "b"), "--rig",
                                    str(tmp_path / "big.json")])
     assert isinstance(res.exception, InputError) and res.exception.argument == "--rig"
     assert "64x64" in str(res.exception)
@@ -196,7 +196,7 @@ def test_cli_rig_file_gives_its_geometry(tmp_path, gt_file):
 ])
 def test_cli_bad_rig_values_name_their_flag(tmp_path, gt_file, flags, named):
     """An InputError naming the flag: ``capssim`` (cli.main) prints it as one line, no traceback."""
-    res = CliRunner().invoke(app, ["simulate", "--gt", str(gt_file), "-o", str(tmp_path / "x"), *flags])
+    res = CliRunner().invoke(app, ["simulate", str(gt_file), "-o", str(tmp_path / "x"), *flags])
     assert res.exit_code != 0
     assert isinstance(res.exception, InputError) and res.exception.argument == named, repr(res.exception)
     assert not (tmp_path / "x").exists()
@@ -206,7 +206,7 @@ def test_cli_bad_rig_value_is_one_line_without_traceback(tmp_path, gt_file):
     import subprocess
     import sys
 
-    run = subprocess.run([sys.executable, "-m", "capssim", "simulate", "--gt", str(gt_file), "-o",
+    run = subprocess.run([sys.executable, "-m", "capssim", "simulate", str(gt_file), "-o",
                           str(tmp_path / "x"), "--gains", "1,1"], capture_output=True, text=True, timeout=120)
     assert run.returncode != 0 and "--gains" in run.stderr + run.stdout
     assert "Traceback" not in run.stderr + run.stdout

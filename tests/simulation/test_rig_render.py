@@ -11,7 +11,6 @@ import torch
 
 pytest.importorskip("mitsuba")
 
-import capssim.scenes  # noqa: F401,E402  (registers the scene library)
 from capssim.capture import read_capture  # noqa: E402
 from capssim.errors import InputError  # noqa: E402
 from capssim.psf import PSF  # noqa: E402
