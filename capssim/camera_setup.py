@@ -6,22 +6,19 @@ benchmark suites build their captures from, and what every capture's ``meta.json
 ``"setup"`` block (:meth:`CameraSetup.to_meta`, :meth:`CameraSetup.from_meta`). One spelling per
 quantity, one default each:
 
-==================== ============================================================ =====================
-key                  quantity (unit)                                              default
-==================== ============================================================ =====================
-``sensor``           ``{noise, sigma, preset, exposure, bit_depth, ...}``: the     ``{noise: none}``
-                     noise model ``noise`` (none, gaussian, poisson-gaussian),
-                     Gaussian std ``sigma`` on [0, 1] full scale, an EMVA 1288
-                     ``preset`` (:data:`~capssim.sensor.SENSOR_PRESETS`)
-``psf_sigma_hr_px``  Gaussian optical PSF std, HR pixels (0 = no blur)             :data:`~capssim.psf.DEFAULT_SIGMA_HR_PX`
-``psf``              any PSF, as ``meta.json["psf"]`` spells it (instead of         Gaussian, as above
-                     ``psf_sigma_hr_px``; e.g. ``{type: airy, ...}``)
-``dofp_layout``      the DoFP 2x2 polarizer cell, by name or ``[[a, b], [c, d]]``   :data:`DEFAULT_DOFP_LAYOUT`
-                     degrees
-``extinction_ratio`` ``T_max / T_min`` of the polarizers (>= 1; null = ideal)       ``null``
-``rig``              an imperfect array (:class:`~capssim.rig.RigModel`): a preset  ``null`` (ideal)
-                     draw ``{preset, seed, <overrides>}`` or ``RigModel.to_dict()``
-==================== ============================================================ =====================
+* ``sensor``: ``{noise, sigma, preset, exposure, bit_depth, ...}``, the noise model ``noise``
+  (``none``, ``gaussian``, ``poisson-gaussian``; default :data:`DEFAULT_NOISE`), the Gaussian std
+  ``sigma`` on [0, 1] full scale, an EMVA 1288 ``preset`` (:data:`~capssim.sensor.SENSOR_PRESETS`;
+  default :data:`DEFAULT_SENSOR_PRESET`) and the fields that replace the preset's;
+* ``psf_sigma_hr_px``: the Gaussian optical PSF's std in HR pixels (0 = no blur; default
+  :data:`~capssim.psf.DEFAULT_SIGMA_HR_PX`), or ``psf``: any PSF as ``meta.json["psf"]`` spells it
+  (e.g. ``{type: airy, f_number, wavelength_nm, hr_pixel_um}``);
+* ``dofp_layout``: the DoFP 2x2 polarizer cell, by name or ``[[a, b], [c, d]]`` degrees (default
+  :data:`DEFAULT_DOFP_LAYOUT`, the Sony IMX250MYR's ``[[90, 45], [135, 0]]``);
+* ``extinction_ratio``: ``T_max / T_min`` of the polarizers (>= 1; default ``null``, ideal);
+* ``rig``: an imperfect array (:class:`~capssim.rig.RigModel`), a preset draw
+  ``{preset, seed, <overrides>}`` or :meth:`RigModel.to_dict <capssim.rig.RigModel.to_dict>`'s
+  mapping (default ``null``, the ideal array).
 
 The seed rule (:data:`SEED_RULE`, :func:`capssim.measurement.seed_streams`) is part of the set-up;
 the seed itself names one capture and stays ``meta.json["seed"]``. A rendered capture's
@@ -32,24 +29,25 @@ optical PSF the renderer applied.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from dataclasses import dataclass, field, fields, replace
 
-from capssim.conventions import dofp_layout, dofp_layout_name
+from capssim.conventions import DEFAULT_DOFP_LAYOUT, dofp_layout_name
 from capssim.errors import InputError, UnknownNameError
 from capssim.psf import DEFAULT_PSF, DEFAULT_SIGMA_HR_PX, PSF, as_psf
 from capssim.rig import RigModel
-from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS, NoNoiseSensor, Sensor, make_sensor, sensor_from_meta
+from capssim.sensor import (
+    DEFAULT_NOISE,
+    DEFAULT_SENSOR_PRESET,
+    NOISE_MODELS,
+    SENSOR_PRESETS,
+    GaussianSensor,
+    NoNoiseSensor,
+    PoissonGaussianSensor,
+    Sensor,
+    make_sensor,
+    sensor_from_meta,
+)
 
-if TYPE_CHECKING:  # pulls torch: imported where it is used (CLI start-up time)
-    from capssim.measurement import CameraArrayMeasurement
-
-#: the noise model of a set-up that names none
-DEFAULT_NOISE = "none"
-#: the EMVA 1288 preset of a ``poisson-gaussian`` sensor that names none
-DEFAULT_SENSOR_PRESET = "imx250myr"
-#: the DoFP 2x2 polarizer cell of a set-up that names none (Sony IMX250MYR, [[90, 45], [135, 0]])
-DEFAULT_DOFP_LAYOUT = "sony"
 #: how one seed becomes the random streams of a capture (:func:`capssim.measurement.seed_streams`)
 SEED_RULE = "numpy SeedSequence(seed).spawn(3): aperture poses, CAPS sensor noise, DoFP sensor noise"
 #: the keys of a set-up mapping (YAML, the ``meta.json`` "setup" block)
@@ -96,18 +94,14 @@ def sensor_from_mapping(mapping, *, where: str = "sensor") -> Sensor:
     except InputError as exc:
         raise InputError(f"{where}.{exc.argument}", exc.received, exc.valid, exc.fix) from None
     except TypeError as exc:  # a key the model has no field for
-        fields = _sensor_fields(noise)
-        raise InputError(where, f"keys {sorted(params)} ({exc})"[:160], f"the fields of noise {noise!r}: {fields}",
+        known = _sensor_fields(noise)
+        raise InputError(where, f"keys {sorted(params)} ({exc})"[:160], f"the fields of noise {noise!r}: {known}",
                          "Remove the keys that this noise model does not take.") from None
 
 
 def _sensor_fields(noise: str) -> str:
-    from dataclasses import fields as dataclass_fields
-
-    from capssim.sensor import GaussianSensor, PoissonGaussianSensor
-
     kind = {"none": NoNoiseSensor, "gaussian": GaussianSensor, "poisson-gaussian": PoissonGaussianSensor}[noise]
-    return ", ".join(f.name for f in dataclass_fields(kind) if f.name != "model")
+    return ", ".join(f.name for f in fields(kind) if f.name != "model")
 
 
 def _sensor_block(sensor: Sensor) -> dict:
@@ -128,8 +122,9 @@ def _rig(value, where: str) -> RigModel | None:
         return RigModel.from_dict(value, where=where)
     try:
         return RigModel.from_spec(value)
-    except InputError as exc:
-        raise InputError(f"{where}.{exc.argument.removeprefix('rig ')}", exc.received, exc.valid, exc.fix) from None
+    except InputError as exc:  # RigModel names "rig", "rig gain", ...: name the key under ``where``
+        key = exc.argument.removeprefix("rig").strip()
+        raise InputError(f"{where}.{key}" if key else where, exc.received, exc.valid, exc.fix) from None
 
 
 def _extinction_ratio(value, where: str) -> float | None:
@@ -164,7 +159,7 @@ class CameraSetup:
             set_(self, "psf", as_psf(self.psf))
         except (InputError, TypeError, ValueError) as exc:
             raise InputError("setup psf", repr(self.psf)[:80], f"a capssim.psf.PSF or a PSF mapping ({exc})") from None
-        set_(self, "dofp_layout", dofp_layout_name(dofp_layout(self.dofp_layout)))
+        set_(self, "dofp_layout", _checked(dofp_layout_name, self.dofp_layout, "setup dofp_layout"))
         set_(self, "extinction_ratio", _extinction_ratio(self.extinction_ratio, "setup extinction_ratio"))
         set_(self, "rig", _rig(self.rig, "setup rig"))
 
@@ -224,14 +219,6 @@ class CameraSetup:
     def replace(self, **changes) -> "CameraSetup":
         """A copy with the given fields replaced (checked as in the constructor)."""
         return replace(self, **changes)
-
-    def measurement(self, seed: int = 0, *, psf: PSF | None = None) -> "CameraArrayMeasurement":
-        """``y = sensor(A x)`` of this set-up with the random streams of ``seed`` (:data:`SEED_RULE`);
-        ``psf`` replaces the set-up's (a renderer that has already blurred passes ``PSF.none()``)."""
-        from capssim.measurement import CameraArrayMeasurement  # pulls torch: not at import (CLI start-up time)
-
-        return CameraArrayMeasurement(self.sensor, psf=self.psf if psf is None else psf, dofp_layout=self.dofp_layout,
-                                      extinction_ratio=self.extinction_ratio, seed=seed, rig=self.rig)
 
     def __eq__(self, other) -> bool:
         return isinstance(other, CameraSetup) and self.to_meta() == other.to_meta()

@@ -35,6 +35,8 @@ DOFP_LAYOUTS: dict[str, tuple[tuple[int, int], tuple[int, int]]] = {
     "sony": ((90, 45), (135, 0)),
     "0-45-135-90": ((0, 45), (135, 90)),
 }
+#: the DoFP 2x2 polarizer cell of a camera that names none: the Sony IMX250MYR's (the camera set-up's default)
+DEFAULT_DOFP_LAYOUT = "sony"
 
 
 def channel_index(angle_deg: int, colour: int | str) -> int:
@@ -103,7 +105,7 @@ def dofp_layout_name(layout) -> str:
     return "-".join(str(v) for row in cell for v in row)
 
 
-def dofp_channel_map(height: int, width: int, layout="sony") -> np.ndarray:
+def dofp_channel_map(height: int, width: int, layout=DEFAULT_DOFP_LAYOUT) -> np.ndarray:
     """12-channel index sampled at each DoFP pixel, shape ``(height, width)``, int64.
 
     Polarizer angle follows the 2x2 ``layout`` cell; colour is a quad Bayer RGGB over

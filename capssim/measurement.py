@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from capssim.camera_setup import CameraSetup
+from capssim.conventions import DEFAULT_DOFP_LAYOUT
 from capssim.operators.base import Composition
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
 from capssim.psf import PSF, as_psf
@@ -46,7 +48,7 @@ class CameraArrayMeasurement:
 
     sensor: Sensor
     psf: PSF | dict | None = None
-    dofp_layout: object = "sony"
+    dofp_layout: object = DEFAULT_DOFP_LAYOUT
     extinction_ratio: float | None = None
     seed: int = 0
     rig: RigModel | None = None
@@ -57,6 +59,14 @@ class CameraArrayMeasurement:
     def __post_init__(self):
         self.psf = as_psf(self.psf)
         self.pose_rng, self.caps_rng, self.dofp_rng = seed_streams(self.seed)
+
+    @classmethod
+    def from_setup(cls, setup: CameraSetup, seed: int = 0, *, psf: PSF | None = None) -> "CameraArrayMeasurement":
+        """``y = sensor(A x)`` of a camera set-up (:class:`~capssim.camera_setup.CameraSetup`: sensor, PSF,
+        DoFP layout, extinction ratio, rig) with the random streams of ``seed``; ``psf`` replaces the
+        set-up's (a renderer, whose views are already blurred, passes ``PSF.none()``)."""
+        return cls(setup.sensor, psf=setup.psf if psf is None else psf, dofp_layout=setup.dofp_layout,
+                   extinction_ratio=setup.extinction_ratio, seed=seed, rig=setup.rig)
 
     # A ----------------------------------------------------------------------------------
     def caps_operator(self, hr_shape, aperture_homographies: np.ndarray) -> Composition:

@@ -11,13 +11,10 @@ holds what the camera model needs to describe it, and nothing else:
   normalised raw coordinates (:data:`VIGNETTING_MONOMIALS`), 1 at the frame centre;
 * ``psf``: four PSF specs (:meth:`capssim.psf.PSF.to_spec`), or ``None`` for the capture's one PSF.
 
-Analyzer at an arbitrary angle (from the four stored angles). The 12-channel image holds
-``I(a)`` at ``a`` in (0, 45, 90, 135); with ``S0 = (I0+I45+I90+I135)/2``, ``S1 = I0-I90``,
-``S2 = I45-I135`` a polarizer at ``theta`` transmits ``s(theta) = (S0 + S1 cos 2theta +
-S2 sin 2theta)/2``. capssim reads it as ``I(a) + s(theta) - s(a)`` with ``a`` the nearest stored
-angle: exact for physically consistent images, and the stored channel itself at ``theta = a``
-(so an ideal rig gives today's operator bit for bit). With extinction ratio ``ER`` the
-polarizer reads ``(ER I(theta) + I(theta + 90)) / (ER + 1)`` (:mod:`capssim.operators.analyzer`).
+The parts (:mod:`capssim.rig_parts`): a polarizer at an arbitrary angle, read from the four stored
+angles (exact for physically consistent images, and the stored channel itself at a nominal angle, so
+an ideal rig gives today's operator bit for bit), with a finite extinction ratio; and the vignetting
+polynomial.
 
 The flat field of aperture n is ``F_n(u, v) = gain_n V_n(u, v)`` on its raw grid: the raw value
 of uniform unpolarized light of 12-channel level ``L`` is ``F_n L``.
@@ -41,12 +38,19 @@ from capssim.conventions import BAYER_OFFSETS, BAYER_SITE_COLOUR, N_APERTURES, N
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_text
 from capssim.psf import PSF
+from capssim.rig_parts import (  # noqa: F401  (re-exported: the rig's parts, capssim.rig's public names)
+    N_VIGNETTING_TERMS,
+    VIGNETTING_MONOMIALS,
+    analyzer_row,
+    flat_vignetting,
+    normalised_raw_coordinates,
+    polarizer_reading,
+    radial_vignetting,
+    vignetting_design,
+)
 
 RIG_FORMAT, RIG_FORMAT_VERSION = "capssim-rig", 1
 
-#: ``(i, j)`` exponents of ``u^i v^j`` of the vignetting polynomial, by total degree then ``i`` descending
-VIGNETTING_MONOMIALS = tuple((d - j, j) for d in range(5) for j in range(d + 1))
-N_VIGNETTING_TERMS = len(VIGNETTING_MONOMIALS)
 
 #: realistic imperfections of a hand-built array (preset ``realistic``), with where each range comes from
 REALISTIC_RANGES = {
@@ -62,75 +66,6 @@ REALISTIC_RANGES = {
                                         "f/2.8-f/4: 75-85 % (cos^4 law plus mechanical vignetting)"),
     "psf_sigma_hr_px": ((0.4, 0.6), "the default Gaussian PSF (0.5 HR px) with +-20 % lens-to-lens focus spread"),
 }
-
-
-# -- the analyzer at arbitrary angles --------------------------------------------------------------
-def _stokes_form(theta_deg: float) -> np.ndarray:
-    """``(4,)`` coefficients over ``I(0, 45, 90, 135)`` of ``s(theta) = (S0 + S1 cos 2t + S2 sin 2t) / 2``."""
-    c, s = math.cos(math.radians(2 * theta_deg)), math.sin(math.radians(2 * theta_deg))
-    return np.array([0.25 + 0.5 * c, 0.25 + 0.5 * s, 0.25 - 0.5 * c, 0.25 - 0.5 * s])
-
-
-def polarizer_reading(theta_deg: float) -> np.ndarray:
-    """``(4,)`` coefficients over ``I(0, 45, 90, 135)`` of an ideal polarizer at ``theta_deg``.
-
-    ``I(a) + s(theta) - s(a)`` with ``a`` the stored angle nearest to ``theta`` (module docstring).
-    """
-    nearest = int(round(theta_deg / 45.0)) * 45 % 180
-    row = _stokes_form(theta_deg) - _stokes_form(nearest)
-    row[POLARIZER_ANGLES_DEG.index(nearest)] += 1.0
-    if abs(theta_deg - round(theta_deg / 45.0) * 45) < 1e-12:
-        row = np.zeros(4)
-        row[POLARIZER_ANGLES_DEG.index(nearest)] = 1.0
-    return row
-
-
-def analyzer_row(theta_deg: float, extinction_ratio: float) -> np.ndarray:
-    """``(4,)``: a polarizer at ``theta_deg`` with ``T_max/T_min = extinction_ratio`` (inf: ideal)."""
-    if math.isinf(extinction_ratio):
-        return polarizer_reading(theta_deg)
-    t_par, t_perp = extinction_ratio / (extinction_ratio + 1.0), 1.0 / (extinction_ratio + 1.0)
-    return t_par * polarizer_reading(theta_deg) + t_perp * polarizer_reading(theta_deg + 90.0)
-
-
-# -- vignetting polynomials --------------------------------------------------------------------------
-def normalised_raw_coordinates(raw_shape) -> tuple[np.ndarray, np.ndarray]:
-    """``(u, v)`` ``(H, W)`` each: raw columns and rows mapped to [-1, 1] (frame centre 0)."""
-    h, w = (int(s) for s in raw_shape)
-    u = (np.arange(w) - (w - 1) / 2.0) / max((w - 1) / 2.0, 0.5)
-    v = (np.arange(h) - (h - 1) / 2.0) / max((h - 1) / 2.0, 0.5)
-    return np.meshgrid(u, v, indexing="xy")
-
-
-def vignetting_design(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``(*u.shape, 15)``: the monomials ``u^i v^j`` of :data:`VIGNETTING_MONOMIALS` at each point."""
-    return np.stack([u ** i * v ** j for i, j in VIGNETTING_MONOMIALS], axis=-1)
-
-
-def radial_vignetting(corner_falloff: float, *, centre_uv: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-    """``(15,)`` coefficients of ``V = (1 - f (0.6 r^2 + 0.4 r^4)) / V(0, 0)``, ``r`` = 1 at the corners.
-
-    ``corner_falloff`` ``f`` in [0, 0.9]: 0.2 puts a centred map's corners at 80 %;
-    ``centre_uv``: the optical centre in normalised raw coordinates (|u|, |v| <= 0.5).
-    """
-    if not (0.0 <= corner_falloff <= 0.9):
-        raise InputError("vignetting", corner_falloff, "a corner fall-off in [0, 0.9] (0.2 = corners at 80 %)")
-    if not all(abs(c) <= 0.5 for c in centre_uv):
-        raise InputError("vignetting centre", centre_uv, "normalised coordinates within [-0.5, 0.5]")
-    grid = np.linspace(-1.0, 1.0, 9)
-    u, v = np.meshgrid(grid, grid, indexing="xy")
-    r2 = ((u - centre_uv[0]) ** 2 + (v - centre_uv[1]) ** 2) / 2.0
-    values = 1.0 - corner_falloff * (0.6 * r2 + 0.4 * r2 ** 2)
-    centre = 1.0 - corner_falloff * (0.6 * (sum(c * c for c in centre_uv) / 2) + 0.4 * (sum(c * c for c in centre_uv) / 2) ** 2)
-    coef, *_ = np.linalg.lstsq(vignetting_design(u, v).reshape(-1, N_VIGNETTING_TERMS), values.ravel() / centre,
-                               rcond=None)
-    return coef
-
-
-def _flat_vignetting() -> np.ndarray:
-    coef = np.zeros(N_VIGNETTING_TERMS)
-    coef[0] = 1.0
-    return coef
 
 
 #: the keyword arguments of :meth:`RigModel.with_overrides`
@@ -163,7 +98,7 @@ class RigModel:
     angle_offsets_deg: np.ndarray = field(default_factory=lambda: np.zeros(N_APERTURES))
     extinction_ratio: np.ndarray = field(default_factory=lambda: np.full((N_APERTURES, 3), math.inf))
     gain: np.ndarray = field(default_factory=lambda: np.ones(N_APERTURES))
-    vignetting: np.ndarray = field(default_factory=lambda: np.tile(_flat_vignetting(), (N_APERTURES, 1)))
+    vignetting: np.ndarray = field(default_factory=lambda: np.tile(flat_vignetting(), (N_APERTURES, 1)))
     psf: tuple | None = None
 
     def __post_init__(self):
@@ -252,13 +187,13 @@ class RigModel:
     def is_ideal(self) -> bool:
         """Whether this rig is :meth:`ideal` (its operators are today's ideal ones)."""
         return (not np.any(self.angle_offsets_deg) and bool(np.all(np.isinf(self.extinction_ratio)))
-                and bool(np.all(self.gain == 1.0)) and bool(np.all(self.vignetting == _flat_vignetting()))
+                and bool(np.all(self.gain == 1.0)) and bool(np.all(self.vignetting == flat_vignetting()))
                 and self.psf is None)
 
     @property
     def has_flat_field(self) -> bool:
         """Whether gain or vignetting differ from 1 anywhere."""
-        return not (np.all(self.gain == 1.0) and np.all(self.vignetting == _flat_vignetting()))
+        return not (np.all(self.gain == 1.0) and np.all(self.vignetting == flat_vignetting()))
 
     def analyzer_matrix(self) -> np.ndarray:
         """``(12, 12)``: row ``3n + k`` is aperture n's polarizer seen in colour k, over the 12 channels."""

@@ -44,6 +44,10 @@ SENSOR_PRESETS: dict[str, dict] = {
 }
 
 NOISE_MODELS = ("none", "gaussian", "poisson-gaussian")
+#: the noise model of a sensor that names none (the camera set-up's default)
+DEFAULT_NOISE = "none"
+#: the EMVA 1288 preset of a ``poisson-gaussian`` sensor that names none
+DEFAULT_SENSOR_PRESET = "imx250myr"
 
 
 def _finite(arg: str, value, *, minimum: float = 0.0, strict: bool = False) -> float:
@@ -289,7 +293,7 @@ class PoissonGaussianSensor(Sensor):
         return np.sqrt(var_dn) / (self.gain_dn_per_e * self.full_well_e * self.exposure)
 
 
-def make_sensor(noise: str = "none", *, sigma: float | None = None, preset: str | None = None,
+def make_sensor(noise: str = DEFAULT_NOISE, *, sigma: float | None = None, preset: str | None = None,
                 **overrides) -> Sensor:
     """Build a sensor from CLI-style options.
 

@@ -25,6 +25,7 @@ from capssim.capture import Capture, build_meta
 from capssim.errors import InputError
 from capssim.homography import random_aperture_homographies
 from capssim.imageio import centre_crop
+from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import PSF
 from capssim.rig import RigModel
 from capssim.sensor import Sensor
@@ -106,7 +107,7 @@ def simulate_capture(gt: np.ndarray, setup: CameraSetup | Sensor | None = None, 
     :class:`~capssim.sensor.Sensor` takes the default set-up around it, ``None`` the default set-up);
     ``psf``, ``dofp_layout``, ``extinction_ratio`` and ``rig``, when given, replace its fields
     (:func:`~capssim.camera_setup.as_setup`). The measurement is
-    :meth:`CameraSetup.measurement <capssim.camera_setup.CameraSetup.measurement>` (``y = sensor(A x)``,
+    :meth:`CameraArrayMeasurement.from_setup <capssim.measurement.CameraArrayMeasurement.from_setup>` (``y = sensor(A x)``,
     paper eq. 9): reproducible under ``seed``, whose three independent streams
     (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS noise and the DoFP noise.
     ``gt`` on [0, 1]; values above full scale are kept with a warning (they saturate the
@@ -119,7 +120,7 @@ def simulate_capture(gt: np.ndarray, setup: CameraSetup | Sensor | None = None, 
     setup = as_setup(setup, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio, rig=rig)
     gt, _ = prepare_ground_truth(gt, allow_out_of_range=True)
     hr_shape = gt.shape[1:]
-    measurement = setup.measurement(seed)
+    measurement = CameraArrayMeasurement.from_setup(setup, seed)
     measurement.psf.check_extent(hr_shape, option="psf")
     for n, aperture_psf in enumerate((setup.rig.psf_objects() if setup.rig is not None else None) or []):
         aperture_psf.check_extent(hr_shape, option=f"rig psf[{n}]")

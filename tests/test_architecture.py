@@ -22,7 +22,7 @@ ROOTS = {"capssim": "capssim", "capssim.reconstruct": "reconstruct", "capssim.ev
 PHYSICS = ("capssim", "capssim.errors", "capssim.conventions", "capssim.homography", "capssim.array_geometry",
            "capssim.psf", "capssim.measurement", "capssim.imageio", "capssim.sensor", "capssim.capture",
            "capssim.polarization", "capssim.physical_validity", "capssim.design", "capssim.visualize", "capssim.operators", "capssim.resources", "capssim.rig",
-           "capssim.threads", "capssim.allocator", "capssim.camera_setup", "capssim.capture_meta")
+           "capssim.threads", "capssim.allocator", "capssim.camera_setup", "capssim.capture_meta", "capssim.rig_parts")
 #: (floor name, module prefixes), lowest floor first
 FLOORS = (
     ("physics", PHYSICS),
@@ -54,7 +54,8 @@ MODULES = _modules()
 
 
 def floor_of(module: str) -> int:
-    best = None
+    # a module at capssim/'s root (capssim/*.py) is physics unless a higher floor names it (capssim.simulate)
+    best = 0 if module.startswith("capssim.") and module.count(".") == 1 else None
     for rank, (_, prefixes) in enumerate(FLOORS):
         for prefix in prefixes:
             if module == prefix or (prefix != "capssim" and module.startswith(prefix + ".")):

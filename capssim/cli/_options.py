@@ -1,4 +1,5 @@
-"""Options shared by several commands (noise/sensor, devices, progress)."""
+"""Options shared by every command (docs: guides/cli.md): --threads, --device, --json, seeds, number checks;
+the camera set-up options are in capssim.cli._setup_options."""
 
 from __future__ import annotations
 

@@ -20,9 +20,17 @@ from typing import Optional
 
 import typer
 
-from capssim.camera_setup import DEFAULT_DOFP_LAYOUT, DEFAULT_NOISE, DEFAULT_SIGMA_HR_PX
+from capssim.camera_setup import (
+    DEFAULT_DOFP_LAYOUT,
+    DEFAULT_NOISE,
+    DEFAULT_SIGMA_HR_PX,
+    CameraSetup,
+    sensor_from_options,
+)
 from capssim.cli._options import number_in, seed_in_range
-from capssim.errors import InputError
+from capssim.errors import InputError, UnknownNameError
+from capssim.psf import PSF
+from capssim.rig import RigModel, read_rig_json
 
 # -- sensor, optics, DoFP ------------------------------------------------------------------------------
 NoiseOption = typer.Option(DEFAULT_NOISE, "--noise", help="Sensor noise model: none | gaussian | poisson-gaussian.")
@@ -34,7 +42,7 @@ SensorOption = typer.Option(None, "--sensor", help="Sensor preset for poisson-ga
 DofpLayoutOption = typer.Option(DEFAULT_DOFP_LAYOUT, "--dofp-layout",
                                 help="DoFP 2x2 polarizer cell: sony ([[90,45],[135,0]]) | 0-45-135-90.")
 PSF_KINDS = ("gaussian", "airy", "none")
-PsfOption = typer.Option("gaussian", "--psf", help="Optical PSF: gaussian (--psf-sigma-hr-px) | airy (--f-number, "
+PsfOption = typer.Option(PSF_KINDS[0], "--psf", help="Optical PSF: gaussian (--psf-sigma-hr-px) | airy (--f-number, "
                                                    "--wavelength-nm, --pixel-um) | none.")
 PsfSigmaOption = typer.Option(DEFAULT_SIGMA_HR_PX, "--psf-sigma-hr-px",
                               help="Gaussian optical PSF std in HR pixels (0 = no blur).",
@@ -117,8 +125,6 @@ def rig_from_options(rig: Optional[str], rig_seed: int = 0, *, angle_offsets: Op
     array (``--rig`` absent or ``ideal``) without ``--extinction-ratios``, the one
     ``extinction_ratio`` (``--extinction-ratio``) stays the CAPS polarizers' too.
     """
-    from capssim.rig import RigModel, read_rig_json
-
     texts = {"--angle-offsets": angle_offsets, "--extinction-ratios": extinction_ratios, "--gains": gains,
              "--aperture-psf-sigmas": aperture_psf_sigmas}
     overrides = {_RIG_FLAGS[flag][0]: _rig_numbers(flag, text) for flag, text in texts.items() if text is not None}
@@ -171,23 +177,23 @@ def rig_homographies(geometry, hr_shape, *, fix: str):
 class SetupOptions:
     """The values of the camera set-up options of one command line (their names are the parameters')."""
 
-    noise: str = DEFAULT_NOISE
-    sigma: Optional[float] = None
-    sensor: Optional[str] = None
-    dofp_layout: str = DEFAULT_DOFP_LAYOUT
-    psf: str = "gaussian"
-    psf_sigma_hr_px: float = DEFAULT_SIGMA_HR_PX
-    f_number: float = 1.65
-    wavelength_nm: float = 550.0
-    pixel_um: float = 4.8
-    extinction_ratio: Optional[float] = None
-    rig: Optional[str] = None
-    rig_seed: int = 0
-    angle_offsets: Optional[str] = None
-    extinction_ratios: Optional[str] = None
-    gains: Optional[str] = None
-    vignetting: Optional[float] = None
-    aperture_psf_sigmas: Optional[str] = None
+    noise: str = NoiseOption.default
+    sigma: Optional[float] = SigmaOption.default
+    sensor: Optional[str] = SensorOption.default
+    dofp_layout: str = DofpLayoutOption.default
+    psf: str = PsfOption.default
+    psf_sigma_hr_px: float = PsfSigmaOption.default
+    f_number: float = FNumberOption.default
+    wavelength_nm: float = WavelengthOption.default
+    pixel_um: float = PixelPitchOption.default
+    extinction_ratio: Optional[float] = ExtinctionRatioOption.default
+    rig: Optional[str] = RigOption.default
+    rig_seed: int = RigSeedOption.default
+    angle_offsets: Optional[str] = AngleOffsetsOption.default
+    extinction_ratios: Optional[str] = ExtinctionRatiosOption.default
+    gains: Optional[str] = GainsOption.default
+    vignetting: Optional[float] = VignettingOption.default
+    aperture_psf_sigmas: Optional[str] = AperturePsfOption.default
 
     def rig_model(self, *, default: Optional[str] = None):
         """``(RigModel | None, ArrayGeometry | None)`` of the rig options (:func:`rig_from_options`);
@@ -199,8 +205,6 @@ class SetupOptions:
 
     def optical_psf(self):
         """The :class:`capssim.psf.PSF` of ``--psf`` and its parameters."""
-        from capssim.psf import PSF
-
         kind = self.psf.lower()
         if kind == "gaussian":
             return PSF.gaussian(self.psf_sigma_hr_px)
@@ -212,13 +216,17 @@ class SetupOptions:
 
     def camera_setup(self, rig=None):
         """The :class:`capssim.camera_setup.CameraSetup` of these options, with ``rig`` (from :meth:`rig_model`)."""
-        from capssim.camera_setup import CameraSetup, sensor_from_options
-
-        sensor = sensor_from_options(self.noise, sigma=self.sigma, preset=self.sensor)
+        try:
+            sensor = sensor_from_options(self.noise, sigma=self.sigma, preset=self.sensor)
+        except UnknownNameError as exc:
+            flag = "--noise" if exc.kind == "noise model" else "--sensor"
+            raise InputError(flag, repr(exc.name), f"one of {', '.join(exc.known)}") from None
         try:
             return CameraSetup(sensor=sensor, psf=self.optical_psf(), dofp_layout=self.dofp_layout,
                                extinction_ratio=self.extinction_ratio, rig=rig)
         except InputError as exc:  # name the flag, not the field
+            if not exc.argument.startswith("setup "):
+                raise
             flag = "--" + exc.argument.removeprefix("setup ").replace("_", "-")
             raise InputError(flag, exc.received, exc.valid, exc.fix) from None
 

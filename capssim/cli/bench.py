@@ -35,6 +35,7 @@ from capssim.cli._options import (
     echo_json,
     number_in,
 )
+from capssim.cli._setup_options import DofpLayoutOption
 from capssim.cli.evaluate import format_table, format_value
 
 bench_app = typer.Typer(name="bench", no_args_is_help=True, rich_markup_mode=None,
@@ -240,7 +241,7 @@ def dofp(
                                      help="Scene folder under GT_ROOT (repeatable)."),
     methods: List[str] = typer.Option(["dofp-bilinear", "dofp-eari"], "--method", "-m", metavar="METHOD",
                                       help="DoFP method (repeatable)."),
-    layout: str = typer.Option("sony", "--dofp-layout", help="DoFP 2x2 polarizer cell."),
+    layout: str = DofpLayoutOption,
     psf_sigma_hr_px: float = typer.Option(
         0.0, "--psf-sigma-hr-px", callback=number_in("--psf-sigma-hr-px", 0.0, what="HR pixels; 0 = no blur"),
         help="Gaussian optical PSF std, HR px. Default 0: the published DoFP protocol has no blur (a capture's "

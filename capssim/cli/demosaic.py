@@ -11,7 +11,7 @@ import numpy as np
 import typer
 
 from capssim.cli._options import DeviceOption, OverwriteOption, ThreadsOption, apply_compute
-from capssim.conventions import dofp_layout, dofp_layout_name
+from capssim.conventions import DEFAULT_DOFP_LAYOUT, dofp_layout, dofp_layout_name
 from capssim.errors import InputError, UnknownNameError
 from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
 from capssim.physical_validity import project_to_physical
@@ -77,7 +77,7 @@ def read_raw_mosaic(path: Path, *, white_level: Optional[float] = None, black_le
 def demosaic(
     raw: Path = typer.Argument(..., help="Raw DoFP mosaic: 8/16-bit PNG or TIFF (or float TIFF), one channel."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder to create."),
-    layout: str = typer.Option("sony", "--dofp-layout", help="2x2 polarizer cell: sony ([[90,45],[135,0]]) | "
+    layout: str = typer.Option(DEFAULT_DOFP_LAYOUT, "--dofp-layout", help="2x2 polarizer cell: sony ([[90,45],[135,0]]) | "
                                                               "0-45-135-90 | four angles row-major like 90-45-135-0."),
     method: str = typer.Option("dofp-eari", "--method", "-m", help=f"Demosaicking method: {' | '.join(DOFP_METHODS)}."),
     white_level: Optional[float] = typer.Option(None, "--white-level",

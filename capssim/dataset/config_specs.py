@@ -34,7 +34,7 @@ SETUP_KEYS_IN_DATASETS = tuple(k for k in SETUP_KEYS if k not in ("psf", "seed_r
 SHARED_KEYS = (*SETUP_KEYS_IN_DATASETS, "pose")
 #: shared keys that only ground-truth sources use (render draws its own aperture errors from geometry_params)
 GT_ONLY_KEYS = ("pose",)
-#: shared keys passed to ``render_capture`` (as ``psf=`` / ``extinction_ratio=``) when set
+#: set-up keys a rendered-scene sample takes only when the config sets them (else the set-up's default)
 RENDER_OPTICS_KEYS = ("psf_sigma_hr_px", "extinction_ratio")
 
 

@@ -187,55 +187,65 @@ def parse_distribution(value, inner: Spec, path: str) -> Dist:
         if key not in allowed:
             raise ConfigError(join(path, str(key)), "an unknown key",
                               f"one of {', '.join(allowed)} in a {kind} distribution")
-    arg = value[kind]
-    kpath = join(path, kind)
-    bare = _bare(inner)
-
     if kind == "const":
-        return Const(inner.check(arg, kpath))
-
+        return Const(inner.check(value[kind], join(path, kind)))
     if kind == "choice":
-        if not isinstance(arg, list):
-            raise ConfigError(kpath, show(arg), "a list of values to choose from")
-        if not arg:
-            raise ConfigError(kpath, "an empty list", "at least one value to draw from",
-                              "A distribution with no values cannot draw any sample.")
-        values = [inner.check(v, join(kpath, i)) for i, v in enumerate(arg)]
-        weights = value.get("weights")
-        if weights is not None:
-            wpath = join(path, "weights")
-            if not isinstance(weights, list) or len(weights) != len(values):
-                raise ConfigError(wpath, show(weights), f"a list of {len(values)} weights, one per choice")
-            weights = [Number(minimum=0).check(w, join(wpath, i)) for i, w in enumerate(weights)]
-            if sum(weights) <= 0:
-                raise ConfigError(wpath, show(weights), "weights with a positive sum",
-                                  "A distribution whose weights are all 0 cannot draw any sample.")
-        return Choice(values, weights)
-
+        return _parse_choice(value, inner, path)
     if kind in ("uniform", "log_uniform", "int_uniform"):
-        low, high = _pair(arg, kpath, "low, high")
-        if kind == "int_uniform":
-            low, high = Integer().check(low, join(kpath, 0)), Integer().check(high, join(kpath, 1))
-        else:
-            low, high = _finite_number(low, join(kpath, 0)), _finite_number(high, join(kpath, 1))
-        if low > high:
-            raise ConfigError(kpath, show(arg), "low <= high",
-                              "An empty range is a distribution with no samples; swap the bounds.")
-        if kind == "log_uniform" and low <= 0:
-            raise ConfigError(kpath, show(arg), "0 < low <= high for a log-uniform distribution")
-        if isinstance(bare, Integer):
-            if kind != "int_uniform":
-                raise ConfigError(kpath, show(arg), f"{bare.description}; a real-valued {kind} draws non-integers",
-                                  "Use int_uniform or choice.")
-            if bare.multiple_of and bare.multiple_of > 1 and low != high:
-                raise ConfigError(kpath, show(arg), f"{bare.description}; int_uniform would draw other integers",
-                                  "Use choice: [..] with the sizes you want.")
-        # every value in [low, high] is allowed iff both ends are (the rules are intervals)
-        inner.check(low, join(kpath, 0))
-        inner.check(high, join(kpath, 1))
-        return {"uniform": Uniform, "log_uniform": LogUniform, "int_uniform": IntUniform}[kind](low, high)
+        return _parse_range(value, kind, inner, path)
+    return _parse_normal(value, inner, path)
 
-    # normal
+
+def _parse_choice(value: dict, inner: Spec, path: str) -> Choice:
+    """``{choice: [values], weights: [w]}``: values each of ``inner``, weights >= 0 with a positive sum."""
+    arg, kpath = value["choice"], join(path, "choice")
+    if not isinstance(arg, list):
+        raise ConfigError(kpath, show(arg), "a list of values to choose from")
+    if not arg:
+        raise ConfigError(kpath, "an empty list", "at least one value to draw from",
+                          "A distribution with no values cannot draw any sample.")
+    values = [inner.check(v, join(kpath, i)) for i, v in enumerate(arg)]
+    weights = value.get("weights")
+    if weights is not None:
+        wpath = join(path, "weights")
+        if not isinstance(weights, list) or len(weights) != len(values):
+            raise ConfigError(wpath, show(weights), f"a list of {len(values)} weights, one per choice")
+        weights = [Number(minimum=0).check(w, join(wpath, i)) for i, w in enumerate(weights)]
+        if sum(weights) <= 0:
+            raise ConfigError(wpath, show(weights), "weights with a positive sum",
+                              "A distribution whose weights are all 0 cannot draw any sample.")
+    return Choice(values, weights)
+
+
+def _parse_range(value: dict, kind: str, inner: Spec, path: str) -> Dist:
+    """``{uniform | log_uniform | int_uniform: [low, high]}`` whose every draw satisfies ``inner``."""
+    arg, kpath, bare = value[kind], join(path, kind), _bare(inner)
+    low, high = _pair(arg, kpath, "low, high")
+    if kind == "int_uniform":
+        low, high = Integer().check(low, join(kpath, 0)), Integer().check(high, join(kpath, 1))
+    else:
+        low, high = _finite_number(low, join(kpath, 0)), _finite_number(high, join(kpath, 1))
+    if low > high:
+        raise ConfigError(kpath, show(arg), "low <= high",
+                          "An empty range is a distribution with no samples; swap the bounds.")
+    if kind == "log_uniform" and low <= 0:
+        raise ConfigError(kpath, show(arg), "0 < low <= high for a log-uniform distribution")
+    if isinstance(bare, Integer):
+        if kind != "int_uniform":
+            raise ConfigError(kpath, show(arg), f"{bare.description}; a real-valued {kind} draws non-integers",
+                              "Use int_uniform or choice.")
+        if bare.multiple_of and bare.multiple_of > 1 and low != high:
+            raise ConfigError(kpath, show(arg), f"{bare.description}; int_uniform would draw other integers",
+                              "Use choice: [..] with the sizes you want.")
+    # every value in [low, high] is allowed iff both ends are (the rules are intervals)
+    inner.check(low, join(kpath, 0))
+    inner.check(high, join(kpath, 1))
+    return {"uniform": Uniform, "log_uniform": LogUniform, "int_uniform": IntUniform}[kind](low, high)
+
+
+def _parse_normal(value: dict, inner: Spec, path: str) -> Normal:
+    """``{normal: [mean, std] | {mean, std}, clip: [low, high]}``; a bounded ``inner`` needs the clip."""
+    arg, kpath, bare = value["normal"], join(path, "normal"), _bare(inner)
     if isinstance(arg, dict):
         unknown = set(arg) - {"mean", "std"}
         if unknown or len(arg) != 2:

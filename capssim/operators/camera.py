@@ -29,6 +29,7 @@ import numpy as np
 from capssim.array_geometry import ArrayGeometry
 from capssim.conventions import (
     BAYER_OFFSETS,
+    DEFAULT_DOFP_LAYOUT,
     LR_IMAGE_CHANNELS,
     N_APERTURES,
     N_CHANNELS,
@@ -138,7 +139,7 @@ def lr_observation_operator(geometry: ArrayGeometry, psf_kernel, *,
     return Composition([mix, sampling], name="lr_observation")
 
 
-def dofp_raw_operator(hr_shape, psf_kernel, *, layout="sony", extinction_ratio: float | None = None) -> Composition:
+def dofp_raw_operator(hr_shape, psf_kernel, *, layout=DEFAULT_DOFP_LAYOUT, extinction_ratio: float | None = None) -> Composition:
     """``(12, 2H, 2W) -> (2H, 2W)``: the DoFP colour-polarization mosaic with the same optics."""
     hh, ww = _check_hr_shape(hr_shape)
     ops = [Convolve(psf_kernel, (N_CHANNELS, hh, ww))]

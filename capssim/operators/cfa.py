@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from capssim.conventions import N_CHANNELS, bayer_channel_map, dofp_channel_map
+from capssim.conventions import DEFAULT_DOFP_LAYOUT, N_CHANNELS, bayer_channel_map, dofp_channel_map
 from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
 
@@ -62,7 +62,7 @@ class DoFPMosaic(ChannelSample):
 
     name = "dofp_mosaic"
 
-    def __init__(self, height: int, width: int, *, layout="sony"):
+    def __init__(self, height: int, width: int, *, layout=DEFAULT_DOFP_LAYOUT):
         super().__init__(dofp_channel_map(height, width, layout), (N_CHANNELS, height, width))
         self.layout = layout
 

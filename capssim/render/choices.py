@@ -16,8 +16,9 @@ import numpy as np
 from capssim.conventions import N_APERTURES
 from capssim.render.camera_model import warp_margin
 from capssim.render.integrator import derive_seed, render_view
+from capssim.render.mitsuba_plugins import register_plugins
 from capssim.render.sample_budget import SamplePlan, square_at_least
-from capssim.render.scene_base import SceneInfo, register_plugins
+from capssim.render.scene_base import SceneInfo
 from capssim.render.spectral import CameraResponse
 from capssim.render.variants import VariantChoice, variant_name
 

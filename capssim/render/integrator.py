@@ -234,6 +234,27 @@ def _diattenuation(extinction_ratio) -> list[float]:
     return [1.0 if math.isinf(er) else (er - 1.0) / (er + 1.0) for er in np.broadcast_to(values, (3,)).tolist()]
 
 
+def _finite_lanes(lanes, rows: int, width: int, spp: int) -> tuple[list, int]:
+    """The 9 traced lanes of a chunk (``S0, S1, S2`` x ``R, G, B``) as float64 ``(rows, width, spp)``
+    arrays, non-finite samples set to 0, and how many there were; absent ``S1, S2`` lanes (an
+    unpolarized variant) are zeros."""
+    per, nonfinite = [], 0
+    for v in lanes:
+        if v is None:
+            per.append(None)
+            continue
+        a = v.astype(np.float64).reshape(rows, width, spp)
+        bad = ~np.isfinite(a)
+        if bad.any():
+            nonfinite += int(bad.sum())
+            a = np.where(bad, 0.0, a)
+        per.append(a)
+    if per[3] is None:
+        zero = np.zeros_like(per[0])
+        per[3:] = [zero] * 6
+    return per, nonfinite
+
+
 def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: CameraResponse,
                 mode: str = "stokes", analyzer_deg: float = 0.0, extinction_ratio=None,
                 max_lanes: int = DEFAULT_MAX_LANES, progress: Callable[[int], None] | None = None,
@@ -276,20 +297,8 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
         rows = min(rows_per_chunk, height - row0)
         lanes = _trace_chunk(scene, integrator, response, camera, row0=row0, rows=rows, spp=int(spp),
                              seed=derive_seed("chunk", seed, chunk), group=group)
-        per = []
-        for v in lanes:
-            if v is None:
-                per.append(None)
-                continue
-            a = v.astype(np.float64).reshape(rows, width, spp)
-            bad = ~np.isfinite(a)
-            if bad.any():
-                nonfinite += int(bad.sum())
-                a = np.where(bad, 0.0, a)
-            per.append(a)
-        if per[3] is None:
-            zero = np.zeros_like(per[0])
-            per[3:] = [zero] * 6
+        per, bad = _finite_lanes(lanes, rows, width, int(spp))
+        nonfinite += bad
         if mode == "analyzer":
             per = [0.5 * (per[k] + ca[k] * per[3 + k] + sa[k] * per[6 + k]) for k in range(3)]
         for c, a in enumerate(per):

@@ -46,9 +46,10 @@ from capssim.psf import PSF
 from capssim.render.camera_model import aperture_kernels, observe, warp_margin
 from capssim.render.choices import RenderPath, apply_measured, choice_records, measure_savings
 from capssim.render.integrator import ViewRender, derive_seed, render_view
+from capssim.render.mitsuba_plugins import register_plugins
 from capssim.render.pinhole_array import ArrayCameras, PinholeCamera, RigTolerances, build_array, parallax_residual
 from capssim.render.sample_budget import ReferenceRender, ReferenceView, SamplePlan, plan_samples, render_reference
-from capssim.render.scene_base import Scene, register_plugins
+from capssim.render.scene_base import Scene
 from capssim.render.scene_registry import get_scene
 from capssim.render.settings import RenderSettings
 from capssim.render.spectral import CameraResponse
@@ -125,7 +126,7 @@ def _load(sc: Scene, params: dict, settings: RenderSettings) -> _Loaded:
     response = CameraResponse(settings.camera).calibrate()
     pose = sc.camera_pose(params)
     # the optical PSF is applied to the rendered views (camera_model), so the measurement has none
-    measurement = settings.setup.measurement(settings.seed, psf=PSF.none())
+    measurement = CameraArrayMeasurement.from_setup(settings.setup, settings.seed, psf=PSF.none())
     array = build_array(origin=pose.origin, target=pose.target, up=pose.up, fov_deg=pose.fov_deg, size=settings.size,
                         geometry=RigTolerances.from_params(settings.geometry_params), rng=measurement.pose_rng,
                         plane_point=pose.plane_point, plane_normal=pose.plane_normal)

@@ -20,8 +20,8 @@ import capssim.render.integrator as integrator
 from capssim.operators import caps_raw_operator
 from capssim.psf import PSF
 from capssim.render import get_scene, render_capture
+from capssim.render.mitsuba_plugins import register_plugins
 from capssim.render.pinhole_array import RigTolerances, build_array
-from capssim.render.scene_base import register_plugins
 from capssim.render.spectral import CameraResponse
 from capssim.render.variants import select_variant
 

@@ -102,6 +102,10 @@ def _check_scenes(scenes: list) -> None:
         if sc["name"] in names:
             raise InputError("suite scenes", sc["name"], "unique scene names")
         names.add(sc["name"])
+        if "psf_sigma" in sc:
+            raise InputError(f"suite scene {sc['name']!r}: psf_sigma", sc["psf_sigma"],
+                             "psf_sigma_hr_px (the camera set-up's spelling: Gaussian PSF std, HR px)",
+                             "Rename the key to psf_sigma_hr_px.")
         if sc.get("rig") is not None:
             check_rig_spec(sc["rig"], sc["name"])
     for sc in scenes:

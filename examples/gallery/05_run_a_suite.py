@@ -23,7 +23,7 @@ name: gallery
 description: Two small synthetic scenes, three fast methods.
 seeds: [0]
 noise:
-  - {name: gauss-0.01, model: gaussian, sigma: 0.01}
+  - {name: gauss-0.01, noise: gaussian, sigma: 0.01}
 methods:
   - caps-naive
   - dofp-bilinear

@@ -2,8 +2,8 @@
 
 The room's public face is :func:`estimate_lr_homographies` (:mod:`.estimate`) and its options
 :class:`RegistrationParameters` (:mod:`.parameters`). Inside: the registration images
-(:mod:`.luminance`), the multi-aperture engine (:mod:`.core`: candidates :mod:`.rescue`, pyramid
-:mod:`.levels`, criterion :mod:`.criterion` minimized by :mod:`.lbfgs`, warps :mod:`.warp`, small
+(:mod:`.luminance`), the multi-aperture engine (:mod:`.engine`: candidates :mod:`.rescue`, pyramid
+:mod:`.levels`, criterion :mod:`.criterion` minimized by :mod:`.lbfgs`, motion models and spline resampling :mod:`.motion`, small
 image operations :mod:`.image_ops`) and the store of estimated warps beside a capture (:mod:`.store`).
 """
 

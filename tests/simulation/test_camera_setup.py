@@ -110,7 +110,7 @@ def test_an_old_meta_json_without_the_block_still_loads(setup, tmp_path):
     ({"psf": {"type": "disc"}}, r"setup\.psf\.type: got disc"),
     ({"dofp_layout": "0-45-90-90"}, r"setup\.dofp_layout: got .*each of 0, 45, 90, 135 degrees once"),
     ({"extinction_ratio": 0.5}, r"setup\.extinction_ratio: got 0\.5; expected a number >= 1"),
-    ({"rig": {"preset": "perfect"}}, r"setup\.rig\.rig: got 'perfect'"),
+    ({"rig": {"preset": "perfect"}}, r"setup\.rig: got 'perfect'; expected a preset name"),
     ({"rig": {"gain": [1, 2]}}, r"setup\.rig\.gain: got shape \(2,\)"),
     ({"psf_sigma": 0.5}, r"setup\.psf_sigma: got an unknown key; expected one of sensor, psf_sigma_hr_px"),
     ({"seed_rule": "mine"}, r"setup\.seed_rule: got 'mine'"),
@@ -133,6 +133,14 @@ def test_defaults_and_round_trips():
         again = CameraSetup.from_mapping(json.loads(json.dumps(value.to_meta())))
         assert again == value and again.sensor == value.sensor
     assert CameraSetup.from_mapping({"sensor": {"noise": "gaussian", "sigma": 0.02}}) != CameraSetup()
+
+
+def test_datasets_spell_the_sensor_as_the_setup_does():
+    from capssim.camera_setup import SENSOR_KEYS, SETUP_KEYS
+    from capssim.dataset.config_specs import SENSOR_SPEC, SHARED_KEYS
+
+    assert tuple(SENSOR_SPEC.fields) == SENSOR_KEYS
+    assert set(SHARED_KEYS) - {"pose"} <= set(SETUP_KEYS)
 
 
 def test_the_command_line_declares_the_setup_options_once():

@@ -13,8 +13,8 @@ import torch
 import capssim.render  # noqa: F401  (sets DRJIT_LIBLLVM_PATH)
 from capssim.polarization import angle_difference_deg, aop_deg, dolp
 from capssim.render.integrator import render_view
+from capssim.render.mitsuba_plugins import register_plugins
 from capssim.render.pinhole_array import PinholeCamera, look_at_rotation
-from capssim.render.scene_base import register_plugins
 from capssim.render.spectral import CameraResponse
 from capssim.render.variants import select_variant
 
