@@ -16,9 +16,20 @@ fi
 if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
+# pip's and setuptools' notes (the editable-install advisory, the machine's pip mirror settings) go to a
+# log that is printed only when an install fails, so a successful set-up prints no warnings.
+log="$(mktemp "${TMPDIR:-/tmp}/capssim-setup.XXXXXX")"
+quiet_pip() {
+  if ! "$VENV/bin/python" -m pip install -q "$@" >"$log" 2>&1; then
+    cat "$log" >&2
+    echo "capssim setup: 'pip install $*' failed (log above)" >&2
+    exit 1
+  fi
+}
 "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
-"$VENV/bin/python" -m pip install -q "torch==2.13.0"
-"$VENV/bin/python" -m pip install -q -e ".[test,docs]"
+quiet_pip "torch==2.13.0"
+quiet_pip -e ".[test,docs]"
+rm -f "$log"
 
 if ! ls /usr/lib/*/libLLVM.so.19* /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1; then
   SUDO=""

@@ -9,11 +9,11 @@ import json
 import numpy as np
 import pytest
 import yaml
-from conftest import smooth_random_scene, write_png_gt
 
 from capssim.camera_setup import SEED_RULE, CameraSetup, sensor_from_mapping
 from capssim.capture import read_capture, write_capture
 from capssim.errors import InputError
+from capssim.imageio import write_tiff
 from capssim.psf import DEFAULT_PSF, PSF
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
@@ -34,19 +34,19 @@ def setup() -> CameraSetup:
     return CameraSetup.from_mapping(SETUP)
 
 
-def test_simulate_render_and_the_dataset_writer_write_one_setup_block(setup, tmp_path):
+def test_simulate_render_and_the_dataset_writer_write_one_setup_block(setup, scene64, tmp_path):
     pytest.importorskip("mitsuba")
     from capssim.dataset import load_config
     from capssim.dataset.generate import generate_dataset
     from capssim.render import render_capture
 
-    blocks = {"simulate": _written_block(simulate_capture(smooth_random_scene(32), setup, seed=1), tmp_path / "sim"),
+    blocks = {"simulate": _written_block(simulate_capture(scene64[:, :32, :32], setup, seed=1), tmp_path / "sim"),
               "render": _written_block(render_capture("siemens-star", size=32, spp=4, setup=setup,
                                                       record_timing=False), tmp_path / "render")}
-    write_png_gt(tmp_path / "gt", smooth_random_scene(32, seed=2))
+    write_tiff(tmp_path / "gt.tiff", np.ascontiguousarray(scene64[:, 32:, 32:]))
     config = tmp_path / "config.yaml"
     config.write_text(yaml.safe_dump({"seed": 5, "samples": 2, "defaults": SETUP, "sources": [
-        {"gt": "gt", "size": 32}, {"scene": "siemens-star", "size": 32, "spp": 4}]}))
+        {"gt": "gt.tiff", "size": 32}, {"scene": "siemens-star", "size": 32, "spp": 4}]}))
     generate_dataset(load_config(config), tmp_path / "dataset", workers=0)
     for index in (0, 1):
         meta = json.loads((tmp_path / "dataset" / "samples" / f"{index:06d}" / "meta.json").read_text())
@@ -71,9 +71,9 @@ def test_calibration_captures_write_the_setup_block(setup, tmp_path):
     assert index["rig"] == setup.rig.to_dict()
 
 
-def test_the_setup_drives_the_measurement(setup):
+def test_the_setup_drives_the_measurement(setup, scene64):
     """Simulating from the set-up value or from its parts gives the same bytes (one camera model)."""
-    gt = smooth_random_scene(32)
+    gt = scene64[:, :32, :32]
     from_setup = simulate_capture(gt, setup, seed=4)
     from_parts = simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=4, psf=PSF.gaussian(0.7),
                                   dofp_layout=[[0, 45], [135, 90]], extinction_ratio=200.0, rig=setup.rig)
@@ -83,9 +83,9 @@ def test_the_setup_drives_the_measurement(setup):
     assert from_setup.meta["sensor"]["model"] == "gaussian" and from_setup.meta["dofp_layout_name"] == "0-45-135-90"
 
 
-def test_an_old_meta_json_without_the_block_still_loads(setup, tmp_path):
+def test_an_old_meta_json_without_the_block_still_loads(setup, scene64, tmp_path):
     folder = tmp_path / "old"
-    write_capture(folder, simulate_capture(smooth_random_scene(32), setup, seed=1))
+    write_capture(folder, simulate_capture(scene64[:, :32, :32], setup, seed=1))
     meta = json.loads((folder / "meta.json").read_text())
     del meta["setup"]
     (folder / "meta.json").write_text(json.dumps(meta))
