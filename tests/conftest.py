@@ -1,4 +1,8 @@
-"""Shared fixtures: the optional ../shared/data folder and small synthetic scenes."""
+"""Shared fixtures: the optional ../shared/data folder, small synthetic scenes and folder builders.
+
+The builders live in the package ``tests/support``; each is offered here as a fixture of the same name,
+so a test asks for ``smooth_random_scene`` (say) as an argument instead of importing it.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support import datasets, scenes
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CAPSSIM_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -20,46 +25,56 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
-def smooth_random_scene(size: int = 64, *, seed: int = 0, dolp_max: float = 0.6) -> np.ndarray:
-    """A ``(12, size, size)`` physically consistent scene (S0 >= |S1,S2|) with smooth texture."""
-    from scipy.ndimage import gaussian_filter
-
-    rng = np.random.default_rng(seed)
-    s0 = np.stack([gaussian_filter(rng.random((size, size)), 2.0) for _ in range(3)])
-    s0 = 0.2 + 0.6 * (s0 - s0.min()) / (np.ptp(s0) + 1e-12)
-    d = dolp_max * gaussian_filter(rng.random((size, size)), 4.0)
-    d = d / max(d.max(), 1e-12) * dolp_max
-    a = np.pi * gaussian_filter(rng.random((size, size)), 4.0) * 2
-    s1 = s0 * d * np.cos(2 * a)
-    s2 = s0 * d * np.sin(2 * a)
-    from capssim.polarization import twelve_from_stokes
-
-    return twelve_from_stokes(np.stack([s0, s1, s2])).astype(np.float32)
+def pytest_collection_modifyitems(config, items):
+    """Every test that uses the ``shared_data`` fixture carries the ``shared_data`` marker
+    (``-m "not shared_data"`` deselects them)."""
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.shared_data)
 
 
-def write_png_gt(folder: Path, scene: np.ndarray) -> Path:
-    """``scene`` ``(12, H, W)`` on [0, 1] as a ground-truth folder ``0.png 45.png 90.png 135.png`` (8-bit RGB)."""
-    import cv2
+@pytest.fixture(scope="session")
+def smooth_random_scene():
+    """:func:`support.scenes.smooth_random_scene`: ``(size=64, *, seed=0, dolp_max=0.6) -> (12, size, size)``."""
+    return scenes.smooth_random_scene
 
-    folder.mkdir(parents=True, exist_ok=True)
-    for p, angle in enumerate((0, 45, 90, 135)):
-        rgb = np.round(np.clip(scene[3 * p:3 * p + 3], 0, 1) * 255).astype(np.uint8).transpose(1, 2, 0)
-        cv2.imwrite(str(folder / f"{angle}.png"), rgb[..., ::-1])
-    return folder
+
+@pytest.fixture(scope="session")
+def natural_scene():
+    """:func:`support.scenes.natural_scene`: ``() -> (12, 64, 64)`` astronaut crop under AoP/DoLP ramps."""
+    return scenes.natural_scene
+
+
+@pytest.fixture(scope="session")
+def write_png_gt():
+    """:func:`support.scenes.write_png_gt`: ``(folder, scene) -> folder`` of 8-bit PNGs."""
+    return scenes.write_png_gt
+
+
+@pytest.fixture(scope="session")
+def write_gt_folder():
+    """:func:`support.scenes.write_gt_folder`: ``(folder, size=32, seed=0) -> folder``."""
+    return scenes.write_gt_folder
+
+
+@pytest.fixture(scope="session")
+def make_config():
+    """:func:`support.datasets.make_config`: ``(tmp_path, samples=6, size=32, gt_size=40) -> config path``."""
+    return datasets.make_config
+
+
+@pytest.fixture(scope="session")
+def tree_bytes():
+    """:func:`support.datasets.tree_bytes`: ``(folder) -> {relative path: bytes}``."""
+    return datasets.tree_bytes
+
+
+@pytest.fixture(scope="session")
+def records_by_index():
+    """:func:`support.datasets.records_by_index`: ``(out) -> {index: record}``."""
+    return datasets.records_by_index
 
 
 @pytest.fixture
 def scene64() -> np.ndarray:
-    return smooth_random_scene(64)
-
-
-def natural_scene() -> np.ndarray:
-    """A 64 px crop of skimage's astronaut (linearized) under smooth AoP/DoLP ramps, ``(12, 64, 64)``:
-    natural colour texture that no training set of the shipped models holds."""
-    import skimage.data
-
-    img = (skimage.data.astronaut()[100:164, 180:244].astype(np.float64) / 255) ** 2.2
-    yy, xx = np.mgrid[0:64, 0:64] / 64
-    aop, dolp = np.pi * (0.3 + 0.5 * xx), 0.2 + 0.4 * yy
-    return np.stack([0.5 * img[..., k] * (1 + dolp * np.cos(2 * (a - aop)))
-                     for a in np.deg2rad([0, 45, 90, 135]) for k in range(3)])
+    return scenes.smooth_random_scene(64)

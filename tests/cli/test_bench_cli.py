@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 import pytest
-from conftest import write_png_gt
+from support.scenes import write_png_gt
 from typer.testing import CliRunner
 
 from capssim.capture import write_capture

@@ -3,7 +3,7 @@
 For each command, each numeric option (``-p KEY=VALUE`` method options of ``capssim reconstruct``
 included) gets odd values (non-finite, negative, zero, huge, tiny, not a number at all) while
 every other argument is valid and small (a 32 px ground truth and capture, ``--iterations 1``).
-The outcome must be exit 0 or exit 2 with one line (:func:`fuzz_support.invoke`): never a
+The outcome must be exit 0 or exit 2 with one line (:func:`support.fuzz.invoke`): never a
 traceback, never another exit status; ``nan`` and ``-inf`` are never accepted. The memory limit
 is 2 GiB (``CAPSSIM_MEMORY_LIMIT_GB``) and the module's growth of the peak memory is checked, so
 an option that allocates past the resource guard fails here instead of taking the machine.
@@ -20,11 +20,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import smooth_random_scene
-from fuzz_support import NEVER_VALID, PEAK_GROWTH_LIMIT, fuzz_settings, invoke, odd_values, peak_rss_bytes
 from hypothesis import given
 from hypothesis import strategies as st
-from test_dataset_config import write_gt_folder
+from support.fuzz import NEVER_VALID, PEAK_GROWTH_LIMIT, fuzz_settings, invoke, odd_values, peak_rss_bytes
+from support.scenes import smooth_random_scene, write_gt_folder
 
 from capssim.capture import write_capture
 from capssim.eval.star import sinusoidal_star

@@ -14,8 +14,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import smooth_random_scene
-from test_dataset_config import write_gt_folder
 
 from capssim.capture import read_meta, write_capture
 from capssim.cli import main
@@ -50,7 +48,7 @@ def assert_user_error(status: int, err: str, *fragments: str) -> None:
 
 
 @pytest.fixture
-def gt_dir(tmp_path) -> Path:
+def gt_dir(write_gt_folder, tmp_path) -> Path:
     return write_gt_folder(tmp_path / "gt", size=32, seed=1)
 
 
@@ -129,7 +127,7 @@ def test_scene_parameters_of_the_wrong_type_are_input_errors(value, default):
 
 # -- meta.json field types -----------------------------------------------------------------------------------
 @pytest.fixture
-def capture_dir(tmp_path) -> Path:
+def capture_dir(smooth_random_scene, tmp_path) -> Path:
     capture = simulate_capture(smooth_random_scene(16, seed=3), make_sensor("gaussian", sigma=0.01), seed=1)
     return write_capture(tmp_path / "cap", capture)
 

@@ -10,7 +10,7 @@ import click
 import numpy as np
 import pytest
 import typer
-from conftest import smooth_random_scene
+from support.scenes import smooth_random_scene
 from typer.testing import CliRunner
 
 from capssim.capture import write_capture, write_reconstruction

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import write_png_gt
+from support.scenes import write_png_gt
 from typer.testing import CliRunner
 
 from capssim.cli import app

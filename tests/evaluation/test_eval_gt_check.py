@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 from scipy.ndimage import fourier_shift
+from support.scenes import smooth_random_scene
 
 from capssim.errors import InputError
 from capssim.eval.gt_check import aligned_ground_truth, check_ground_truth
-from tests.conftest import smooth_random_scene
 
 
 def shifted_scene(dx: float, dy: float, *, angle_index: int = 2, size: int = 96, pad: int = 16,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from conftest import smooth_random_scene
 
 from capssim.errors import InputError
 from capssim.eval.lpips import _CONVS, LPIPS
@@ -27,7 +26,7 @@ def _fake_weights(path, *, drop=None):
     return path
 
 
-def test_lpips_with_local_weights(tmp_path):
+def test_lpips_with_local_weights(smooth_random_scene, tmp_path):
     model = LPIPS.from_path(_fake_weights(tmp_path / "w.pth"))
     gt = smooth_random_scene(64)
     assert model.distance(gt[:3], gt[:3]) == pytest.approx(0.0, abs=1e-9)
@@ -37,7 +36,7 @@ def test_lpips_with_local_weights(tmp_path):
     assert set(r["lpips"]) == {"0", "45", "90", "135"} and r["lpips_mean"] > 0
 
 
-def test_lpips_weights_errors(tmp_path):
+def test_lpips_weights_errors(smooth_random_scene, tmp_path):
     with pytest.raises(InputError, match="lin4"):
         LPIPS.from_path(_fake_weights(tmp_path / "w.pth", drop="lin4.model.1.weight"))
     with pytest.raises(InputError, match="never downloads"):

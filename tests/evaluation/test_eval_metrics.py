@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import smooth_random_scene
 
 from capssim.errors import InputError, UnknownNameError
 from capssim.eval.metric_records import flatten, metric_direction
@@ -25,7 +24,7 @@ def _stokes_scene(s0, dolp, aop_deg, size=32):
     return twelve_from_stokes(stokes)
 
 
-def test_constant_offset_gives_exact_psnrs():
+def test_constant_offset_gives_exact_psnrs(smooth_random_scene):
     gt = smooth_random_scene(48, seed=1).astype(np.float64)
     delta = 0.01
     r = score(gt + delta, gt)
@@ -37,7 +36,7 @@ def test_constant_offset_gives_exact_psnrs():
     assert r["s1_psnr"] == PSNR_CAP_DB and r["s2_psnr"] == PSNR_CAP_DB
 
 
-def test_stokes_scalings_agree_between_conventions():
+def test_stokes_scalings_agree_between_conventions(smooth_random_scene):
     gt = smooth_random_scene(64, seed=2).astype(np.float64)
     est = gt + np.random.default_rng(0).normal(0, 0.02, gt.shape)
     a = score(est, gt, convention="capssim", border=0, with_ssim=False)
@@ -84,7 +83,7 @@ def test_aop_mask_comes_from_ground_truth_only():
     assert score(est, gt, convention="qiu")["aop_fraction"] == 1.0
 
 
-def test_all_dark_images_are_well_defined():
+def test_all_dark_images_are_well_defined(smooth_random_scene):
     z = np.zeros((12, 32, 32))
     r = score(z, z)
     assert r["psnr_mean"] == PSNR_CAP_DB and r["ssim_mean"] == pytest.approx(1.0)
@@ -117,7 +116,7 @@ def test_constant_images_give_finite_ssim():
     assert math.isfinite(r["dolp_ssim"])
 
 
-def test_nan_in_estimate_is_a_clear_error():
+def test_nan_in_estimate_is_a_clear_error(smooth_random_scene):
     gt = smooth_random_scene(32)
     est = gt.copy()
     est[4, 3, 3] = np.nan
@@ -127,7 +126,7 @@ def test_nan_in_estimate_is_a_clear_error():
         score(gt, est)
 
 
-def test_bad_shapes_dtypes_and_sizes():
+def test_bad_shapes_dtypes_and_sizes(smooth_random_scene):
     gt = smooth_random_scene(32)
     with pytest.raises(InputError, match="ground-truth shape"):
         score(gt[:, :30], gt)
@@ -142,7 +141,7 @@ def test_bad_shapes_dtypes_and_sizes():
         score(gt, gt, convention="nope")
 
 
-def test_torch_tensors_and_directions():
+def test_torch_tensors_and_directions(smooth_random_scene):
     gt = smooth_random_scene(32)
     r = score(torch.from_numpy(gt) + 0.01, torch.from_numpy(gt))
     assert r["psnr_mean"] == pytest.approx(40.0, abs=1e-3)

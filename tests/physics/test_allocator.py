@@ -11,7 +11,6 @@ from capssim import allocator
 from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
-from tests.conftest import smooth_random_scene
 
 
 def test_switches_once_and_restores():
@@ -37,7 +36,7 @@ def test_found_on_linux_glibc():
     assert allocator._glibc() is not None
 
 
-def test_caps_gives_the_same_image_with_and_without(monkeypatch):
+def test_caps_gives_the_same_image_with_and_without(smooth_random_scene, monkeypatch):
     capture = simulate_capture(smooth_random_scene(48, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
     switched, _ = reconstruct(capture, "caps", true_warps=True, iterations=3)
     monkeypatch.setattr(allocator, "_glibc", lambda: None)  # the allocator left as it is

@@ -100,9 +100,8 @@ def test_reconstruct_records_the_projection_and_can_skip_it(scene64):
                                                                            rel=1e-3)
 
 
-def test_caps_on_a_fully_polarized_scene_is_never_negative():
+def test_caps_on_a_fully_polarized_scene_is_never_negative(smooth_random_scene):
     """Issue 21 case 4: caps on a DoLP = 1 scene went down to -0.41; its output is now valid."""
-    from conftest import smooth_random_scene
 
     from capssim.reconstruct.registry import reconstruct
     from capssim.sensor import make_sensor

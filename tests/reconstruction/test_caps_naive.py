@@ -9,13 +9,13 @@ import pytest
 import tifffile
 import torch
 import torch.nn.functional as F
+from support.scenes import smooth_random_scene
 
 from capssim.capture import write_capture
 from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
-from tests.conftest import smooth_random_scene
 
 
 def _capture(gt, *, seed=0, psf=None, homographies=None):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.ndimage import zoom
+from support.scenes import natural_scene, smooth_random_scene
 
 from capssim.conventions import dofp_channel_map
 from capssim.errors import InputError, UnknownNameError
@@ -24,7 +25,6 @@ from capssim.reconstruct.priors.sparse_coding import (
     omp,
     representation_error,
 )
-from tests.conftest import natural_scene, smooth_random_scene
 
 LAYOUTS = ("sony", "0-45-135-90")
 

@@ -7,6 +7,7 @@ import socket
 import numpy as np
 import pytest
 import torch
+from support.scenes import natural_scene, smooth_random_scene
 
 from capssim.errors import InputError
 from capssim.eval.metrics import score
@@ -14,7 +15,6 @@ from capssim.reconstruct.networks import build_network, save_model
 from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
-from tests.conftest import natural_scene, smooth_random_scene
 
 
 def _capture(size=48, sigma=0.0, seed=0, gt=None):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from scipy.ndimage import gaussian_filter
+from support.scenes import smooth_random_scene
 
 import capssim.reconstruct.registration.engine as core
 import capssim.reconstruct.registration.estimate as registration
@@ -17,7 +18,6 @@ from capssim.reconstruct.registration.luminance import mosaic_from_sub_images, r
 from capssim.reconstruct.registration.parameters import RegistrationParameters, registration_parameters
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
-from tests.conftest import smooth_random_scene
 
 SHIFTS = [(0.0, 0.0), (0.3, -0.7), (1.25, 0.5), (-0.6, 1.1)]
 TRANSLATION = RegistrationParameters(model="translation")

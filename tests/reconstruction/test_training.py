@@ -14,13 +14,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from support.scenes import smooth_random_scene, write_png_gt
 
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.methods.dofp_jcpd import demosaic_dofp_jcpd
 from capssim.reconstruct.networks import load_model
 from capssim.reconstruct.training.config import learning_rate, load_train_config, parse_train_config
 from capssim.reconstruct.training.trainer import CHECKPOINT, MODEL, PLOT, train
-from tests.conftest import smooth_random_scene, write_png_gt
 
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
 

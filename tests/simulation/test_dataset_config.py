@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import smooth_random_scene, write_png_gt
+from support.scenes import smooth_random_scene, write_gt_folder
 
 from capssim.dataset import ConfigError, load_config, parse_config
 from capssim.dataset.augment import rotate_flip_twelve
@@ -18,10 +18,6 @@ from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_fro
 
 REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
-
-
-def write_gt_folder(folder: Path, size: int = 32, seed: int = 0) -> Path:
-    return write_png_gt(folder, smooth_random_scene(size, seed=seed))
 
 
 def write_config(tmp_path: Path, text: str) -> Path:

@@ -8,7 +8,6 @@ import time
 from pathlib import Path
 
 import pytest
-from test_dataset_generate import make_config, records_by_index, tree_bytes
 
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
@@ -32,7 +31,7 @@ def crash_once(spec: dict, samples_dir: str) -> dict:
     return generate_sample(spec, samples_dir)
 
 
-def test_local_cluster_two_workers_survives_a_dying_worker(tmp_path):
+def test_local_cluster_two_workers_survives_a_dying_worker(make_config, records_by_index, tree_bytes, tmp_path):
     pytest.importorskip("distributed")
     import cloudpickle
 

@@ -13,54 +13,17 @@ import time
 from pathlib import Path
 
 import pytest
-from test_dataset_config import write_gt_folder
+from support.datasets import make_config, records_by_index, tree_bytes
 
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
-from capssim.dataset.manifest import DatasetLock, read_manifest
+from capssim.dataset.manifest import DatasetLock
 from capssim.dataset.sample import generate_sample
 from capssim.dataset.verify import verify_dataset
 from capssim.errors import InputError
 
 REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
-
-CONFIG = """
-name: test
-seed: 11
-samples: {samples}
-defaults:
-  sensor: {{noise: {{choice: [none, gaussian, poisson-gaussian]}}, sigma: {{log_uniform: [0.002, 0.02]}},
-           preset: {{choice: [imx250myr, python1300]}}}}
-  dofp_layout: {{choice: [sony, 0-45-135-90]}}
-  pose: {{shift_max_px: {{uniform: [0.5, 2.0]}}}}
-  extinction_ratio: {{choice: [null, 200]}}
-sources:
-  - gt: gt/a
-    size: {size}
-    crop_position: random
-    augment: {{rot90: {{int_uniform: [0, 3]}}, flip: {{choice: [false, true]}}}}
-  - gt: gt/b
-    size: null
-"""
-
-
-def make_config(tmp_path: Path, samples: int = 6, size: int = 32, gt_size: int = 40) -> Path:
-    if not (tmp_path / "gt").is_dir():
-        write_gt_folder(tmp_path / "gt" / "a", size=gt_size, seed=1)
-        write_gt_folder(tmp_path / "gt" / "b", size=size, seed=2)
-    path = tmp_path / "config.yaml"
-    path.write_text(textwrap.dedent(CONFIG.format(samples=samples, size=size)))
-    return path
-
-
-def tree_bytes(folder: Path) -> dict[str, bytes]:
-    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
-
-
-def records_by_index(out: Path) -> dict[int, dict]:
-    return read_manifest(out / "manifest.jsonl").records
-
 
 def test_generate_in_process_verify_and_regenerate_identically(tmp_path):
     cfg = load_config(make_config(tmp_path, samples=6))
@@ -197,7 +160,7 @@ def test_failing_sample_is_recorded_and_bad_input_stops(tmp_path):
 def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
     """With a stand-in render_capture (simulate underneath), scene samples get the drawn
     parameters, record_timing=False, and byte-identical regeneration."""
-    from conftest import smooth_random_scene
+    from support.scenes import smooth_random_scene
 
     import capssim.dataset.sample as sample_module
     from capssim.psf import DEFAULT_PSF, PSF

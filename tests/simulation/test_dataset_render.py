@@ -9,7 +9,6 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from test_dataset_generate import tree_bytes
 
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
@@ -27,7 +26,7 @@ def _render_or_skip():
         pytest.skip(f"capssim.render not available: {exc}")
 
 
-def test_rendered_sample_regenerates_byte_identically(tmp_path):
+def test_rendered_sample_regenerates_byte_identically(tree_bytes, tmp_path):
     _render_or_skip()
     path = tmp_path / "config.yaml"
     path.write_text(textwrap.dedent("""

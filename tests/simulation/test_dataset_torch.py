@@ -7,7 +7,6 @@ import textwrap
 import numpy as np
 import pytest
 import torch
-from test_dataset_config import write_gt_folder
 from torch.utils.data import DataLoader
 
 from capssim.array_geometry import ArrayGeometry, lr_homographies
@@ -20,7 +19,7 @@ from capssim.psf import gaussian_psf_kernel
 
 
 @pytest.fixture(scope="module")
-def dataset_dir(tmp_path_factory):
+def dataset_dir(write_gt_folder, tmp_path_factory):
     root = tmp_path_factory.mktemp("torchds")
     write_gt_folder(root / "gt" / "a", size=48, seed=5)
     (root / "config.yaml").write_text(textwrap.dedent("""

@@ -12,7 +12,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import smooth_random_scene
 from scipy import ndimage
 
 from capssim.capture import list_reconstructions, read_capture, write_capture, write_reconstruction
@@ -60,7 +59,7 @@ def _by_hand_raw(gt: np.ndarray, meta: dict) -> np.ndarray:
     return np.stack(raws)
 
 
-def test_noise_free_capture_reproduced_by_hand(tmp_path):
+def test_noise_free_capture_reproduced_by_hand(smooth_random_scene, tmp_path):
     gt = smooth_random_scene(48, seed=4)
     cap = simulate_capture(gt, NoNoiseSensor(), seed=7, pose_ranges=PoseRanges(2.0, 1.0, 0.01))
     write_capture(tmp_path / "cap", cap)
@@ -78,7 +77,7 @@ def test_noise_free_capture_reproduced_by_hand(tmp_path):
     np.testing.assert_allclose(back.dofp_raw, dofp, atol=2e-6)
 
 
-def test_seeded_simulation_is_byte_reproducible(tmp_path):
+def test_seeded_simulation_is_byte_reproducible(smooth_random_scene, tmp_path):
     gt = smooth_random_scene(32, seed=1)
     sensor = make_sensor("poisson-gaussian", preset="python1300")
     paths = []
@@ -91,7 +90,7 @@ def test_seeded_simulation_is_byte_reproducible(tmp_path):
     assert digest(paths[0])["caps_raw.tiff"] != digest(paths[2])["caps_raw.tiff"]
 
 
-def test_noisy_capture_is_uint16_and_decodes(tmp_path):
+def test_noisy_capture_is_uint16_and_decodes(smooth_random_scene, tmp_path):
     gt = smooth_random_scene(32, seed=2)
     cap = simulate_capture(gt, GaussianSensor(sigma=0.01), seed=0)
     write_capture(tmp_path / "cap", cap)
@@ -110,7 +109,7 @@ def test_seed_streams_are_the_spawned_seed_sequence():
         assert np.array_equal(stream.random(5), reference.random(5))
 
 
-def test_simulate_is_the_camera_array_measurement():
+def test_simulate_is_the_camera_array_measurement(smooth_random_scene):
     """simulate_capture's raw frames are y = sensor(A x) of the measurement object with the same seed."""
     gt = smooth_random_scene(32, seed=4)
     homographies, _ = random_aperture_homographies(np.random.default_rng(1), (32, 32), shift_max_px=1.5,
@@ -123,7 +122,7 @@ def test_simulate_is_the_camera_array_measurement():
     assert cap.meta["psf"] == measurement.psf.to_spec()
 
 
-def test_gt_reading_8_and_16_bit_and_errors(tmp_path):
+def test_gt_reading_8_and_16_bit_and_errors(smooth_random_scene, tmp_path):
     gt = smooth_random_scene(32, seed=0)
     g8, info8 = read_gt_scene(_write_png_scene(tmp_path / "s8", gt, 8))
     g16, info16 = read_gt_scene(_write_png_scene(tmp_path / "s16", gt, 16))
@@ -160,7 +159,7 @@ def test_gt_reading_8_and_16_bit_and_errors(tmp_path):
         read_gt_scene(tmp_path / "g5.tiff")
 
 
-def test_sizes_odd_and_crop_rules():
+def test_sizes_odd_and_crop_rules(smooth_random_scene):
     gt = smooth_random_scene(40, seed=0)
     odd = gt[:, :38, :37]
     trimmed, info = prepare_ground_truth(odd)
@@ -177,7 +176,7 @@ def test_sizes_odd_and_crop_rules():
         prepare_ground_truth(bad)
 
 
-def test_capture_round_trip_and_corruption(tmp_path):
+def test_capture_round_trip_and_corruption(smooth_random_scene, tmp_path):
     cap = simulate_capture(smooth_random_scene(32), NoNoiseSensor(), seed=0)
     path = write_capture(tmp_path / "cap", cap)
     with pytest.raises(InputError, match="--overwrite"):
@@ -212,7 +211,7 @@ def test_capture_round_trip_and_corruption(tmp_path):
         read_capture(tmp_path / "nowhere")
 
 
-def test_failed_write_leaves_nothing_behind(tmp_path, monkeypatch):
+def test_failed_write_leaves_nothing_behind(smooth_random_scene, tmp_path, monkeypatch):
     cap = simulate_capture(smooth_random_scene(32), NoNoiseSensor(), seed=0)
     import capssim.capture as capture_mod
 
@@ -225,7 +224,7 @@ def test_failed_write_leaves_nothing_behind(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_cli_simulate_and_design(tmp_path):
+def test_cli_simulate_and_design(smooth_random_scene, tmp_path):
     scene = _write_png_scene(tmp_path / "scene", smooth_random_scene(40, seed=3))
     out = tmp_path / "cap"
     def run(*args):

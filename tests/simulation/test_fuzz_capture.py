@@ -7,7 +7,7 @@ shape or dtype, by truncated or corrupted bytes, or by bytes that are not a TIFF
 (:func:`capssim.capture.read_capture`) and using what was read (raw frames as floats, Bayer
 sub-images, homographies; then ``dofp-bilinear`` and one iteration of ``caps``) must succeed or
 raise a :class:`~capssim.errors.CapssimError` with a one-line message. The process's address
-space is capped (:func:`fuzz_support.address_space_headroom`), so a huge allocation fails here.
+space is capped (:func:`support.fuzz.address_space_headroom`), so a huge allocation fails here.
 """
 
 from __future__ import annotations
@@ -21,10 +21,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-from conftest import smooth_random_scene
-from fuzz_support import PEAK_GROWTH_LIMIT, address_space_headroom, fuzz_settings, one_line_error, peak_rss_bytes
 from hypothesis import given
 from hypothesis import strategies as st
+from support.fuzz import PEAK_GROWTH_LIMIT, address_space_headroom, fuzz_settings, one_line_error, peak_rss_bytes
 
 from capssim.capture import read_capture, write_capture
 from capssim.errors import CapssimError
@@ -37,7 +36,7 @@ FILES = ("caps_raw.tiff", "dofp_raw.tiff", "gt.tiff")
 
 
 @pytest.fixture(scope="module")
-def valid(tmp_path_factory) -> Path:
+def valid(smooth_random_scene, tmp_path_factory) -> Path:
     """A valid 16 px capture (uint16 DN, Gaussian noise), read once; the fuzz works on copies."""
     capture = simulate_capture(smooth_random_scene(16, seed=2), make_sensor("gaussian", sigma=0.01), seed=1)
     with pytest.MonkeyPatch.context() as patch:
@@ -180,7 +179,7 @@ def test_a_forged_huge_tiff_header_is_refused_before_reading(valid, tmp_path):
     assert peak_rss_bytes() - start < 256 * 2**20
 
 
-def test_infinite_extinction_ratio_is_written_as_ideal(tmp_path):
+def test_infinite_extinction_ratio_is_written_as_ideal(smooth_random_scene, tmp_path):
     """inf (an ideal polarizer, as in the analyzer) is stored as null: meta.json stays standard JSON."""
     capture = simulate_capture(smooth_random_scene(16, seed=2), make_sensor("none"), seed=1,
                                extinction_ratio=float("inf"))

@@ -15,10 +15,9 @@ import copy
 
 import pytest
 import yaml
-from fuzz_support import PEAK_GROWTH_LIMIT, address_space_headroom, fuzz_settings, one_line_error, peak_rss_bytes
 from hypothesis import given
 from hypothesis import strategies as st
-from test_dataset_config import write_gt_folder
+from support.fuzz import PEAK_GROWTH_LIMIT, address_space_headroom, fuzz_settings, one_line_error, peak_rss_bytes
 
 from capssim.dataset import load_config
 from capssim.dataset.sample import check_sample
@@ -67,7 +66,7 @@ yaml_values = st.recursive(st.one_of(scalars, distributions),
 
 
 @pytest.fixture(scope="module")
-def folder(tmp_path_factory):
+def folder(write_gt_folder, tmp_path_factory):
     root = tmp_path_factory.mktemp("fuzz-config")
     write_gt_folder(root / "gt", size=32, seed=1)
     with pytest.MonkeyPatch.context() as patch:

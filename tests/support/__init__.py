@@ -1,0 +1,1 @@
+"""Helpers shared by the tests; the tests receive them as fixtures (tests/conftest.py)."""
