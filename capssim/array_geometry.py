@@ -60,11 +60,17 @@ def _check_stack(homographies, count: int, argument: str) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class ArrayGeometry:
-    """The 2x2 array's warps: ``aperture_homographies`` ``(4, 3, 3)`` HR reference -> aperture-HR,
-    on an HR reference grid of ``hr_shape`` ``(2H, 2W)`` pixels.
+    """The 2x2 array's warps on an HR reference grid.
 
     Derived views: :attr:`lr_homographies` (the 16 sub-image homographies), :attr:`lr_aperture_warps`
     (each sub-image's aperture warp), :attr:`raw_homographies` (HR reference -> raw pixel).
+
+    Parameters
+    ----------
+    aperture_homographies : numpy.ndarray
+        ``(4, 3, 3)`` HR reference -> aperture HR pixel (x=col, y=row); copied.
+    hr_shape : tuple of int
+        ``(2H, 2W)``, the HR reference grid in pixels.
     """
 
     aperture_homographies: np.ndarray

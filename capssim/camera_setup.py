@@ -138,11 +138,21 @@ def _extinction_ratio(value, where: str) -> float | None:
 
 @dataclass(frozen=True, eq=False)
 class CameraSetup:
-    """The camera set-up of a capture (module docstring): ``sensor`` (a :class:`~capssim.sensor.Sensor`),
-    ``psf`` (a :class:`~capssim.psf.PSF`, a ``meta.json`` PSF mapping or ``None`` for
-    :data:`~capssim.psf.DEFAULT_PSF`), ``dofp_layout`` (kept as its canonical name), ``extinction_ratio``
-    (``None`` or inf: ideal) and ``rig`` (``None``: the ideal array). Two set-ups are equal when their
-    :meth:`to_meta` blocks are."""
+    """The camera set-up of a capture (module docstring); two set-ups are equal when their :meth:`to_meta` blocks are.
+
+    Parameters
+    ----------
+    sensor : Sensor
+        Sensor and noise (:func:`~capssim.sensor.make_sensor`); default no noise.
+    psf : PSF or dict, optional
+        A :class:`~capssim.psf.PSF`, a ``meta.json`` PSF mapping or None for :data:`~capssim.psf.DEFAULT_PSF`.
+    dofp_layout : str
+        The DoFP camera's mosaic layout, kept as its canonical name.
+    extinction_ratio : float, optional
+        Polarizer ``T_max / T_min``; None or inf: ideal.
+    rig : RigModel, optional
+        The array's imperfections; None: the ideal array.
+    """
 
     sensor: Sensor = field(default_factory=NoNoiseSensor)
     psf: PSF = DEFAULT_PSF
@@ -166,9 +176,24 @@ class CameraSetup:
     # constructors --------------------------------------------------------------------------------
     @classmethod
     def from_mapping(cls, mapping, *, where: str = "setup") -> "CameraSetup":
-        """The set-up a mapping describes (a dataset's or suite's YAML, a ``meta.json`` "setup" block):
-        the keys of :data:`SETUP_KEYS`, each optional. Errors are one-line
-        :class:`~capssim.errors.InputError` naming ``where.key``, the value and what is valid."""
+        """The set-up a mapping describes: a dataset's or suite's YAML, or a ``meta.json`` "setup" block.
+
+        Parameters
+        ----------
+        mapping : dict or None
+            The keys of :data:`SETUP_KEYS`, each optional (None: the default set-up).
+        where : str
+            The mapping's name in error messages.
+
+        Returns
+        -------
+        CameraSetup
+
+        Raises
+        ------
+        InputError
+            One line naming ``where.key``, the value and what is valid.
+        """
         if mapping is None:
             return cls()
         if not isinstance(mapping, dict):

@@ -46,7 +46,21 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Capture:
-    """A capture in memory. ``caps_raw`` ``(4, H, W)``; ``dofp_raw`` ``(2H, 2W)``; ``gt`` ``(12, 2H, 2W)``."""
+    """A capture in memory: the raw frames, their ``meta.json`` and optionally the ground truth.
+
+    Parameters
+    ----------
+    meta : dict
+        The ``meta.json`` dictionary (:func:`~capssim.capture.build_meta`; checked by :func:`validate_meta`).
+    caps_raw : numpy.ndarray
+        ``(4, H, W)`` raw Bayer frames of the four apertures (DN, the sensor's dtype).
+    dofp_raw : numpy.ndarray, optional
+        ``(2H, 2W)`` raw frame of the DoFP colour-polarization camera.
+    gt : numpy.ndarray, optional
+        ``(12, 2H, 2W)`` float32 ground truth on [0, 1], channel ``c = 3 p + k``.
+    path : pathlib.Path, optional
+        The folder it was read from or written to.
+    """
 
     meta: dict
     caps_raw: np.ndarray
@@ -117,7 +131,15 @@ class Capture:
         return self.sensor.saturation_mask(self.caps_raw)
 
     def lr_images(self) -> tuple[np.ndarray, np.ndarray]:
-        """The 16 Bayer sub-images ``(16, H/2, W/2)`` float32 and their saturation masks (paper 3.1)."""
+        """The 16 Bayer sub-images ``m = 4 n + q`` and their saturation masks (paper section 3.1, eq. 11).
+
+        Returns
+        -------
+        images : numpy.ndarray
+            ``(16, H/2, W/2)`` float32 on the sensor's [0, 1] scale.
+        saturated : numpy.ndarray
+            ``(16, H/2, W/2)`` bool, True at clipped pixels.
+        """
         return split_bayer(self.caps_float()), split_bayer(self.caps_saturated(), argument="saturated")
 
     def dofp_float(self) -> np.ndarray:
@@ -178,7 +200,22 @@ def _read_frame(path: Path, name: str, shape: tuple, sensor: Sensor | None) -> n
 
 
 def write_capture(path, capture: Capture, *, overwrite: bool = False) -> Path:
-    """Write a capture folder atomically (built under a temporary name, then renamed)."""
+    """Write a capture folder atomically (built under a temporary name, then renamed).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The folder to create.
+    capture : Capture
+        The capture; its ``meta.json`` and array shapes are checked first.
+    overwrite : bool
+        Replace an existing folder (otherwise an existing one is an error).
+
+    Returns
+    -------
+    pathlib.Path
+        ``path``; ``capture.path`` is set to it.
+    """
     validate_meta(capture.meta)
     hh, ww = capture.hr_shape
     h, w = capture.raw_shape
@@ -216,7 +253,27 @@ def read_meta(path) -> dict:
 
 
 def read_capture(path, *, load_gt: bool = True, require_gt: bool = False) -> Capture:
-    """Read and check a capture folder. ``require_gt`` makes a missing ``gt.tiff`` an error."""
+    """Read and check a capture folder.
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The capture folder (``meta.json``, ``caps_raw.tiff``, optionally ``dofp_raw.tiff``, ``gt.tiff``).
+    load_gt : bool
+        Read ``gt.tiff`` when present.
+    require_gt : bool
+        Make a missing ``gt.tiff`` an error (scoring needs it).
+
+    Returns
+    -------
+    Capture
+        ``caps_raw`` ``(4, H, W)``, ``dofp_raw`` ``(2H, 2W)`` or None, ``gt`` ``(12, 2H, 2W)`` float32 or None.
+
+    Raises
+    ------
+    CaptureFormatError
+        A missing or invalid file, naming it and what is expected.
+    """
     path = Path(path)
     meta = read_meta(path)
     files = meta["files"]
@@ -239,7 +296,24 @@ def read_capture(path, *, load_gt: bool = True, require_gt: bool = False) -> Cap
 
 # -- reconstruction outputs -------------------------------------------------------------------
 def write_reconstruction(capture_path, method: str, image: np.ndarray, record: dict) -> tuple[Path, Path]:
-    """Write ``recon/METHOD.tiff`` (float32 ``(12, 2H, 2W)``) and ``recon/METHOD.json`` atomically."""
+    """Write ``recon/METHOD.tiff`` and ``recon/METHOD.json`` into a capture folder, atomically.
+
+    Parameters
+    ----------
+    capture_path : str or pathlib.Path
+        The capture folder.
+    method : str
+        The file stem, usually the method's name.
+    image : numpy.ndarray
+        ``(12, 2H, 2W)`` finite reconstruction (written as float32).
+    record : dict
+        The record of :func:`capssim.reconstruct.reconstruct` (JSON-serializable).
+
+    Returns
+    -------
+    tuple of pathlib.Path
+        The TIFF and the JSON paths.
+    """
     capture_path = Path(capture_path)
     meta = read_meta(capture_path)
     shape = (N_CHANNELS, meta["geometry"]["hr_height"], meta["geometry"]["hr_width"])

@@ -58,12 +58,29 @@ def build_meta(*, kind: str, hr_shape: tuple[int, int], aperture_homographies: n
                extra: dict | None = None, has_gt: bool = True, has_dofp: bool = True) -> dict:
     """The ``meta.json`` dictionary of a capture (schema version 1).
 
-    ``setup`` (a :class:`~capssim.camera_setup.CameraSetup`) is written as the ``"setup"`` block and as
-    the keys the readers use (``sensor``, ``dofp_layout``, ``extinction_ratio``, ``rig`` when not
-    ideal). ``psf``: ``meta.json["psf"]``, the blur between ``gt.tiff`` and the raw frames (default:
-    the set-up's PSF; a render, whose ground truth is already blurred, writes ``none``).
-    ``aperture_homographies``: ``(4, 3, 3)`` HR reference -> aperture (x=col, y=row), or an
-    :class:`~capssim.array_geometry.ArrayGeometry`.
+    Parameters
+    ----------
+    kind : str
+        ``simulated``, ``rendered`` or ``real`` (:data:`CAPTURE_KINDS`).
+    hr_shape : tuple of int
+        ``(2H, 2W)``, HR pixels.
+    aperture_homographies : numpy.ndarray or ArrayGeometry
+        ``(4, 3, 3)`` HR reference -> aperture (x=col, y=row).
+    setup : CameraSetup
+        Written as the ``"setup"`` block and as the keys the readers use (``sensor``, ``dofp_layout``,
+        ``extinction_ratio``, ``rig`` when not ideal).
+    psf : dict, optional
+        ``meta.json["psf"]``, the blur between ``gt.tiff`` and the raw frames (default: the set-up's
+        PSF; a render, whose ground truth is already blurred, writes ``none``).
+    seed, source, extra : optional
+        The seed, the ground truth's provenance, and extra top-level keys.
+    has_gt, has_dofp : bool
+        Whether ``gt.tiff`` / ``dofp_raw.tiff`` are listed in ``files``.
+
+    Returns
+    -------
+    dict
+        The ``meta.json`` mapping.
     """
     if kind not in CAPTURE_KINDS:
         raise InputError("kind", kind, f"one of {CAPTURE_KINDS}")
@@ -192,8 +209,18 @@ def _validate_sensor(sensor: dict) -> None:
 
 
 def validate_meta(meta: dict) -> None:
-    """Raise :class:`CaptureFormatError` naming the first problem in a ``meta.json`` dict:
-    the field, what it holds and what is valid."""
+    """Check a ``meta.json`` dictionary.
+
+    Parameters
+    ----------
+    meta : dict
+        The parsed ``meta.json``.
+
+    Raises
+    ------
+    CaptureFormatError
+        Naming the first problem: the field, what it holds and what is valid.
+    """
     _expect(meta, isinstance(meta, dict), "meta.json", "a JSON object")
     if meta.get("schema") != SCHEMA:
         raise CaptureFormatError(f"meta.json: schema is {meta.get('schema')!r}; expected {SCHEMA!r}.")

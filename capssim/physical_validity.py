@@ -68,12 +68,22 @@ def _cone_projection(stokes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def project_to_physical(image12: np.ndarray, *, unobserved: np.ndarray | None = None
                         ) -> tuple[np.ndarray, ProjectionReport]:
-    """Nearest physically valid intensities to ``image12`` ``(12, H, W)`` (channel ``c = 3 p + k``).
+    """Nearest physically valid intensities to a 12-channel image.
 
-    ``unobserved``: optional ``(12, H, W)`` bool mask; a colour's four angles at a pixel are left
-    unchanged where any of them is unobserved. Returns float32 ``(12, H, W)`` with every checked
-    intensity ``>= 0`` and ``I0 + I90 = I45 + I135`` to float32 rounding, and a
-    :class:`ProjectionReport`.
+    Parameters
+    ----------
+    image12 : numpy.ndarray
+        ``(12, H, W)`` intensities, channel ``c = 3 p + k``.
+    unobserved : numpy.ndarray, optional
+        ``(12, H, W)`` bool; a colour's four angles at a pixel are left unchanged where any is unobserved.
+
+    Returns
+    -------
+    image : numpy.ndarray
+        ``(12, H, W)`` float32: every checked intensity ``>= 0``, ``I0 + I90 = I45 + I135`` to float32
+        rounding and DoLP <= 1.
+    report : ProjectionReport
+        What changed, as fractions of the checked pixels.
     """
     if image12.ndim != 3 or image12.shape[0] != N_CHANNELS:
         raise InputError("image12", f"shape {tuple(image12.shape)}", "(12, H, W), channel c = 3*p + k")

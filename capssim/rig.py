@@ -93,7 +93,19 @@ def _array(value, shape: tuple, where: str, *, minimum: float | None = None, all
 
 @dataclass(frozen=True)
 class RigModel:
-    """The imperfections of one camera array (module docstring); every array is float64."""
+    """The imperfections of one camera array (module docstring); every array is float64.
+
+    Parameters
+    ----------
+    angle_offsets_deg : numpy.ndarray
+        ``(4,)`` polarizer n analyzes at ``45 n + offset_n`` degrees (within +-20).
+    extinction_ratio : numpy.ndarray
+        ``(4, 3)`` ``T_max / T_min`` per aperture and colour, > 1 (inf: ideal).
+    gain, vignetting : numpy.ndarray
+        ``(4,)`` flat-field response at the frame centre; ``(4, 15)`` polynomial vignetting coefficients.
+    psf : tuple, optional
+        Four PSF specs (:meth:`capssim.psf.PSF.to_spec`), or None for the capture's one PSF.
+    """
 
     angle_offsets_deg: np.ndarray = field(default_factory=lambda: np.zeros(N_APERTURES))
     extinction_ratio: np.ndarray = field(default_factory=lambda: np.full((N_APERTURES, 3), math.inf))
@@ -127,7 +139,19 @@ class RigModel:
 
     @classmethod
     def preset(cls, name: str = "realistic", *, seed: int = 0) -> "RigModel":
-        """``ideal``, or ``realistic``: one draw from :data:`REALISTIC_RANGES` (reproducible under ``seed``)."""
+        """A named rig: ``ideal``, or ``realistic``, one draw from :data:`REALISTIC_RANGES`.
+
+        Parameters
+        ----------
+        name : str
+            ``ideal`` or ``realistic``.
+        seed : int
+            Seed of the ``realistic`` draw (the same seed gives the same rig).
+
+        Returns
+        -------
+        RigModel
+        """
         if name == "ideal":
             return cls.ideal()
         if name != "realistic":
@@ -210,7 +234,18 @@ class RigModel:
         return np.stack([full[3 * (m // 4) + BAYER_SITE_COLOUR[m % 4]] for m in range(4 * N_APERTURES)])
 
     def flat_field(self, raw_shape) -> np.ndarray:
-        """``(4, H, W)`` float64: ``gain_n V_n(u, v)`` on each aperture's raw grid."""
+        """The flat field ``F_n(u, v) = gain_n V_n(u, v)`` of each aperture on its raw grid.
+
+        Parameters
+        ----------
+        raw_shape : tuple of int
+            ``(H, W)`` raw pixels.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(4, H, W)`` float64, the relative response to uniform unpolarized light.
+        """
         u, v = normalised_raw_coordinates(raw_shape)
         maps = vignetting_design(u, v) @ self.vignetting.T  # (H, W, 4)
         return np.moveaxis(maps, -1, 0) * self.gain[:, None, None]

@@ -297,8 +297,27 @@ def make_sensor(noise: str = DEFAULT_NOISE, *, sigma: float | None = None, prese
                 **overrides) -> Sensor:
     """Build a sensor from CLI-style options.
 
-    ``noise`` is one of ``none``, ``gaussian`` (needs ``sigma``), ``poisson-gaussian``
-    (``preset`` names a :data:`SENSOR_PRESETS` entry; keyword overrides replace fields).
+    Parameters
+    ----------
+    noise : str
+        ``none``, ``gaussian`` or ``poisson-gaussian``.
+    sigma : float, optional
+        Noise standard deviation on the [0, 1] scale; required for ``gaussian``.
+    preset : str, optional
+        A :data:`SENSOR_PRESETS` name (``poisson-gaussian``), e.g. ``python1300``.
+    **overrides
+        Sensor fields that replace the preset's (e.g. ``full_well_e``, ``read_noise_e``).
+
+    Returns
+    -------
+    Sensor
+
+    Raises
+    ------
+    UnknownNameError
+        An unknown noise model or preset (the message lists the valid names).
+    InputError
+        Options that do not fit the noise model (``sigma`` missing for ``gaussian``, given for ``none``).
     """
     key = str(noise).lower()
     if key not in NOISE_MODELS:

@@ -101,20 +101,35 @@ def simulate_capture(gt: np.ndarray, setup: CameraSetup | Sensor | None = None, 
                      source: dict | None = None, kind: str = "simulated", extra_meta: dict | None = None,
                      psf: PSF | dict | None = None, dofp_layout=None, extinction_ratio: float | None = None,
                      rig: RigModel | None = None) -> Capture:
-    """Simulate the CAPS raw frames and the DoFP raw frame of a ``(12, 2H, 2W)`` ground truth.
+    """Simulate the CAPS raw frames and the DoFP raw frame of a ground truth: ``y = sensor(A x)`` (paper eq. 9).
 
-    ``setup``: the camera set-up (:class:`~capssim.camera_setup.CameraSetup`; a bare
-    :class:`~capssim.sensor.Sensor` takes the default set-up around it, ``None`` the default set-up);
-    ``psf``, ``dofp_layout``, ``extinction_ratio`` and ``rig``, when given, replace its fields
-    (:func:`~capssim.camera_setup.as_setup`). The measurement is
-    :meth:`CameraArrayMeasurement.from_setup <capssim.measurement.CameraArrayMeasurement.from_setup>` (``y = sensor(A x)``,
-    paper eq. 9): reproducible under ``seed``, whose three independent streams
-    (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS noise and the DoFP noise.
-    ``gt`` on [0, 1]; values above full scale are kept with a warning (they saturate the
-    sensor), negative ones refused (:func:`prepare_ground_truth`). ``aperture_homographies``
-    ``(4, 3, 3)`` (HR reference -> aperture, x=col, y=row) replace the drawn poses. Returns a
-    :class:`~capssim.capture.Capture` (not yet written) whose ``meta.json["setup"]`` is the set-up's;
-    a non-ideal rig's true values also go to ``meta.json["rig"]``.
+    The measurement is :meth:`~capssim.measurement.CameraArrayMeasurement.from_setup`;
+    ``seed``'s three independent streams (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS
+    noise and the DoFP noise, so a capture is reproducible.
+
+    Parameters
+    ----------
+    gt : numpy.ndarray
+        ``(12, 2H, 2W)`` intensities on [0, 1], channel ``c = 3 p + k``; values above full scale are kept
+        with a warning (they saturate the sensor), negative ones refused (:func:`prepare_ground_truth`).
+    setup, psf, dofp_layout, extinction_ratio, rig
+        The camera set-up (a bare :class:`~capssim.sensor.Sensor` takes the default set-up around it;
+        None: the default set-up). ``psf``, ``dofp_layout``, ``extinction_ratio`` and ``rig``, when given,
+        replace its fields (:func:`~capssim.camera_setup.as_setup`).
+    seed : int
+        The capture's seed.
+    pose_ranges : PoseRanges
+        Ranges of the drawn aperture poses (shift, HR px; rotation, deg; scale).
+    aperture_homographies : numpy.ndarray, optional
+        ``(4, 3, 3)`` HR reference -> aperture (x=col, y=row), replacing the drawn poses.
+    source, kind, extra_meta
+        Provenance, capture kind and extra keys written to ``meta.json``.
+
+    Returns
+    -------
+    Capture
+        ``caps_raw`` ``(4, H, W)``, ``dofp_raw`` ``(2H, 2W)``, ``gt`` (not yet written); ``meta.json["setup"]``
+        is the set-up's, and a non-ideal rig's true values also go to ``meta.json["rig"]``.
     """
     t0 = time.perf_counter()
     setup = as_setup(setup, psf=psf, dofp_layout=dofp_layout, extinction_ratio=extinction_ratio, rig=rig)

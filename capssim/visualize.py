@@ -38,14 +38,39 @@ def _hsv_to_rgb(h, s, v):
 
 
 def display_white(image12: np.ndarray) -> float:
-    """The intensity ``S0/2`` shown as white: its 99.5th percentile (fraction of full scale), at least 1e-6."""
+    """The intensity ``S0/2`` shown as white: its 99.5th percentile.
+
+    Parameters
+    ----------
+    image12 : numpy.ndarray
+        ``(12, H, W)`` intensities on [0, 1], channel ``c = 3 p + k``.
+
+    Returns
+    -------
+    float
+        The white level, a fraction of full scale, at least 1e-6 (1 when no value is finite).
+    """
     s0_half = stokes_from_12(np.asarray(image12, dtype=np.float64))[0] / 2
     finite = s0_half[np.isfinite(s0_half)]
     return max(float(np.percentile(finite, 99.5)) if finite.size else 1.0, 1e-6)
 
 
 def intensity_image(image12: np.ndarray, *, white: float | None = None) -> np.ndarray:
-    """``(H, W, 3)`` display RGB of the unpolarized intensity ``S0/2``; ``white`` default :func:`display_white`."""
+    """Display RGB of the unpolarized intensity ``S0/2``.
+
+    Parameters
+    ----------
+    image12 : numpy.ndarray
+        ``(12, H, W)`` intensities on [0, 1], channel ``c = 3 p + k``.
+    white : float, optional
+        The ``S0/2`` level shown as white; default :func:`display_white` of ``image12`` (give one
+        value to show several images on one scale).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W, 3)`` sRGB-encoded float64 on [0, 1].
+    """
     s = stokes_from_12(np.asarray(image12, dtype=np.float64))
     rgb = np.moveaxis(s[0] / 2, 0, -1)
     white = display_white(image12) if white is None else white
@@ -53,14 +78,44 @@ def intensity_image(image12: np.ndarray, *, white: float | None = None) -> np.nd
 
 
 def dolp_image(image12: np.ndarray, *, dolp_max: float = 1.0, min_s0: float = 1e-3) -> np.ndarray:
-    """``(H, W, 3)``: DoLP of R, G and B as the three display channels."""
+    """The DoLP of R, G and B as the three display channels.
+
+    Parameters
+    ----------
+    image12 : numpy.ndarray
+        ``(12, H, W)`` intensities, channel ``c = 3 p + k``.
+    dolp_max : float
+        The DoLP shown at full brightness.
+    min_s0 : float
+        Pixels with ``S0`` at most this have DoLP 0.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W, 3)`` float64 on [0, 1]: ``DoLP / dolp_max``, clipped.
+    """
     s = stokes_from_12(np.asarray(image12, dtype=np.float64))
     d = dolp(s, min_s0=min_s0)  # (3, H, W)
     return np.clip(np.moveaxis(d, 0, -1) / dolp_max, 0, 1)
 
 
 def aop_image(image12: np.ndarray, *, dolp_max: float = 0.5, min_s0: float = 1e-3) -> np.ndarray:
-    """``(H, W, 3)``: hue = AoP, saturation = DoLP / dolp_max, on the RGB-summed Stokes vector."""
+    """AoP as hue and DoLP as saturation, of the RGB-summed Stokes vector.
+
+    Parameters
+    ----------
+    image12 : numpy.ndarray
+        ``(12, H, W)`` intensities, channel ``c = 3 p + k``.
+    dolp_max : float
+        The DoLP shown fully saturated.
+    min_s0 : float
+        Pixels with ``S0`` at most this are grey (0.5).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W, 3)`` RGB float64 on [0, 1]; hue = AoP / 180 deg (key: :func:`aop_legend`).
+    """
     s = stokes_from_12(np.asarray(image12, dtype=np.float64)).sum(axis=1)  # (3, H, W)
     angle = aop_deg(s)
     d = dolp(s, min_s0=min_s0)
@@ -73,7 +128,20 @@ def aop_image(image12: np.ndarray, *, dolp_max: float = 0.5, min_s0: float = 1e-
 
 
 def aop_legend(size: int = 64, *, dolp_max: float = 0.5) -> np.ndarray:
-    """Colour key: AoP along x (0..180 deg), DoLP along y (0 at the bottom, dolp_max at the top)."""
+    """Colour key of :func:`aop_image`: AoP along x (0..180 deg), DoLP along y (0 at the bottom).
+
+    Parameters
+    ----------
+    size : int
+        Side of the square key, pixels.
+    dolp_max : float
+        The DoLP at the top row (label only: the key spans saturation 0..1).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(size, size, 3)`` RGB float64 on [0, 1].
+    """
     x = np.linspace(0, 1, size, endpoint=False)
     y = np.linspace(1, 0, size)
     hue, sat = np.meshgrid(x, y)

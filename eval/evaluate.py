@@ -172,11 +172,33 @@ def _record_entry(record_path: Path) -> dict[str, Any]:
 def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list[str] | None = None,
                      min_s0: float | None = None, min_dolp: float | None = None, border: int | None = None,
                      lpips=None, with_mtf: bool = True, write: bool = True) -> dict:
-    """Score ``recon/*.tiff`` of a capture folder; write ``metrics.json`` when ``write``.
+    """Score ``recon/*.tiff`` of a capture folder against its ``gt.tiff``; write ``metrics.json`` when ``write``.
 
-    A reconstruction that cannot be scored (NaN, wrong shape, unreadable) gets
-    ``{"error": ...}`` and the others are still scored. A missing ``gt.tiff`` or no
-    reconstruction at all is a :class:`CaptureFormatError`.
+    A reconstruction that cannot be scored (NaN, wrong shape, unreadable) gets ``{"error": ...}`` and
+    the others are still scored.
+
+    Parameters
+    ----------
+    capture_path : str or pathlib.Path
+        The capture folder.
+    convention, min_s0, min_dolp, border, lpips
+        As in :func:`capssim.eval.metrics.score`.
+    methods : list of str, optional
+        Only these reconstructions (default: all).
+    with_mtf : bool
+        Also measure the MTF on a star scene (``meta.json["scene"]["star"]``).
+    write : bool
+        Write ``metrics.json`` into the folder.
+
+    Returns
+    -------
+    dict
+        ``methods``: per method, ``metrics`` (the :func:`~capssim.eval.metrics.score` result) or ``error``.
+
+    Raises
+    ------
+    CaptureFormatError
+        A missing ``gt.tiff``, or no reconstruction at all.
     """
     path = Path(capture_path)
     capture = read_capture(path, require_gt=True)

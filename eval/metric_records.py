@@ -83,7 +83,20 @@ def json_safe(obj: Any) -> Any:
 
 
 def flatten(result: dict[str, Any], *, prefix: str = "") -> dict[str, float | None]:
-    """Scalar metrics of a :func:`score` result as ``{"psnr_mean": ..., "psnr.0-R": ...}``."""
+    """The scalar metrics of a :func:`~capssim.eval.metrics.score` result, flat.
+
+    Parameters
+    ----------
+    result : dict
+        A :func:`~capssim.eval.metrics.score` result (``settings`` and ``notes`` are left out).
+    prefix : str
+        Prepended to every key.
+
+    Returns
+    -------
+    dict of str to float or None
+        ``{"psnr_mean": ..., "psnr.0-R": ...}``: nested mappings as ``key.sub``.
+    """
     flat: dict[str, float | None] = {}
     for key, value in result.items():
         if key in ("settings", "notes", "convention"):

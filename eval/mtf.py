@@ -305,13 +305,26 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
                  reference_modulation=None, reference_pitch: float = 1.0, threshold: float = HECT,
                  residual_limit: float = 0.5, ring_width: float = 0.04, nyquist: float = NYQUIST,
                  min_radius: float | None = None) -> StarMTF:
-    """MTF of each channel of a ``(C, H, W)`` sinusoidal Siemens star image, and their mean.
+    """MTF of each channel of a sinusoidal Siemens star image, and their mean (module docstring).
 
-    All channels share one centre (given, or the median of :func:`find_star_center` over up
-    to four channels) and one set of rings, so their MTFs can be averaged ring by ring: the
-    ``"mean"`` curve averages the channel MTFs (not the images: the channels of a
-    polarization star have different phases) and takes the RMS of their residual ratios.
-    ``reference_modulation`` is None (extrapolate per channel), a number, or one per channel.
+    All channels share one centre and one set of rings; ``"mean"`` averages their MTFs (not the images).
+
+    Parameters
+    ----------
+    images, cycles
+        ``(C, H, W)`` star image; its periods per turn.
+    names, center_rowcol, radius, min_radius
+        Channel names (default ``"0"``, ...); centre ``(row, col)`` (default: found); outer and inner radius, pixels.
+    reference_modulation, reference_pitch
+        None (extrapolate per channel), a number or one per channel; one reference pixel in pixels of this image.
+    threshold, residual_limit, ring_width, nyquist
+        Contrast of the resolution limit (HECT, paper section 5.3); largest trusted residual ratio;
+        relative ring width; Nyquist frequency, cycles per pixel.
+
+    Returns
+    -------
+    StarMTF
+        ``results``: one :class:`MTFResult` per channel name, and ``"mean"`` when ``C > 1``.
     """
     imgs, cycles, names, refs = _checked_star_inputs(images, cycles, names, reference_modulation)
     notes: list[str] = []

@@ -216,7 +216,24 @@ def _report_tail(recs: list[dict], ok: list[dict]) -> list[str]:
 
 
 def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
-    """Write ``OUTPUT/report.md`` (and ``OUTPUT/plots/*.png`` when ``plots``)."""
+    """Write ``OUTPUT/report.md`` (and ``OUTPUT/plots/*.png`` when ``plots``) of a suite run.
+
+    Parameters
+    ----------
+    run : BenchRun
+        The result of :func:`capssim.eval.benchmarks.suite.run_suite`.
+    output : str or pathlib.Path
+        The run's folder.
+    verdict : optional
+        A baseline comparison to print at the top.
+    plots : bool
+        Draw the per-group and speed-vs-error plots (matplotlib).
+
+    Returns
+    -------
+    pathlib.Path
+        The ``report.md`` path.
+    """
     output = Path(output)
     plot_dir = output / "plots"
     methods = [m["label"] for m in run.spec["methods"]]

@@ -37,6 +37,22 @@ def _box_supersampled(field_fn, size: int, factor: int = 4) -> np.ndarray:
 
 
 def texture_scene(size: int = 128, *, seed: int = 0) -> tuple[np.ndarray, dict]:
+    """Smooth random colour texture with sharp, strongly polarized objects (module docstring).
+
+    Parameters
+    ----------
+    size : int
+        Side of the square image, HR pixels.
+    seed : int
+        Seed of the texture and of the objects' places, colours, DoLP and AoP.
+
+    Returns
+    -------
+    gt : numpy.ndarray
+        ``(12, size, size)`` float32 on [0, 1], channel ``c = 3 p + k`` (polarizer ``45 p`` deg, colour k).
+    scene_meta : dict
+        ``{"generator": "texture", "seed": seed}``, for ``meta.json["scene"]``.
+    """
     rng = np.random.default_rng(seed)
 
     def smooth(sigma, n=1):
@@ -79,6 +95,24 @@ def texture_scene(size: int = 128, *, seed: int = 0) -> tuple[np.ndarray, dict]:
 
 
 def star_scene(size: int = 128, *, cycles: int = 36, polarization: bool = False) -> tuple[np.ndarray, dict]:
+    """Sinusoidal Siemens star, in intensity or (``polarization``) in every analyzer channel (module docstring).
+
+    Parameters
+    ----------
+    size : int
+        Side of the square image, HR pixels; the star's radius is ``0.47 size``.
+    cycles : int
+        Periods per turn.
+    polarization : bool
+        False: intensity star, DoLP 0.3 at 30 deg; True: flat S0, DoLP 0.8, AoP ``(cycles/2) phi``.
+
+    Returns
+    -------
+    gt : numpy.ndarray
+        ``(12, size, size)`` float32 on [0, 1].
+    scene_meta : dict
+        ``generator`` and ``star``: ``cycles``, ``center_rowcol``, ``radius_px`` (HR pixels), ``contrast``.
+    """
     centre = ((size - 1) / 2, (size - 1) / 2)
     radius = 0.47 * size
     cos_n = sinusoidal_star((size, size), cycles, center_rowcol=centre, radius=radius, mean=1.0, modulation=1.0,

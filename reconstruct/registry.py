@@ -84,6 +84,13 @@ def _load_methods() -> None:
 
 
 def available_methods() -> dict[str, MethodSpec]:
+    """The registered reconstruction methods, by name (the method modules are loaded on first call).
+
+    Returns
+    -------
+    dict of str to MethodSpec
+        Sorted by name; each spec holds the function, its input kind (``caps`` or ``dofp``) and reference.
+    """
     _load_methods()
     return dict(sorted(_METHODS.items()))
 
@@ -171,16 +178,23 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
                 registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None,
                 physical_projection: bool = True, reuse_registration: bool = True, calibration=None,
                 **options) -> tuple[MethodOutput, dict]:
-    """Run ``method`` on ``capture``; return its output and the record written to ``NAME.json``.
+    """Run ``method`` (a name of :func:`available_methods`) on ``capture``, in memory.
 
-    ``physical_projection``: project the output onto physically valid intensities
-    (:func:`capssim.physical_validity.project_to_physical`: ``I >= 0``, ``I0 + I90 = I45 + I135``,
-    DoLP <= 1) where all four angles are observed; its time is a stage of the method's.
-    ``reuse_registration``: reuse the warps stored with the capture for the same registration
-    (:mod:`capssim.reconstruct.registration.store`); False registers again and replaces them.
-    ``calibration``: the model of the array for CAPS methods
-    (:func:`capssim.reconstruct.calibration_model.resolve_calibration`: ``None`` the capture's own
-    calibration file if it names one, ``"ideal"``, ``"truth"`` or a ``capssim-rig`` file).
+    Parameters
+    ----------
+    capture, method
+        Raw frames ``(4, H, W)`` (CAPS) or ``(2H, 2W)`` (DoFP) with their ``meta.json``; a method name.
+    device, true_warps, registration, progress, reuse_registration
+        Torch device; use the capture's true warps; the registration mode; ``progress(i, n, stage)``; reuse warps.
+    physical_projection, calibration, **options
+        Project onto ``I >= 0``, ``I0 + I90 = I45 + I135``, DoLP <= 1 where all four angles are observed;
+        the CAPS array model (None: the capture's calibration file if it names one, ``"ideal"``, ``"truth"``
+        or a ``capssim-rig`` file); the method's options (e.g. ``iterations``).
+
+    Returns
+    -------
+    (MethodOutput, dict)
+        ``output.image`` ``(12, 2H, 2W)`` float32; the record of ``recon/NAME.json`` (``wall_time_s``, ``stages_s``).
     """
     spec = get_method(method)
     dev = resolve_device(device)
@@ -243,7 +257,22 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
 
 
 def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:
-    """Read a capture folder, reconstruct, write ``recon/METHOD.{tiff,json}``; return the record."""
+    """Read a capture folder, :func:`reconstruct` it and write ``recon/METHOD.{tiff,json}``.
+
+    Parameters
+    ----------
+    capture_path : str or pathlib.Path
+        The capture folder.
+    method : str
+        A name of :func:`available_methods`.
+    **kwargs
+        Keyword options of :func:`reconstruct`.
+
+    Returns
+    -------
+    dict
+        The record written to ``recon/METHOD.json``.
+    """
     capture = read_capture(capture_path, load_gt=False)
     out, record = reconstruct(capture, method, **kwargs)
     write_reconstruction(capture_path, method, out.image, record)

@@ -37,10 +37,14 @@ LIBRARY: tuple[type[Scene], ...] = (AopWheel, CalibrationSheet, ColorChecker, Do
 
 
 def register_library(register: Callable[[type[Scene]], object]) -> None:
-    """Register every scene of :data:`LIBRARY` with ``register`` (:func:`capssim.render.scene_registry.register`).
+    """Register every scene of :data:`LIBRARY`; the entry point ``capssim.scenes:register_library``.
 
-    The entry point ``capssim.scenes:register_library`` (group ``capssim.scenes``); the registry calls
-    it once, with its own ``register``.
+    The registry (:mod:`capssim.render.scene_registry`) calls it once, with its own ``register``.
+
+    Parameters
+    ----------
+    register : callable
+        ``register(scene_class)``, e.g. :func:`capssim.render.scene_registry.register`.
     """
     for scene_class in LIBRARY:
         register(scene_class)

@@ -120,6 +120,7 @@ RECONSTRUCT_ROOMS = (
     ("model",),
     ("solvers",),
     ("priors",),
+    ("pipeline",),
     ("registry",),
     ("networks",),
     ("methods",),

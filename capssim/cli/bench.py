@@ -36,11 +36,12 @@ from capssim.cli._options import (
     number_in,
 )
 from capssim.cli._setup_options import DofpLayoutOption
+from capssim.cli.bench_budget import add_budget_command
 from capssim.cli.evaluate import format_table, format_value
 
 bench_app = typer.Typer(name="bench", no_args_is_help=True, rich_markup_mode=None,
                         help="Benchmarks: capssim bench SUBJECT [options] with SUBJECT in suite, reconstruct, "
-                             "registration, dofp, render, dataset.")
+                             "registration, dofp, render, dataset, budget.")
 
 RepeatsOption = typer.Option(1, "--repeats", help="Runs of each measurement; the tables show the fastest.",
                              callback=number_in("--repeats", 1, 1000, what="runs"))
@@ -367,6 +368,9 @@ def dataset(
     say(dataset_table(rows))
     if as_json:
         echo_json(rows)
+
+
+add_budget_command(bench_app)
 
 
 def register(app: typer.Typer) -> None:

@@ -172,16 +172,34 @@ def make_calibration_captures(out_dir, *, setup: CameraSetup | None = None, rig:
                               sensor: Sensor | None = None, size: int = 256, renderer: str = "simulate", polarizer_angles: int = 12, seed: int = 0,
                               aperture_homographies: np.ndarray | None = None, frames: int = 1,
                               spp: int | None = 64, overwrite: bool = False) -> dict:
-    """Write one calibration set of a rig under ``out_dir``; returns its index (also ``out_dir/index.json``).
+    """Write one calibration set of a rig under ``out_dir`` (module docstring: flat, polarizer sweep, geometry, star).
 
-    ``setup``: the camera set-up of every capture (:class:`~capssim.camera_setup.CameraSetup`: sensor,
-    PSF, DoFP layout, extinction ratio and the rig; ``None``: the default set-up, an ideal array);
-    ``rig`` and ``sensor``, when given, replace the set-up's.
-    ``size``: HR pixels (the size of the captures the calibration is for: homographies depend on
-    it); ``renderer``: ``simulate`` or ``mitsuba``; ``aperture_homographies`` ``(4, 3, 3)``
-    (default: a draw of the default pose ranges from ``seed``), shared by every capture;
-    ``frames``: captures of each uniform target (flat, every sweep angle); ``spp``: samples per
-    HR pixel (``mitsuba``). Also writes ``out_dir/rig.json``, the true rig and homographies.
+    Parameters
+    ----------
+    out_dir : str or pathlib.Path
+        The folder of the set; one capture folder per target inside.
+    setup, rig, sensor : optional
+        The :class:`~capssim.camera_setup.CameraSetup` of every capture (None: the default set-up, an
+        ideal array); a :class:`~capssim.rig.RigModel` and a :class:`~capssim.sensor.Sensor` that replace its own.
+    size : int
+        HR pixels of the captures the calibration is for (the homographies depend on it).
+    renderer : str
+        ``simulate`` (:func:`~capssim.simulate.simulate_capture`) or ``mitsuba``.
+    polarizer_angles : int
+        Number K of sweep angles ``phi`` of the ideal polarizer, evenly over 180 deg.
+    seed : int
+        Seed of the noise and, unless given, of the homographies.
+    aperture_homographies : numpy.ndarray, optional
+        ``(4, 3, 3)`` HR reference -> aperture, shared by every capture (default: a draw of the
+        default pose ranges from ``seed``).
+    frames, spp, overwrite
+        Captures of each uniform target; samples per HR pixel (``mitsuba``); replace an existing set.
+
+    Returns
+    -------
+    dict
+        The index, also written to ``out_dir/index.json``: ``captures`` (``folder``, ``target``, ...),
+        ``renderer``, ``size``. ``out_dir/rig.json`` holds the true rig and homographies.
     """
     if renderer not in ("simulate", "mitsuba"):
         raise InputError("renderer", repr(renderer), "simulate or mitsuba")

@@ -94,15 +94,21 @@ class CaptureDataset(Dataset):
 
     Parameters
     ----------
-    root : a dataset folder (samples read from its manifest) or a sequence of capture folders.
-    crop : HR crop size (a multiple of 4), or None for whole captures (which must then share a
-        size to be batched).
-    random_crop : random crop offsets (multiples of 4, drawn with ``generator`` or torch's global
-        generator, which a DataLoader seeds per worker); False: the centred crop (offset rounded
-        down to a multiple of 4).
-    load_gt, load_dofp : load ``gt.tiff`` / ``dofp_raw.tiff``.
-    verify_checksums : check each file's sha256 against the manifest when loading it.
-    indices : only these dataset samples (e.g. a train/validation split).
+    root : str, pathlib.Path or sequence of them
+        A dataset folder (samples read from its manifest) or a sequence of capture folders.
+    crop : int, optional
+        HR crop size (a multiple of 4), or None for whole captures (which must then share a size to be batched).
+    random_crop : bool
+        Random crop offsets (multiples of 4, drawn with ``generator`` or torch's global generator, which a
+        DataLoader seeds per worker); False: the centred crop (offset rounded down to a multiple of 4).
+    load_gt, load_dofp : bool
+        Load ``gt.tiff`` / ``dofp_raw.tiff``.
+    verify_checksums : bool
+        Check each file's sha256 against the manifest when loading it.
+    indices : iterable of int, optional
+        Only these dataset samples (e.g. a train/validation split).
+    generator : torch.Generator, optional
+        The generator of the random crops (None: torch's global one).
     """
 
     def __init__(self, root: str | Path | Sequence[str | Path], *, crop: int | None = None, random_crop: bool = True,

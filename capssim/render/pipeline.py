@@ -224,16 +224,22 @@ def check_render(scene: str, *, settings: RenderSettings | None = None, **option
 
 
 def render_capture(scene: str, *, settings: RenderSettings | None = None, **options) -> Capture:
-    """Render library scene ``scene`` through the CAPS array and the DoFP camera.
+    """Render library scene ``scene`` through the CAPS array and the DoFP camera (Mitsuba).
 
-    ``settings`` (a :class:`~capssim.render.settings.RenderSettings`) and/or its fields as
-    keyword ``options`` (which replace those of ``settings``), e.g.
-    ``render_capture("siemens-star", size=64, spp=16, setup=setup)``. The camera set-up's fields
-    (:data:`SETUP_OPTIONS`: ``sensor``, ``psf``, ``dofp_layout``, ``extinction_ratio``, ``rig``) may
-    also be given as options; they replace the set-up's. The scene must be registered
-    (import :mod:`capssim.scenes`). The wall times are on ``capture.render_timing`` either way.
+    Parameters
+    ----------
+    scene : str
+        A registered library scene (``capssim scenes`` lists them), e.g. ``siemens-star``.
+    settings : RenderSettings, optional
+        All options at once (:class:`~capssim.render.settings.RenderSettings`).
+    **options
+        Its fields (``size``, ``spp``, ``seed``, ``setup``, ...), replacing those of ``settings``, and the camera
+        set-up's (:data:`SETUP_OPTIONS`: ``sensor``, ``psf``, ``dofp_layout``, ``extinction_ratio``, ``rig``).
 
-    Returns a :class:`~capssim.capture.Capture` of kind ``rendered`` (not yet written).
+    Returns
+    -------
+    Capture
+        Of kind ``rendered`` (not yet written); the wall times are on ``capture.render_timing``.
     """
     t_start = time.perf_counter()
     sc = get_scene(scene)

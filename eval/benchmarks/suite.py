@@ -2,35 +2,25 @@
 
 A suite (``eval/suites/NAME.yaml`` or any YAML path; the scoring guide's "Benchmarks") names:
 
-* ``scenes``: each ``{name, source, ...}`` with ``source`` one of
-  ``render`` (``capssim.render.render_capture``: ``scene``, ``size``, ``spp``, ``scene_params``),
-  ``shared-gt`` (a ground truth under ``../shared/data``: ``path``, ``crop``),
-  ``gt`` (a ground-truth folder or 12-channel TIFF anywhere: ``path``, ``crop``),
-  ``synthetic`` (:mod:`capssim.eval.synthetic`: ``generator``, ``size``, ``cycles``);
-  optionally ``fallback: OTHER_SCENE_NAME`` (a scene of the same file used, and reported,
-  when this one's data or renderer is unavailable) and ``psf_sigma_hr_px`` (HR px, default 0.5);
+* ``scenes``: each ``{name, source, ...}``, ``source`` one of ``render`` (``capssim.render.render_capture``:
+  ``scene``, ``size``, ``spp``, ``scene_params``), ``shared-gt`` (under ``../shared/data``: ``path``, ``crop``),
+  ``gt`` (a ground-truth folder or 12-channel TIFF: ``path``, ``crop``), ``synthetic`` (:mod:`capssim.eval.synthetic`:
+  ``generator``, ``size``, ``cycles``); optionally ``fallback: OTHER_SCENE_NAME`` (used, and reported, when this
+  one's data or renderer is unavailable) and ``psf_sigma_hr_px`` (HR px, default 0.5);
 * ``noise``: ``{name, noise: none|gaussian|poisson-gaussian, sigma, preset}`` (the sensor keys of the camera set-up);
-* ``seeds``: list of integers (poses, noise and render seeds);
-* ``methods``: names, or ``{name, label, options, true_warps, registration}`` for variants
-  (``registration``: a :data:`capssim.reconstruct.registration.parameters.REGISTRATION_MODES` name).
+* ``seeds``: list of integers (poses, noise and render seeds); ``methods``: names, or ``{name, label, options,
+  true_warps, registration}`` for variants (``registration``: a mode of ``capssim.reconstruct.registration``).
 
-Every case is ``(scene, noise, seed, method)``; its capture comes from
-:mod:`capssim.eval.benchmarks.captures` and its scores from the one scoring path,
-:class:`capssim.eval.evaluate.CaptureScorer`, both run by the tasks of
-:mod:`capssim.eval.benchmarks.cases`: one capture task per (scene, noise, seed), then one task per
-case. They run in this process, or on Dask (``workers``: a local cluster; ``scheduler``: a running
-one; :mod:`capssim.eval.benchmarks.executors`), where the cases run in parallel.
+Every case is ``(scene, noise, seed, method)``: one capture task per (scene, noise, seed), then one task per case
+(:mod:`capssim.eval.benchmarks.captures`, :mod:`capssim.eval.benchmarks.cases`; scored by
+:class:`capssim.eval.evaluate.CaptureScorer`), in this process or in parallel on Dask (``executors``).
 
-``results.jsonl`` (:mod:`capssim.eval.benchmarks.results`) gets each case's line as soon as the
-case finishes, and is rewritten in the plan's order at the end. An interrupted run, run again,
-does only the missing cases: a case already ``ok`` with the same case hash is not redone (the
-hash covers capture, method, options, device and fingerprints of the reconstruction and scoring
-code). A case's result depends on the case only: its capture's noise and poses come from its
-seed, and each worker computes with the thread count of a run in this process; a run on Dask
-gives the numbers of a run in this process. Wall time, stage times and peak memory are measured
-in the process that runs the method: :class:`~capssim.eval.benchmarks.provenance.PeakMemory`
-(``peak_rss_mb``, and ``peak_rss_delta_mb`` above the level before it; on CUDA also
-``cuda_peak_mb``); ``worker`` names that process (``host:pid``).
+``results.jsonl`` (:mod:`capssim.eval.benchmarks.results`) gets each case's line as it finishes, rewritten in plan
+order at the end. Run again, a suite does only the missing cases: an ``ok`` case with the same case hash (capture,
+method, options, device, reconstruction and scoring code fingerprints) is not redone. A result depends on its case
+only (seeded noise and poses; every worker uses an in-process run's thread count), so Dask gives the same numbers.
+Times and peak memory (:class:`~capssim.eval.benchmarks.provenance.PeakMemory`) are measured in the process that
+runs the method, named by ``worker`` (``host:pid``).
 """
 
 from __future__ import annotations
@@ -114,7 +104,17 @@ def _check_scenes(scenes: list) -> None:
 
 
 def load_suite(name_or_path: str | Path) -> dict:
-    """Read and validate a suite: a name in ``eval/suites`` or a path to a YAML file."""
+    """Read and validate a suite (module docstring; unknown methods, scenes or keys are one-line errors).
+
+    Parameters
+    ----------
+    name_or_path : str or pathlib.Path
+        A name in ``eval/suites`` or a path to a YAML file.
+
+    Returns
+    -------
+    dict
+    """
     path = Path(name_or_path)
     if not (path.suffix in (".yaml", ".yml") and path.is_file()):
         if str(name_or_path) not in available_suites():
@@ -353,15 +353,24 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
               device: str = "cpu", cache_dir: str | Path | None = None, fresh: bool = False,
               workers: int | None = None, scheduler: str | None = None, threads: int | None = None,
               events: Callable[..., None] | None = None) -> BenchRun:
-    """Run (or resume) a suite into ``output``; see the module docstring.
+    """Run (or resume) a suite into ``output`` (module docstring).
 
-    ``workers``: run the cases on a local Dask cluster of that many processes; ``scheduler``: on
-    the Dask cluster at that address; neither (or ``workers=0``): in this process. ``threads``:
-    the compute threads of each worker (default: :func:`capssim.threads.resolve_threads`'s,
-    ``$CAPSSIM_THREADS`` or the default, as the command line gives a run in this process).
-    ``events(kind, **info)`` is told ``start`` (``total``), ``case`` (``label``: the case
-    starting, in this process; the task just finished, on Dask), ``done``, ``skip``, ``note``
-    and ``error`` (``message``): the command line draws its progress from them.
+    Parameters
+    ----------
+    spec, methods, scenes
+        A suite from :func:`load_suite`; only these method labels / scene names (default: all).
+    output, cache_dir, fresh
+        The run's folder (``results.jsonl``); the captures' cache (default ``output/cache``); redo every case.
+    device, threads, workers, scheduler
+        Torch device; compute threads of each worker (default: :func:`capssim.threads.resolve_threads`'s); a local
+        Dask cluster of that many processes, or the one at that address (neither, or ``workers=0``: this process).
+    events : callable, optional
+        ``events(kind, **info)``: ``start`` (``total``), ``case`` (``label``), ``done``, ``skip``, ``note``, ``error``.
+
+    Returns
+    -------
+    BenchRun
+        ``records`` (plan order), ``results_path``, ``wall_time_s``, ``n_errors``, ``ok_records()``.
     """
     emit = events or (lambda kind, **info: None)
     t_start = time.perf_counter()

@@ -106,7 +106,25 @@ def _sweep(groups, flat_fit, raw_shape):
 
 
 def calibrate_captures(paths, output, *, source: dict | None = None) -> RigFile:
-    """Calibrate from the captures at ``paths`` and write the ``capssim-rig`` file ``output``."""
+    """Calibrate a rig from calibration captures and write the ``capssim-rig`` file ``output``.
+
+    Parameters
+    ----------
+    paths : list of str or pathlib.Path
+        Calibration sets or capture folders (flat field, polarizer sweep, geometry target, star;
+        :func:`~capssim.dataset.calibration_captures.make_calibration_captures`); each present target
+        calibrates its quantities.
+    output : str or pathlib.Path
+        The ``capssim-rig`` JSON file to write.
+    source : dict, optional
+        Provenance stored in the file.
+
+    Returns
+    -------
+    RigFile
+        ``rig`` (a :class:`~capssim.rig.RigModel`), ``calibrated`` (the measured quantities),
+        ``geometry``, ``uncertainty`` and ``residuals``.
+    """
     t0 = time.perf_counter()
     groups = load_calibration_set(paths)
     any_cap = next(c for g in groups.values() for c in g)

@@ -16,7 +16,9 @@ employed the joint constraints of (2) and (3)" with ``c1 = 0.001``, ``c2 = 0.01`
    cascade's assumption that demosaicking recovered full colour);
 3. the same CAGF (between the 4 polarization channels), initialization, data term, NLSTR
    (blocks ``8 x 8 x 4``) and ADMM as ``caps``; the three results are interleaved into the
-   12 channels ``c = 3 p + k``.
+   12 channels ``c = 3 p + k``. Steps 1-2 are this configuration's front end
+   (:func:`cascade_observations`); step 3 is the CAPS pipeline (:mod:`capssim.reconstruct.pipeline`),
+   so ``-p prior=NAME`` and ``-p data_term=NAME`` swap its slots as for ``caps``.
 
 A demosaicked pixel gets weight 0 if a saturated raw pixel lies in its 3x3 neighbourhood.
 
@@ -37,24 +39,14 @@ from capssim.operators.base import Composition, Reshape
 from capssim.operators.blur import Convolve
 from capssim.operators.sampling import IntegrateDecimate
 from capssim.operators.warp import Warp
-from capssim.reconstruct.methods.caps import REFERENCE, CapsOptions, explain_divergence, mean_psnr
+from capssim.reconstruct.methods.caps import REFERENCE
 from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function, flat_corrected_raw
 from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
-from capssim.reconstruct.model.cagf import cagf_confidence
-from capssim.reconstruct.model.data_term import ConfidenceDataTerm, field_of_view_mask
-from capssim.reconstruct.model.init_fusion import fuse_initial_estimate
-from capssim.reconstruct.model.observation_model import (
-    calibrated_analyzer,
-    method_geometry,
-    method_psf_kernels,
-    unmix_analyzer,
-)
+from capssim.reconstruct.model.data_term import field_of_view_mask
+from capssim.reconstruct.model.observation_model import calibrated_analyzer, method_geometry, method_psf_kernels
 from capssim.reconstruct.model.rearrange import Observations
-from capssim.reconstruct.priors.nlstr import NonlocalSparseTensor
-from capssim.reconstruct.priors.nlstr_prior import NLSTRPrior
+from capssim.reconstruct.pipeline import FrontEnd, PipelineConfig, Problem, run_pipeline
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
-from capssim.reconstruct.solvers.admm import admm
-from capssim.reconstruct.solvers.interfaces import DivergenceError
 
 #: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
 DEFAULT_BAYER_METHOD = "ri"
@@ -88,17 +80,29 @@ def aperture_sampling_operator(geometry: ArrayGeometry, kernel):
     ], name="aperture_sampling")
 
 
-@register_method("caps-iccp", input_kind="caps", reference=REFERENCE + " (ablation 'ICCP', 5.2)",
-                 description="CAPS ablation: cascade - demosaic each aperture (residual interpolation), then SR per "
-                             "RGB channel on its 4 polarization images (c1=0.001, c2=0.01)")
-def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
+def cascade_observations(capture, context: RunContext, options, *, bayer_method: str = DEFAULT_BAYER_METHOD
+                         ) -> FrontEnd:
+    """The cascade's front end: each aperture demosaicked, then one 4-channel problem per colour.
 
-    options = dict(context.options)
-    bayer_method = bayer_demosaic_function(options.pop("bayer_method", options.pop("bayer-method", DEFAULT_BAYER_METHOD)))[0]
-    opts = CapsOptions.from_options(options, c1=0.001, c2=0.01)
-    admm_params, nl_params = opts.validated_parameters()
-    dev, timer = context.device, context.timer
-    hr_shape = capture.hr_shape
+    Parameters
+    ----------
+    capture : Capture
+        The CAPS capture (4 RGGB raw frames ``(H/2, W/2)``).
+    context : RunContext
+        The run (device, timer, registration choices, calibration).
+    options : CapsOptions
+        The run's options (``psf_sigma``, ``fov_mask``).
+    bayer_method : str
+        The Bayer demosaicking (``-p bayer_method``; one of ``caps_naive.BAYER_METHODS``).
+
+    Returns
+    -------
+    FrontEnd
+        Three problems (colour k: the 4 demosaicked frames ``(4, H/2, W/2)`` of output channels
+        ``k::3``), the registration and PSF records, ``params`` ``bayer_method`` and ``channels_per_problem``.
+    """
+    bayer_method = bayer_demosaic_function(bayer_method)[0]
+    dev, timer, hr_shape = context.device, context.timer, capture.hr_shape
     analyzer = calibrated_analyzer(context)  # (12, 12) or None (ideal)
     with timer.stage("demosaic"):
         raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
@@ -109,54 +113,31 @@ def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
         geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)
         raw_h = geometry.raw_homographies   # HR reference -> raw pixel of each aperture
     with timer.stage("operator"):
-        kernel, kernels, psf_record = method_psf_kernels(capture, context, opts.psf_sigma)
+        kernel, kernels, psf_record = method_psf_kernels(capture, context, options.psf_sigma)
         operator = aperture_sampling_operator(geometry, kernel if kernels is None else kernels)
-        inside = field_of_view_mask(raw_h, raw.shape[-2:], hr_shape, half_extent=0.25) if opts.fov_mask else 1.0
+        inside = field_of_view_mask(raw_h, raw.shape[-2:], hr_shape, half_extent=0.25) if options.fov_mask else 1.0
         weights = weights * inside
-    nlstr = None
-    with timer.stage("nlstr_setup"):
-        nlstr = NonlocalSparseTensor((N_APERTURES, *hr_shape), nl_params, device=dev)
-    out = torch.empty(12, *hr_shape, dtype=torch.float32, device=dev)
-    inits = torch.empty_like(out)
-    history: list[dict] = []
-    total = 3 * admm_params.iterations
-    data_terms: list[ConfidenceDataTerm] = []
-
+    problems = []
     for k in range(3):
         obs = Observations(images=torch.as_tensor(rgb[:, k], device=dev),
                            weights=torch.as_tensor(np.ascontiguousarray(weights), dtype=torch.float32, device=dev),
                            channel_of=torch.arange(N_APERTURES, device=dev), n_channels=N_APERTURES)
-        with timer.stage("cagf"):
-            conf = cagf_confidence(obs.images, raw_h, obs.channel_of, N_APERTURES, hr_shape, weights=obs.weights,
-                                   nu=opts.cagf.nu, radius=opts.cagf.radius, eps=opts.cagf.eps)
         # a calibrated analyzer: aperture n sees sum_p A[3n+k, 3p+k] x_p in colour k (exact mixing)
         mixing = None if analyzer is None else analyzer[k::3, k::3]
-        with timer.stage("init"):
-            init = fuse_initial_estimate(obs, raw_h, hr_shape)
-            if mixing is not None:
-                init = unmix_analyzer(init, mixing)
-        data = ConfidenceDataTerm(obs, operator, confidence=conf, mixing=mixing)
+        problems.append(Problem(obs=obs, operator=operator, homographies=raw_h, seen=obs, mixing=mixing,
+                                unmix=mixing, channels=slice(k, None, 3), label=f"colour {'RGB'[k]}",
+                                history_fields={"colour": "RGB"[k]}))
+    return FrontEnd(problems=problems, registration=reg_record, psf=psf_record,
+                    params={"bayer_method": bayer_method, "channels_per_problem": N_APERTURES})
 
-        def progress(done, _total, message, k=k):
-            context.report(k * admm_params.iterations + done, total, f"colour {'RGB'[k]}: {message}")
 
-        try:
-            image, hist = admm(data, init, NLSTRPrior(nlstr, opts.matching), admm_params, stage=timer.stage,
-                               progress=progress)
-        except DivergenceError as exc:
-            raise explain_divergence(exc, opts, CapsOptions.from_options({}, c1=0.001, c2=0.01)) from None
-        out[k::3] = image
-        inits[k::3] = init
-        data_terms.append(data)
-        history.extend({**h, "colour": "RGB"[k]} for h in hist)
-    params = opts.to_dict()
-    params.update({"psf": psf_record, "bayer_method": bayer_method,
-                   "channels_per_problem": N_APERTURES, "n_groups": nlstr.n_ref, "strips": len(nlstr.strips)})
-    extra = {"registration": reg_record}
-    init_psnr = mean_psnr(capture, inits)
-    if init_psnr is not None:
-        extra["init_psnr_db"] = init_psnr
-        extra["psnr_db"] = mean_psnr(capture, out)
-    return MethodOutput(image=out.cpu().numpy(), params=params, history=history, extra=extra,
-                        unobserved=lambda: np.stack([d.unobserved_mask() for d in data_terms], axis=1)
-                        .reshape(12, *hr_shape))  # channel c = 3 n + k
+#: ablation 'ICCP' (5.2): the cascade front end, the paper's c1 = 0.001, c2 = 0.01
+ICCP = PipelineConfig(front_end=cascade_observations, defaults={"c1": 0.001, "c2": 0.01},
+                      front_end_options={"bayer_method": DEFAULT_BAYER_METHOD})
+
+
+@register_method("caps-iccp", input_kind="caps", reference=REFERENCE + " (ablation 'ICCP', 5.2)",
+                 description="CAPS ablation: cascade - demosaic each aperture (residual interpolation), then SR per "
+                             "RGB channel on its 4 polarization images (c1=0.001, c2=0.01)")
+def caps_iccp(capture, *, context: RunContext) -> MethodOutput:
+    return run_pipeline(capture, context, ICCP)

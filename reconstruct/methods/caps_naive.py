@@ -52,8 +52,8 @@ import torch.nn.functional as F
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.dofp.residual_interpolation import ri_bayer_demosaic_frames
 from capssim.reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
-from capssim.reconstruct.methods.caps import CapsOptions, _coerce, mean_psnr
 from capssim.reconstruct.model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
+from capssim.reconstruct.pipeline import caps_option_names, coerce_option, mean_psnr
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 log = logging.getLogger(__name__)
@@ -92,9 +92,6 @@ def bayer_demosaic_function(name: str):
     return key, table[key]
 
 
-_CAPS_OPTION_NAMES = frozenset(CapsOptions.option_names())
-
-
 @dataclass
 class NaiveOptions:
     bayer_method: str = "menon2007"
@@ -108,10 +105,10 @@ class NaiveOptions:
         for key, raw in (options or {}).items():
             name = str(key).replace("-", "_")
             if name in known:
-                values[name] = _coerce(name, raw, type(getattr(cls, name)))
+                values[name] = coerce_option(name, raw, type(getattr(cls, name)))
             elif name in extra:
                 rest[name] = raw
-            elif name in _CAPS_OPTION_NAMES:  # e.g. --iterations with -m all: meaningless here
+            elif name in caps_option_names():  # e.g. --iterations with -m all: meaningless here
                 log.warning("option %s is a caps option; ignored by this method", key)
             else:
                 raise UnknownNameError("option", key, sorted(known | set(extra)))

@@ -40,9 +40,9 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import CapssimError, InputError
-from capssim.reconstruct.methods.caps import _coerce
 from capssim.reconstruct.methods.caps_naive import NaiveOptions, bicubic_warp, demosaic_and_register, finish
 from capssim.reconstruct.networks import is_model_file, load_model, shipped_weights
+from capssim.reconstruct.pipeline import coerce_option
 from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Optics Express 32(2) 2364 (2024), section 5.2: single-image SR (EDSR/SwinIR/HAT) after "
@@ -92,11 +92,11 @@ def load_upsampler(path: str | None, device: torch.device, *, scale: float = 1.0
 def caps_sisr(capture, *, context: RunContext) -> MethodOutput:
     with context.timer.stage("setup"):  # option parsing; the first call imports colour-demosaicing (~1 s)
         opts, rest = NaiveOptions.from_options(context.options, extra=("model", "model_channels", "model_scale"))
-    channels = _coerce("model_channels", rest.get("model_channels", 1), int)
+    channels = coerce_option("model_channels", rest.get("model_channels", 1), int)
     if channels not in (1, 3):
         raise InputError("model_channels", channels, "1 (per channel) or 3 (RGB per aperture)")
     given_channels = "model_channels" in rest
-    scale = _coerce("model_scale", rest.get("model_scale", 1.0), float)
+    scale = coerce_option("model_scale", rest.get("model_scale", 1.0), float)
     if scale <= 0:
         raise InputError("model_scale", scale, "a number > 0")
     model_path = str(rest.get("model") or "").strip() or None

@@ -82,6 +82,10 @@ class NLSTRPrior:
         self.schedule = schedule
         self.begin()
 
+    def record(self) -> dict:
+        """What a method's record keeps of the prior: ``n_groups`` (reference blocks) and ``strips``."""
+        return {"n_groups": self.operator.n_ref, "strips": len(self.operator.strips)}
+
     def begin(self) -> None:
         self._n_similar = self.schedule.n_similar
         self._matches: BlockMatches | None = None

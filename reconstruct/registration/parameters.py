@@ -84,7 +84,17 @@ class RegistrationParameters:
         return registration_parameters(name)
 
     def replace(self, **changes) -> RegistrationParameters:
-        """A copy with ``changes`` (field names as keywords)."""
+        """A copy with some fields changed.
+
+        Parameters
+        ----------
+        **changes
+            Field names as keywords, e.g. ``model="affine"``.
+
+        Returns
+        -------
+        RegistrationParameters
+        """
         unknown = sorted(set(changes) - {f.name for f in dataclasses.fields(self)})
         if unknown:
             raise UnknownNameError("registration parameter", unknown[0], [f.name for f in dataclasses.fields(self)])
@@ -131,7 +141,23 @@ REGISTRATION_MODES: dict[str, RegistrationParameters] = {
 
 
 def registration_parameters(mode: str) -> RegistrationParameters:
-    """The :class:`RegistrationParameters` of a :data:`REGISTRATION_MODES` name (``UnknownNameError`` lists them)."""
+    """The :class:`RegistrationParameters` of a named registration mode.
+
+    Parameters
+    ----------
+    mode : str
+        A :data:`REGISTRATION_MODES` name, e.g. ``local-correlation``.
+
+    Returns
+    -------
+    RegistrationParameters
+        A frozen value; ``.replace(field=value)`` gives a modified copy.
+
+    Raises
+    ------
+    UnknownNameError
+        An unknown mode (the message lists them).
+    """
     if mode not in REGISTRATION_MODES:
         raise UnknownNameError("registration mode", mode, list(REGISTRATION_MODES))
     return REGISTRATION_MODES[mode]

@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import pytest
-from support.scenes import write_png_gt
 from typer.testing import CliRunner
 
 from capssim.capture import write_capture
@@ -39,12 +38,18 @@ def test_the_former_commands_are_gone():
         assert r.exit_code == 2 and "No such" in r.output, (old, r.output)
 
 
-def _gt_folder(path: Path, size: int = 64) -> Path:
-    return write_png_gt(path, texture_scene(size, seed=3)[0])
+@pytest.fixture
+def texture_gt_folder(write_png_gt):
+    """Factory: ``(path, size=64) -> path`` of a texture scene as PNGs."""
+
+    def _gt_folder(path: Path, size: int = 64) -> Path:
+        return write_png_gt(path, texture_scene(size, seed=3)[0])
+
+    return _gt_folder
 
 
-def test_dofp_subject_scores_the_published_columns(tmp_path):
-    _gt_folder(tmp_path / "gt" / "tiny")
+def test_dofp_subject_scores_the_published_columns(tmp_path, texture_gt_folder):
+    texture_gt_folder(tmp_path / "gt" / "tiny")
     r = _invoke("bench", "dofp", tmp_path / "gt", "--scene", "tiny", "-m", "dofp-bilinear", "--threads", 1, "--json")
     assert r.exit_code == 0, r.output
     assert "border crop 15 px" in r.stderr and "dofp-bilinear" in r.stderr  # the table: stdout is the JSON alone

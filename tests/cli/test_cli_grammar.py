@@ -39,6 +39,8 @@ GUIDE = REPO / "docs" / "guides" / "cli.md"
 
 #: (command, option) -> why that option takes a path although inputs are positional
 AUXILIARY_PATHS = {
+    ("bench budget", "--results-page"): "a secondary output: the Markdown results page",
+    ("bench budget", "--cache"): "a cache folder of captures (default: OUTPUT/cache)",
     ("bench suite", "--check"): "a baseline to compare the run with (a reference, not the input)",
     ("bench suite", "--update-baseline"): "a second output: the run's metrics as the new baseline",
     ("bench suite", "--results-page"): "a second output: the Markdown results page",

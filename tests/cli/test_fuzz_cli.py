@@ -23,7 +23,6 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from support.fuzz import NEVER_VALID, PEAK_GROWTH_LIMIT, fuzz_settings, invoke, odd_values, peak_rss_bytes
-from support.scenes import smooth_random_scene, write_gt_folder
 
 from capssim.capture import write_capture
 from capssim.eval.star import sinusoidal_star
@@ -73,7 +72,7 @@ MINUS_ONE_VALID = {"-p psf_sigma"}
 class World:
     """Small valid inputs for every command, made once per module, and a fresh output path per call."""
 
-    def __init__(self, root: Path):
+    def __init__(self, root: Path, *, write_gt_folder, smooth_random_scene):
         self.root = root
         self.gt = write_gt_folder(root / "gt", size=32, seed=1)
         (root / "gt-root").mkdir()
@@ -135,11 +134,12 @@ class World:
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
+def world(tmp_path_factory, write_gt_folder, smooth_random_scene):
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv(MEMORY_LIMIT_ENV, "2")
         start = peak_rss_bytes()
-        yield World(tmp_path_factory.mktemp("fuzz-cli"))
+        yield World(tmp_path_factory.mktemp("fuzz-cli"), write_gt_folder=write_gt_folder,
+                    smooth_random_scene=smooth_random_scene)
     grown = peak_rss_bytes() - start
     assert grown < PEAK_GROWTH_LIMIT, f"the CLI fuzz raised the peak memory by {grown / 2**20:.0f} MiB"
 

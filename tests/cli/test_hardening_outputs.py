@@ -10,7 +10,6 @@ import click
 import numpy as np
 import pytest
 import typer
-from support.scenes import smooth_random_scene
 from typer.testing import CliRunner
 
 from capssim.capture import write_capture, write_reconstruction
@@ -64,7 +63,7 @@ def _texts(fig) -> str:
                       + [t.get_text() for t in fig.texts])
 
 
-def test_demosaic_panel_has_titles_scales_and_keys():
+def test_demosaic_panel_has_titles_scales_and_keys(smooth_random_scene):
     image = smooth_random_scene(48, seed=2)
     fig = panel_figure(image, dolp_max=0.4, title="raw.png: dofp-eari")
     text = _texts(fig)
@@ -80,7 +79,7 @@ def test_demosaic_panel_has_titles_scales_and_keys():
     assert rendered.ndim == 3 and rendered.shape[1] > 3 * 260 and 0 <= rendered.min() and rendered.max() <= 1
 
 
-def test_report_crops_have_titles_and_keys(tmp_path, monkeypatch):
+def test_report_crops_have_titles_and_keys(tmp_path, monkeypatch, smooth_random_scene):
     figures = []
     monkeypatch.setattr(P, "_save", lambda fig, path: figures.append(fig) or path)
     gt = smooth_random_scene(48, seed=4)
@@ -108,7 +107,9 @@ def test_report_shows_per_method_memory_and_says_what_it_is():
 
 
 # -- case 9: dark scenes -------------------------------------------------------------------------
-def _dark_pair():
+@pytest.fixture
+def dark_pair(smooth_random_scene):
+    """``(gt, good, poor)``: a nearly black ``(12, 48, 48)`` scene and estimates with 1 % and 10 % error."""
     gt = smooth_random_scene(48, seed=1).astype(np.float64) * 1e-4
     rng = np.random.default_rng(0)
     good = gt * (1 + 0.01 * rng.standard_normal(gt.shape))
@@ -116,8 +117,8 @@ def _dark_pair():
     return gt, good, poor
 
 
-def test_dark_scene_scores_tell_methods_apart_and_fixed_peak_ones_are_unchanged():
-    gt, good, poor = _dark_pair()
+def test_dark_scene_scores_tell_methods_apart_and_fixed_peak_ones_are_unchanged(dark_pair):
+    gt, good, poor = dark_pair
     a, b = score(good, gt), score(poor, gt)
     # the fixed-peak scores: at the cap and SSIM 1.0000 for both, as before (values by their definitions)
     for r, est in ((a, good), (b, poor)):
@@ -140,7 +141,7 @@ def test_dark_scene_scores_tell_methods_apart_and_fixed_peak_ones_are_unchanged(
     assert bright["psnr_mean"] == pytest.approx(a["psnr_gt_peak_mean"], abs=1e-6)
 
 
-def test_gt_peak_scores_on_ordinary_and_empty_scenes():
+def test_gt_peak_scores_on_ordinary_and_empty_scenes(smooth_random_scene):
     gt = smooth_random_scene(48, seed=3).astype(np.float64)
     est = gt + 0.01
     r = score(est, gt, with_ssim=False)
@@ -158,8 +159,8 @@ def test_gt_peak_scores_on_ordinary_and_empty_scenes():
     assert "psnr_gt_peak_mean" in flat and flat["psnr_gt_peak_mean"] is None
 
 
-def _dark_capture(path: Path) -> Path:
-    gt, good, poor = _dark_pair()
+def _dark_capture(path: Path, dark_pair) -> Path:
+    gt, good, poor = dark_pair
     cap = simulate_capture(gt.astype(np.float32), make_sensor("none"), seed=0)
     write_capture(path, cap)
     write_reconstruction(path, "good", good.astype(np.float32), {"wall_time_s": 1.0})
@@ -167,8 +168,8 @@ def _dark_capture(path: Path) -> Path:
     return path
 
 
-def test_dark_scene_scores_reach_metrics_json_tables_results_and_report(tmp_path):
-    cap = _dark_capture(tmp_path / "dark")
+def test_dark_scene_scores_reach_metrics_json_tables_results_and_report(tmp_path, dark_pair):
+    cap = _dark_capture(tmp_path / "dark", dark_pair)
     r = runner.invoke(app, ["evaluate", str(cap)])
     assert r.exit_code == 0, r.output
     assert "PSNR-GTpk" in r.output and "SSIM-GTpk" in r.output and "the ground truth's peak" in r.output

@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support.scenes import write_png_gt
 from typer.testing import CliRunner
 
 from capssim.cli import app
@@ -55,10 +54,16 @@ if "test-upsample" not in available_methods():
         raise RuntimeError("this method is broken on purpose")
 
 
-def _write_gt_folder(path: Path, size: int = 48) -> Path:
-    from capssim.eval.synthetic import texture_scene
+@pytest.fixture
+def texture_gt_folder(write_png_gt):
+    """Factory: ``(path, size=48) -> path`` of a texture scene as PNGs."""
 
-    return write_png_gt(path, texture_scene(size, seed=5)[0])
+    def _write_gt_folder(path: Path, size: int = 48) -> Path:
+        from capssim.eval.synthetic import texture_scene
+
+        return write_png_gt(path, texture_scene(size, seed=5)[0])
+
+    return _write_gt_folder
 
 
 SUITE = """
@@ -76,9 +81,9 @@ scenes:
 
 
 @pytest.fixture
-def tiny(tmp_path, monkeypatch):
+def tiny(tmp_path, monkeypatch, texture_gt_folder):
     shared = tmp_path / "shared"
-    _write_gt_folder(shared / "gt" / "fake-scene")
+    texture_gt_folder(shared / "gt" / "fake-scene")
     monkeypatch.setenv("CAPSSIM_SHARED_DATA", str(shared))
     suite = tmp_path / "tiny.yaml"
     suite.write_text(SUITE)

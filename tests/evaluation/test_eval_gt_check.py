@@ -7,39 +7,44 @@ import json
 import numpy as np
 import pytest
 from scipy.ndimage import fourier_shift
-from support.scenes import smooth_random_scene
 
 from capssim.errors import InputError
 from capssim.eval.gt_check import aligned_ground_truth, check_ground_truth
 
 
-def shifted_scene(dx: float, dy: float, *, angle_index: int = 2, size: int = 96, pad: int = 16,
-                  dolp_max: float = 0.08) -> np.ndarray:
-    """A consistent scene whose analyzer image ``angle_index`` is moved by ``(dx, dy)`` px (content)."""
-    big = smooth_random_scene(size + 2 * pad, seed=3, dolp_max=dolp_max).astype(np.float64)
-    sl = slice(3 * angle_index, 3 * angle_index + 3)
-    for c in range(sl.start, sl.stop):
-        big[c] = np.fft.ifft2(fourier_shift(np.fft.fft2(big[c]), (dy, dx))).real
-    return big[:, pad:-pad, pad:-pad].astype(np.float32)
+@pytest.fixture
+def shifted_scene_of(smooth_random_scene):
+    """Factory of :func:`shifted_scene` scenes."""
+
+    def shifted_scene(dx: float, dy: float, *, angle_index: int = 2, size: int = 96, pad: int = 16,
+                      dolp_max: float = 0.08) -> np.ndarray:
+        """A consistent scene whose analyzer image ``angle_index`` is moved by ``(dx, dy)`` px (content)."""
+        big = smooth_random_scene(size + 2 * pad, seed=3, dolp_max=dolp_max).astype(np.float64)
+        sl = slice(3 * angle_index, 3 * angle_index + 3)
+        for c in range(sl.start, sl.stop):
+            big[c] = np.fft.ifft2(fourier_shift(np.fft.fft2(big[c]), (dy, dx))).real
+        return big[:, pad:-pad, pad:-pad].astype(np.float32)
+
+    return shifted_scene
 
 
-def test_a_consistent_scene_is_consistent():
-    report = check_ground_truth(shifted_scene(0.0, 0.0))
+def test_a_consistent_scene_is_consistent(shifted_scene_of):
+    report = check_ground_truth(shifted_scene_of(0.0, 0.0))
     assert report["consistent"], report["verdict"]
     assert max(r["mean_displacement_px"] for r in report["alignment"]) < 0.02
     assert max(s["rms_percent_of_s0"] for s in report["stokes"]["per_colour"]) < 0.05
     assert report["stokes"]["gains"]["g90"] == pytest.approx(1.0, abs=1e-3)
 
 
-def test_strong_polarization_texture_is_still_judged_consistent():
+def test_strong_polarization_texture_is_still_judged_consistent(shifted_scene_of):
     # the alignment estimate is biased by strong polarization texture (documented); Malus's law is not
-    report = check_ground_truth(shifted_scene(0.0, 0.0, dolp_max=0.6))
+    report = check_ground_truth(shifted_scene_of(0.0, 0.0, dolp_max=0.6))
     assert report["consistent"], report["verdict"]
     assert max(s["excess_percent"] for s in report["stokes"]["per_colour"]) < 0.05
 
 
-def test_a_moved_analyzer_image_is_measured():
-    report = check_ground_truth(shifted_scene(0.3, -0.2))
+def test_a_moved_analyzer_image_is_measured(shifted_scene_of):
+    report = check_ground_truth(shifted_scene_of(0.3, -0.2))
     assert not report["consistent"]
     assert "inconsistent" in report["verdict"]
     row90 = report["alignment"][1]
@@ -54,12 +59,12 @@ def test_a_moved_analyzer_image_is_measured():
     assert chk["stokes_rms_percent_aligned"] < chk["stokes_rms_percent_unaligned"] / 3
 
 
-def test_a_wrong_alignment_is_flagged_unreliable():
+def test_a_wrong_alignment_is_flagged_unreliable(shifted_scene_of):
     import torch
 
     from capssim.eval.gt_check import _alignment_check
 
-    scene = torch.as_tensor(shifted_scene(0.0, 0.0, dolp_max=0.6), dtype=torch.float64).reshape(4, 3, 96, 96)
+    scene = torch.as_tensor(shifted_scene_of(0.0, 0.0, dolp_max=0.6), dtype=torch.float64).reshape(4, 3, 96, 96)
     lum = scene.mean(dim=1)
     valid = torch.ones(96, 96, dtype=torch.float64)
     wrong = np.stack([np.eye(3)] * 3)
@@ -70,8 +75,8 @@ def test_a_wrong_alignment_is_flagged_unreliable():
     assert _alignment_check(lum, valid, np.stack([np.eye(3)] * 3))["reliable"]
 
 
-def test_the_quantization_floor_is_not_an_inconsistency():
-    scene = shifted_scene(0.0, 0.0)
+def test_the_quantization_floor_is_not_an_inconsistency(shifted_scene_of):
+    scene = shifted_scene_of(0.0, 0.0)
     eight_bit = np.round(scene * 255) / 255
     report = check_ground_truth(eight_bit.astype(np.float32), bit_depth=8)
     st = report["stokes"]["per_colour"][0]
@@ -82,8 +87,8 @@ def test_the_quantization_floor_is_not_an_inconsistency():
         check_ground_truth(scene, bit_depth=7)
 
 
-def test_aligned_ground_truth_removes_the_offset():
-    moved = shifted_scene(0.3, -0.2)
+def test_aligned_ground_truth_removes_the_offset(shifted_scene_of):
+    moved = shifted_scene_of(0.3, -0.2)
     report = check_ground_truth(moved)
     fixed = aligned_ground_truth(moved, report["alignment_matrices"])
     assert fixed.shape == moved.shape and fixed.dtype == np.float32
@@ -93,8 +98,8 @@ def test_aligned_ground_truth_removes_the_offset():
         "rms_percent_of_s0"] / 3
 
 
-def test_unequal_gains_are_found():
-    scene = shifted_scene(0.0, 0.0)
+def test_unequal_gains_are_found(shifted_scene_of):
+    scene = shifted_scene_of(0.0, 0.0)
     scene[6:9] *= 0.97                       # the 90 deg image 3 % darker (light drift between shots)
     report = check_ground_truth(scene)
     assert report["stokes"]["gains"]["g90"] == pytest.approx(1 / 0.97, abs=0.01)
@@ -102,11 +107,11 @@ def test_unequal_gains_are_found():
     assert report["stokes"]["per_colour"][0]["low_frequency_share"] > 0.5
 
 
-def test_flat_and_clipped_ground_truths_give_finite_reports():
+def test_flat_and_clipped_ground_truths_give_finite_reports(shifted_scene_of):
     flat = np.full((12, 48, 48), 0.5, np.float32)
     report = check_ground_truth(flat)
     assert np.isfinite(report["alignment"][0]["mean_displacement_px"])
-    clipped = np.clip(shifted_scene(0.0, 0.0) * 3.0, 0, 1)
+    clipped = np.clip(shifted_scene_of(0.0, 0.0) * 3.0, 0, 1)
     report = check_ground_truth(clipped)
     assert min(report["clipped_share"]) > 0.0
     assert report["consistent"], report["verdict"]
@@ -123,14 +128,14 @@ def test_bad_ground_truths_are_rejected(bad, match):
         check_ground_truth(bad)
 
 
-def test_cli_reports_and_writes_an_aligned_tiff(tmp_path):
+def test_cli_reports_and_writes_an_aligned_tiff(tmp_path, shifted_scene_of):
     from typer.testing import CliRunner
 
     from capssim.cli import app
     from capssim.imageio import read_gt_scene, write_tiff
 
     src = tmp_path / "moved.tiff"
-    write_tiff(src, shifted_scene(0.25, 0.0))
+    write_tiff(src, shifted_scene_of(0.25, 0.0))
     out = tmp_path / "aligned.tiff"
     result = CliRunner().invoke(app, ["gt-check", str(src), "--write-aligned", str(out)])
     assert result.exit_code == 0, result.output
@@ -145,12 +150,12 @@ def test_cli_reports_and_writes_an_aligned_tiff(tmp_path):
     assert again.exit_code != 0 and "--overwrite" in str(again.exception)
 
 
-def test_weak_polarization_cross_check_needs_enough_weakly_polarized_pixels():
+def test_weak_polarization_cross_check_needs_enough_weakly_polarized_pixels(shifted_scene_of):
     from capssim.eval.gt_check import MIN_WEAKLY_POLARIZED_SHARE
 
-    few = check_ground_truth(shifted_scene(0.0, 0.0), dolp_max=0.005)     # almost nothing that weak
+    few = check_ground_truth(shifted_scene_of(0.0, 0.0), dolp_max=0.005)     # almost nothing that weak
     assert few["weakly_polarized_share"] < MIN_WEAKLY_POLARIZED_SHARE
     assert few["alignment_weakly_polarized"] is None
-    many = check_ground_truth(shifted_scene(0.0, 0.0), dolp_max=0.5)
+    many = check_ground_truth(shifted_scene_of(0.0, 0.0), dolp_max=0.5)
     assert many["weakly_polarized_share"] >= MIN_WEAKLY_POLARIZED_SHARE
     assert len(many["alignment_weakly_polarized"]) == 3

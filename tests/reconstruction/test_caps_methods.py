@@ -174,7 +174,7 @@ def test_options_compose_the_parameter_objects_under_the_same_names():
     names = ["iterations", "mu0", "grow_rate", "grow_step", "dt", "n_similar", "n_similar_step", "n_similar_min",
              "rematch_change", "rematch_min_gap", "rematch_max_gap", "dictionary_gap", "block", "stride",
              "search_radius", "match_components", "c1", "c2", "adaptive", "weight_bandwidth", "strip_mb", "nu",
-             "cagf_radius", "cagf_eps", "psf_sigma", "fov_mask", "track_psnr", "preset"]
+             "cagf_radius", "cagf_eps", "psf_sigma", "fov_mask", "data_term", "prior", "track_psnr", "preset"]
     assert list(CapsOptions().to_dict()) == names == list(CapsOptions.option_names())
     opts = CapsOptions.from_options({"iterations": "7", "strip-mb": "0.5", "cagf_radius": 2, "rematch_max_gap": 4,
                                      "fov_mask": "off"}, c1=0.001)

@@ -9,7 +9,6 @@ import pytest
 import tifffile
 import torch
 import torch.nn.functional as F
-from support.scenes import smooth_random_scene
 
 from capssim.capture import write_capture
 from capssim.errors import CapssimError, InputError, UnknownNameError
@@ -23,12 +22,18 @@ def _capture(gt, *, seed=0, psf=None, homographies=None):
                             aperture_homographies=homographies)
 
 
-def _correlated_scene(size, seed):
-    """A smooth scene whose colours share one texture (as in natural images; the colour-
-    correlation priors of Menon/Malvar fail on independent per-colour textures)."""
-    scene = smooth_random_scene(size, seed=seed).reshape(4, 3, size, size)
-    gains = np.array([0.9, 1.0, 0.8], np.float32)[None, :, None, None]
-    return (scene.mean(axis=1, keepdims=True) * gains).reshape(12, size, size)
+@pytest.fixture
+def correlated_scene(smooth_random_scene):
+    """Factory: ``(size, seed) -> (12, size, size)`` with correlated channels."""
+
+    def _correlated_scene(size, seed):
+        """A smooth scene whose colours share one texture (as in natural images; the colour-
+        correlation priors of Menon/Malvar fail on independent per-colour textures)."""
+        scene = smooth_random_scene(size, seed=seed).reshape(4, 3, size, size)
+        gains = np.array([0.9, 1.0, 0.8], np.float32)[None, :, None, None]
+        return (scene.mean(axis=1, keepdims=True) * gains).reshape(12, size, size)
+
+    return _correlated_scene
 
 
 def _psnr(a, b):
@@ -44,7 +49,7 @@ def test_constant_image_is_exact(bayer):
     assert record["params"]["bayer_method"] == bayer
 
 
-def test_ri_demosaicking_is_accurate_on_tiny_and_smooth_frames():
+def test_ri_demosaicking_is_accurate_on_tiny_and_smooth_frames(correlated_scene):
     """Residual interpolation (caps-iccp's default) through the shared padding: frames down to 2x2 keep their
     shape and a constant colour; on a smooth correlated scene it is as good as Menon 2007 (within 1 dB)."""
     from capssim.reconstruct.methods.caps_naive import demosaic_apertures
@@ -55,7 +60,7 @@ def test_ri_demosaicking_is_accurate_on_tiny_and_smooth_frames():
         assert rgb.shape == (4, 3, side, side)
         np.testing.assert_allclose(rgb, np.broadcast_to(np.array([0.2, 0.5, 0.8])[None, :, None, None], rgb.shape),
                                    atol=1e-6)
-    gt = _correlated_scene(64, seed=4).reshape(4, 3, 64, 64)[0]  # one aperture's RGB on the raw grid
+    gt = correlated_scene(64, seed=4).reshape(4, 3, 64, 64)[0]  # one aperture's RGB on the raw grid
     raw = gt[1].copy()
     raw[0::2, 0::2], raw[1::2, 1::2] = gt[0][0::2, 0::2], gt[2][1::2, 1::2]
     crop = (slice(None), slice(4, -4), slice(4, -4))
@@ -63,8 +68,8 @@ def test_ri_demosaicking_is_accurate_on_tiny_and_smooth_frames():
     assert scores["ri"] > scores["menon2007"] - 1.0, scores
 
 
-def test_smooth_scene_with_true_warps_is_accurate():
-    gt = _correlated_scene(96, seed=3)
+def test_smooth_scene_with_true_warps_is_accurate(correlated_scene):
+    gt = correlated_scene(96, seed=3)
     capture = _capture(gt)
     out, record = reconstruct(capture, "caps-naive", true_warps=True)
     border = 8  # replicate border outside each aperture's field of view
@@ -86,7 +91,7 @@ def test_smooth_scene_with_true_warps_is_accurate():
     assert set(record["stages_s"]) >= {"demosaic", "registration", "resample"}
 
 
-def test_reference_aperture_equals_bicubic_upsampling_of_demosaicked_frame():
+def test_reference_aperture_equals_bicubic_upsampling_of_demosaicked_frame(smooth_random_scene):
     from capssim.reconstruct.methods.caps_naive import demosaic_apertures
 
     gt = smooth_random_scene(64, seed=1)
@@ -97,7 +102,7 @@ def test_reference_aperture_equals_bicubic_upsampling_of_demosaicked_frame():
     np.testing.assert_allclose(out.image[:3], ref, atol=1e-5)
 
 
-def test_cli_writes_tiff_and_json_with_timings(tmp_path):
+def test_cli_writes_tiff_and_json_with_timings(tmp_path, smooth_random_scene):
     from typer.testing import CliRunner
 
     from capssim.cli import app
@@ -114,7 +119,7 @@ def test_cli_writes_tiff_and_json_with_timings(tmp_path):
     assert record["wall_time_s"] > 0 and {"demosaic", "registration", "resample"} <= set(record["stages_s"])
 
 
-def test_odd_sub_image_sizes_and_dark_input():
+def test_odd_sub_image_sizes_and_dark_input(smooth_random_scene):
     gt = smooth_random_scene(64, seed=4)[:, :20, :36] * 1e-4  # sub-images 5 x 9, nearly black
     out, _ = reconstruct(_capture(np.ascontiguousarray(gt)), "caps-naive", true_warps=True)
     assert out.image.shape == (12, 20, 36) and np.all(np.isfinite(out.image))
@@ -122,7 +127,7 @@ def test_odd_sub_image_sizes_and_dark_input():
     assert np.all(zero.image == 0)
 
 
-def test_bad_options_give_clear_errors():
+def test_bad_options_give_clear_errors(smooth_random_scene):
     capture = _capture(smooth_random_scene(32))
     with pytest.raises(UnknownNameError, match="menon2007"):
         reconstruct(capture, "caps-naive", true_warps=True, bayer_method="ahd")
@@ -144,7 +149,7 @@ class _Wrong(torch.nn.Module):
         return x
 
 
-def test_sisr_torchscript_model_matches_bicubic(tmp_path):
+def test_sisr_torchscript_model_matches_bicubic(tmp_path, smooth_random_scene):
     model = tmp_path / "bicubic_x2.pt"
     torch.jit.script(_BicubicX2()).save(str(model))
     capture = _capture(smooth_random_scene(64, seed=5))
@@ -161,7 +166,7 @@ def test_sisr_torchscript_model_matches_bicubic(tmp_path):
     assert _psnr(plain.image, capture.gt) > 30
 
 
-def test_sisr_bad_models(tmp_path):
+def test_sisr_bad_models(tmp_path, smooth_random_scene):
     capture = _capture(smooth_random_scene(32))
     with pytest.raises(InputError, match="model"):
         reconstruct(capture, "caps-sisr", true_warps=True, model=str(tmp_path / "missing.pt"))

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 from scipy.ndimage import zoom
-from support.scenes import natural_scene, smooth_random_scene
 
 from capssim.conventions import dofp_channel_map
 from capssim.errors import InputError, UnknownNameError
@@ -39,10 +38,16 @@ def psnr(a, b) -> float:
     return float(10 * np.log10(1.0 / np.mean((np.asarray(a, np.float64) - b) ** 2)))
 
 
-def very_smooth_scene(size: int = 64) -> np.ndarray:
-    """The conftest scene at 1/4 resolution, cubic-upsampled x4: smooth at the DoFP 4x4 period."""
-    small = smooth_random_scene(size // 4, seed=3)
-    return np.stack([zoom(c, 4, order=3) for c in small]).clip(0, 1).astype(np.float32)
+@pytest.fixture
+def very_smooth_scene_of(smooth_random_scene):
+    """Factory: ``(size=64) -> (12, size, size)`` scene smooth at the DoFP period."""
+
+    def very_smooth_scene(size: int = 64) -> np.ndarray:
+        """The conftest scene at 1/4 resolution, cubic-upsampled x4: smooth at the DoFP 4x4 period."""
+        small = smooth_random_scene(size // 4, seed=3)
+        return np.stack([zoom(c, 4, order=3) for c in small]).clip(0, 1).astype(np.float32)
+
+    return very_smooth_scene
 
 
 # -- the dictionary and OMP -----------------------------------------------------------------------
@@ -120,20 +125,20 @@ def test_shapes_dtype_and_finite_output(shape, scene64):
     assert isinstance(tensor, torch.Tensor) and tensor.dtype == torch.float64 and tensor.shape == (12, *shape)
 
 
-def test_noise_estimate_is_close_on_a_smooth_scene():
-    clean = mosaic_of(very_smooth_scene(64), "sony")
+def test_noise_estimate_is_close_on_a_smooth_scene(very_smooth_scene_of):
+    clean = mosaic_of(very_smooth_scene_of(64), "sony")
     noisy = clean + 0.02 * np.random.default_rng(0).standard_normal(clean.shape)
     assert estimate_sigma(torch.from_numpy(clean)) < 0.003
     assert 0.017 < estimate_sigma(torch.from_numpy(noisy)) < 0.024
 
 
-def test_reference_values_against_bilinear_analytic_dictionary():
+def test_reference_values_against_bilinear_analytic_dictionary(very_smooth_scene_of):
     """Measured (64 px, seed 0): noisy sigma 0.02: jcpd 39.46 dB, bilinear 37.11 dB; clean: 51.25 vs 56.03 dB.
 
     JCPD denoises (it beats bilinear by > 2 dB under noise); on clean smooth data it stays within
     6 dB of bilinear's very high PSNR. The lower bounds are the measured values less 0.5 dB.
     """
-    gt = very_smooth_scene(64)
+    gt = very_smooth_scene_of(64)
     clean = mosaic_of(gt, "sony").astype(np.float32)
     noisy = (clean + 0.02 * np.random.default_rng(0).standard_normal(clean.shape)).astype(np.float32)
     jcpd_noisy = psnr(demosaic_dofp_jcpd(noisy, dictionary="analytic"), gt)
@@ -143,7 +148,7 @@ def test_reference_values_against_bilinear_analytic_dictionary():
     assert jcpd_clean > bil_clean - 6.0 and jcpd_clean > 50.7, (jcpd_clean, bil_clean)
 
 
-def test_reference_values_learned_dictionary_on_natural_texture():
+def test_reference_values_learned_dictionary_on_natural_texture(natural_scene):
     """Measured (the shipped dictionary): clean 30.76 dB against bilinear 28.89 (EARI 33.49); sigma 0.02:
     29.63 against 28.34 (EARI 31.40). The learned dictionary beats the analytic one (27.2 dB) and
     bilinear on natural texture; the lower bounds are the measured values less 0.5 dB."""

@@ -7,7 +7,6 @@ import socket
 import numpy as np
 import pytest
 import torch
-from support.scenes import natural_scene, smooth_random_scene
 
 from capssim.errors import InputError
 from capssim.eval.metrics import score
@@ -17,21 +16,27 @@ from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 
-def _capture(size=48, sigma=0.0, seed=0, gt=None):
-    sensor = make_sensor("gaussian", sigma=sigma) if sigma else make_sensor("none")
-    gt = smooth_random_scene(size, seed=seed) if gt is None else gt
-    return simulate_capture(gt, sensor, seed=seed, psf={"type": "none"})
+@pytest.fixture
+def make_capture(smooth_random_scene):
+    """Factory: ``(size=48, sigma=0.0, seed=0, gt=None) -> Capture`` without PSF."""
+
+    def _capture(size=48, sigma=0.0, seed=0, gt=None):
+        sensor = make_sensor("gaussian", sigma=sigma) if sigma else make_sensor("none")
+        gt = smooth_random_scene(size, seed=seed) if gt is None else gt
+        return simulate_capture(gt, sensor, seed=seed, psf={"type": "none"})
+
+    return _capture
 
 
 def _psnr(a, b):
     return 10 * np.log10(1.0 / np.mean((np.clip(a, 0, 1) - b) ** 2))
 
 
-def test_cpdnet_with_a_trained_model_file(tmp_path):
+def test_cpdnet_with_a_trained_model_file(tmp_path, make_capture):
     torch.manual_seed(0)
     params = {"features": 6, "colour_blocks": 1, "polarization_blocks": 1}
     path = save_model(tmp_path / "cpd.pt", "cpdnet", params, build_network("cpdnet", params), {"steps": 1})
-    capture = _capture()
+    capture = make_capture()
     out, record = reconstruct(capture, "cpdnet", weights=str(path))
     assert out.image.shape == (12, 48, 48) and np.isfinite(out.image).all()
     assert record["params"]["weights"] == str(path) and record["params"]["network"] == "cpdnet"
@@ -42,13 +47,13 @@ def test_cpdnet_with_a_trained_model_file(tmp_path):
         reconstruct(capture, "cpdnet", weights=str(tmp_path / "missing.pt"))
 
 
-def test_caps_sisr_with_a_capssim_model_file(tmp_path):
+def test_caps_sisr_with_a_capssim_model_file(tmp_path, make_capture):
     params = {"channels": 3, "features": 4, "blocks": 1}
     net = build_network("edsr", params)
     for p in net.parameters():  # zero network: exactly the bicubic skip
         torch.nn.init.zeros_(p)
     path = save_model(tmp_path / "edsr.pt", "edsr", params, net, {"steps": 1})
-    capture = _capture(32)
+    capture = make_capture(32)
     out, record = reconstruct(capture, "caps-sisr", true_warps=True, model=str(path))
     assert record["params"]["upsampler"].startswith("capssim-model:edsr.pt") and record["params"]["model_channels"] == 3
     bicubic, _ = reconstruct(capture, "caps-sisr", true_warps=True, model="bicubic", model_channels=3)
@@ -57,13 +62,13 @@ def test_caps_sisr_with_a_capssim_model_file(tmp_path):
         reconstruct(capture, "caps-sisr", true_warps=True, model=str(path), model_channels=1)
 
 
-def test_shipped_models_run_offline_and_beat_their_interpolation(monkeypatch):
+def test_shipped_models_run_offline_and_beat_their_interpolation(monkeypatch, make_capture, natural_scene):
     """Default weights: no network access (sockets refuse to connect), and better than what each refines."""
     def refuse(*args, **kwargs):
         raise AssertionError("a code path tried to open a network connection")
 
     monkeypatch.setattr(socket.socket, "connect", refuse)
-    capture = _capture(sigma=0.01, seed=3, gt=natural_scene().astype(np.float32))
+    capture = make_capture(sigma=0.01, seed=3, gt=natural_scene().astype(np.float32))
     cpd, record = reconstruct(capture, "cpdnet")
     assert record["params"]["weights"].endswith("cpdnet-small.pt")
     bilinear, _ = reconstruct(capture, "dofp-bilinear")

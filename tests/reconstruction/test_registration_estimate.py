@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 from scipy.ndimage import gaussian_filter
-from support.scenes import smooth_random_scene
 
 import capssim.reconstruct.registration.engine as core
 import capssim.reconstruct.registration.estimate as registration
@@ -28,25 +27,31 @@ def _capture(scene, homographies):
     return cap.lr_images()
 
 
-def _unpolarized(size, seed=0, *, grey=True):
-    """Same image behind every polarizer; ``grey``: also the same in R, G, B (no Bayer colour aliasing)."""
-    s = smooth_random_scene(size, seed=seed, dolp_max=0.0).reshape(4, 3, size, size)
-    s = s.mean(0, keepdims=True)
-    if grey:
-        s = np.repeat(s.mean(1, keepdims=True), 3, 1)
-    return np.repeat(s, 4, 0).reshape(12, size, size)
+@pytest.fixture
+def unpolarized(smooth_random_scene):
+    """Factory: ``(size, seed=0, *, grey=True) -> (12, size, size)`` unpolarized scene."""
+
+    def _unpolarized(size, seed=0, *, grey=True):
+        """Same image behind every polarizer; ``grey``: also the same in R, G, B (no Bayer colour aliasing)."""
+        s = smooth_random_scene(size, seed=seed, dolp_max=0.0).reshape(4, 3, size, size)
+        s = s.mean(0, keepdims=True)
+        if grey:
+            s = np.repeat(s.mean(1, keepdims=True), 3, 1)
+        return np.repeat(s, 4, 0).reshape(12, size, size)
+
+    return _unpolarized
 
 
-def test_recovers_known_translations_grey_unpolarized():
+def test_recovers_known_translations_grey_unpolarized(unpolarized):
     """Pure translations, no polarization or colour texture: checks raw/Bayer/pixel-centre conventions.
 
     A half-pixel or Bayer-offset mistake would give >= 0.25 HR px; the tolerance is 0.05.
     """
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
-    images, sat = _capture(_unpolarized(size), h)
+    images, sat = _capture(unpolarized(size), h)
     res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
-    true = simulate_capture(_unpolarized(size), Sensor("none"), aperture_homographies=h,
+    true = simulate_capture(unpolarized(size), Sensor("none"), aperture_homographies=h,
                             psf={"type": "none"}).true_lr_homographies()
     err = registration_error_hr_px(res.lr_homographies, true, (size, size))
     assert np.all(np.isfinite(res.lr_homographies))
@@ -63,10 +68,10 @@ def test_flat_images_fall_back_with_warning(caplog):
     assert any("flat" in w for w in res.diagnostics["warnings"])
 
 
-def test_saturated_pixels_are_finite():
+def test_saturated_pixels_are_finite(unpolarized):
     size = 96
     h = np.stack([similarity(s) for s in SHIFTS])
-    images, sat = _capture(_unpolarized(size, seed=1), h)
+    images, sat = _capture(unpolarized(size, seed=1), h)
     images = images.copy()
     images[:, :6, :6] = 1.0
     sat = sat.copy()
@@ -97,11 +102,11 @@ def test_too_small_frames_fall_back():
     assert res.diagnostics["warnings"]
 
 
-def test_large_misregistration_is_finite_or_flagged():
+def test_large_misregistration_is_finite_or_flagged(unpolarized):
     """A shift far beyond the search range: a finite result, flagged unreliable or off by a lot, never NaN."""
     size = 64
     h = np.stack([similarity((40.0 * (n > 0), 0.0)) for n in range(4)])
-    images, sat = _capture(_unpolarized(size, seed=2), h)
+    images, sat = _capture(unpolarized(size, seed=2), h)
     res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     assert np.all(np.isfinite(res.lr_homographies))
 
@@ -109,10 +114,10 @@ def test_large_misregistration_is_finite_or_flagged():
 @pytest.mark.xfail(strict=True, reason="known open bias (~0.1 HR px) from R, G, B textures that are independent of "
                    "each other: the binomial luminance leaks their colour edges, the demosaicking's "
                    "smooth-colour-difference assumption fails; see docs: notes/registration.md")
-def test_recovers_known_translations_independent_colour_texture():
+def test_recovers_known_translations_independent_colour_texture(unpolarized):
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
-    images, sat = _capture(_unpolarized(size, grey=False), h)
+    images, sat = _capture(unpolarized(size, grey=False), h)
     res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     err = np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
     assert err.max() < 0.05, err
@@ -126,7 +131,7 @@ def _translation_errors(scene, *, size=128, **kw):
     return np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:])), res.diagnostics
 
 
-def test_colour_and_polarization_texture_is_registered_through_the_demosaicked_luminance():
+def test_colour_and_polarization_texture_is_registered_through_the_demosaicked_luminance(smooth_random_scene):
     """Colour and polarization texture (DoLP up to 0.6): the binomial luminance leaks the colour edges as a
     pattern tied to each sensor grid (0.147 HR px); the default keeps the RI-demosaicked luminance's warps,
     whose registered images are more Stokes-consistent, within the issue's 0.05."""
@@ -140,9 +145,9 @@ def test_colour_and_polarization_texture_is_registered_through_the_demosaicked_l
     assert rms["ri-binomial"] < rms["binomial"]
 
 
-def test_ri_luminance_removes_most_of_the_colour_aliasing_bias():
+def test_ri_luminance_removes_most_of_the_colour_aliasing_bias(unpolarized):
     """Independent R, G, B textures: the RI-demosaicked luminance at least halves the binomial's worst error."""
-    scene = _unpolarized(128, grey=False)
+    scene = unpolarized(128, grey=False)
     binomial, _ = _translation_errors(scene, luminance="binomial")
     ri, _ = _translation_errors(scene, luminance="ri-binomial")
     assert binomial.max() > 0.2, binomial  # the bias exists
@@ -165,19 +170,25 @@ def test_unknown_luminance_is_a_clear_error():
                                  parameters=RegistrationParameters(luminance="demosaic"))
 
 
-def _grey_polarized(size, seed):
-    """Polarization texture (DoLP up to 0.6, varying AoP), Stokes-consistent, R = G = B."""
-    s = smooth_random_scene(size, seed=seed, dolp_max=0.6).reshape(4, 3, size, size)
-    return np.repeat(s.mean(1, keepdims=True), 3, 1).reshape(12, size, size)
+@pytest.fixture
+def grey_polarized(smooth_random_scene):
+    """Factory: ``(size, seed) -> (12, size, size)`` grey, polarized scene."""
+
+    def _grey_polarized(size, seed):
+        """Polarization texture (DoLP up to 0.6, varying AoP), Stokes-consistent, R = G = B."""
+        s = smooth_random_scene(size, seed=seed, dolp_max=0.6).reshape(4, 3, size, size)
+        return np.repeat(s.mean(1, keepdims=True), 3, 1).reshape(12, size, size)
+
+    return _grey_polarized
 
 
 @pytest.mark.parametrize("seed", [1, 2])
-def test_stokes_subspace_mode_removes_polarization_texture_bias(seed):
+def test_stokes_subspace_mode_removes_polarization_texture_bias(seed, grey_polarized):
     """The local-correlation estimate is biased by polarization texture (0.1-0.27 px here); the
     stokes-subspace mode fixes the directions the Stokes residual determines (< 0.05 px)."""
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
-    images, sat = _capture(_grey_polarized(size, seed), h)
+    images, sat = _capture(grey_polarized(size, seed), h)
     res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat,
                                    parameters=registration_parameters("stokes-subspace").replace(model="translation"))
     err = np.abs(res.aperture_homographies[1:, :2, 2] - np.array(SHIFTS[1:]))
@@ -186,11 +197,11 @@ def test_stokes_subspace_mode_removes_polarization_texture_bias(seed):
     assert steps and steps[0]["kept_directions"] > 0
 
 
-def test_stokes_subspace_mode_keeps_unpolarized_estimate():
+def test_stokes_subspace_mode_keeps_unpolarized_estimate(unpolarized):
     """Without polarization texture the Stokes residual fixes few directions; the result stays accurate."""
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
-    images, sat = _capture(_unpolarized(size), h)
+    images, sat = _capture(unpolarized(size), h)
     res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat,
                                    parameters=TRANSLATION.replace(stokes_subspace_std=0.01))
     np.testing.assert_allclose(res.aperture_homographies[1:, :2, 2], np.array(SHIFTS[1:]), atol=0.05)
@@ -249,10 +260,10 @@ def test_photoelastic_texture_is_registered_by_the_stokes_rescue(seed, monkeypat
     assert err_off.max() > 0.5, err_off   # the case needs the rescue
 
 
-def test_stokes_rescue_is_not_tried_on_well_matched_apertures():
+def test_stokes_rescue_is_not_tried_on_well_matched_apertures(unpolarized):
     size = 128
     h = np.stack([similarity(s) for s in SHIFTS])
-    images, sat = _capture(_unpolarized(size), h)
+    images, sat = _capture(unpolarized(size), h)
     res = estimate_lr_homographies(images, hr_shape=(size, size), saturated=sat, parameters=TRANSLATION)
     joint = res.diagnostics["engine"]["stokes_joint"]
     assert joint["images"] == [] and "kept" not in joint
@@ -301,7 +312,7 @@ def test_plausibility_limits_are_checked():
         estimate_lr_homographies(images, hr_shape=(64, 64), parameters=RegistrationParameters(max_scale_error=1.5))
 
 
-def test_auto_refines_the_demosaicked_image_from_the_binomial_warps():
+def test_auto_refines_the_demosaicked_image_from_the_binomial_warps(smooth_random_scene):
     """``auto`` judges the demosaicked image at the binomial warps and, when it is more Stokes-consistent
     there, refines it from them on the finest level: the same warps as registering it from scratch."""
     scene = smooth_random_scene(128, seed=0, dolp_max=0.6)
@@ -316,7 +327,7 @@ def test_auto_refines_the_demosaicked_image_from_the_binomial_warps():
     np.testing.assert_allclose(auto.aperture_homographies, full.aperture_homographies, atol=2e-3)
 
 
-def test_auto_keeps_the_binomial_warps_without_a_second_registration(monkeypatch):
+def test_auto_keeps_the_binomial_warps_without_a_second_registration(monkeypatch, smooth_random_scene):
     """When the demosaicked image is less Stokes-consistent at the binomial warps, it is not registered."""
     scene = smooth_random_scene(128, seed=0, dolp_max=0.6)
     h = np.stack([similarity(s) for s in SHIFTS])

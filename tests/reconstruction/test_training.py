@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from support.scenes import smooth_random_scene, write_png_gt
 
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.methods.dofp_jcpd import demosaic_dofp_jcpd
@@ -40,10 +39,16 @@ sources:
 """
 
 
+@pytest.fixture
+def tmp_gt(tmp_path, write_png_gt, smooth_random_scene) -> Path:
+    """``tmp_path``, holding ``gt/a`` (a 48 px PNG ground truth) and the ``dataset.yaml`` that reads it."""
+    write_png_gt(tmp_path / "gt" / "a", smooth_random_scene(48, seed=2))
+    (tmp_path / "dataset.yaml").write_text(textwrap.dedent(DATASET))
+    return tmp_path
+
+
 def tiny_config(tmp_path: Path, network: str = "cpdnet", steps: int = 12, **extra) -> Path:
-    if not (tmp_path / "gt").is_dir():
-        write_png_gt(tmp_path / "gt" / "a", smooth_random_scene(48, seed=2))
-        (tmp_path / "dataset.yaml").write_text(textwrap.dedent(DATASET))
+    """A training config in ``tmp_path`` (the :func:`tmp_gt` folder) for a tiny network."""
     model = ("{network: cpdnet, features: 6, colour_blocks: 1, polarization_blocks: 1}" if network == "cpdnet"
              else "{network: edsr, channels: 3, features: 6, blocks: 1}")
     crop = 16 if network == "cpdnet" else 8
@@ -70,8 +75,8 @@ def weights_equal(a: Path, b: Path) -> bool:
 
 
 @pytest.mark.parametrize("network", ["cpdnet", "edsr"])
-def test_loss_decreases_and_model_file_loads(tmp_path, network):
-    config = load_train_config(tiny_config(tmp_path, network, steps=40))
+def test_loss_decreases_and_model_file_loads(tmp_path, network, tmp_gt):
+    config = load_train_config(tiny_config(tmp_gt, network, steps=40))
     losses = []
     result = train(config, tmp_path / "run", progress=lambda s, n, loss, v: losses.append(loss))
     assert len(losses) == 40 and result.steps == 40
@@ -84,8 +89,8 @@ def test_loss_decreases_and_model_file_loads(tmp_path, network):
         load_model(result.model, expect="cpdnet" if network == "edsr" else "edsr")
 
 
-def test_resume_is_exact_in_process(tmp_path):
-    config = load_train_config(tiny_config(tmp_path, steps=9))
+def test_resume_is_exact_in_process(tmp_path, tmp_gt):
+    config = load_train_config(tiny_config(tmp_gt, steps=9))
     straight = train(config, tmp_path / "straight")
     part = train(config, tmp_path / "resumed", stop_after=5)  # checkpoints at 3 and at the stop
     assert part.steps == 5 and not (tmp_path / "resumed" / MODEL).exists()
@@ -96,10 +101,10 @@ def test_resume_is_exact_in_process(tmp_path):
     assert all(logged[h["step"]] == h["loss"] for h in straight.history)
 
 
-def test_finished_dataset_is_shared_while_another_run_holds_its_lock(tmp_path):
+def test_finished_dataset_is_shared_while_another_run_holds_its_lock(tmp_path, tmp_gt):
     from capssim.dataset.manifest import DatasetLock
 
-    config = load_train_config(tiny_config(tmp_path, steps=2))
+    config = load_train_config(tiny_config(tmp_gt, steps=2))
     train(config, tmp_path / "first")  # generates the dataset
     with DatasetLock(config.dataset_root):  # e.g. a second training that is checking it
         second = train(config, tmp_path / "second")
@@ -109,8 +114,8 @@ def test_finished_dataset_is_shared_while_another_run_holds_its_lock(tmp_path):
     assert train(config, tmp_path / "stopped").steps == 2
 
 
-def test_sigkill_then_rerun_equals_uninterrupted(tmp_path):
-    config_path = tiny_config(tmp_path, steps=150)
+def test_sigkill_then_rerun_equals_uninterrupted(tmp_path, tmp_gt):
+    config_path = tiny_config(tmp_gt, steps=150)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as the command below: CPU results depend on the thread count
     try:
@@ -132,8 +137,8 @@ def test_sigkill_then_rerun_equals_uninterrupted(tmp_path):
     assert weights_equal(tmp_path / "straight" / MODEL, tmp_path / "killed" / MODEL)
 
 
-def test_config_errors_name_the_key(tmp_path):
-    good = tiny_config(tmp_path)
+def test_config_errors_name_the_key(tmp_path, tmp_gt):
+    good = tiny_config(tmp_gt)
     base = {"model": {"network": "cpdnet"}, "input": "dofp", "data": {"dataset": "dataset.yaml"}}
     parse_train_config(base, base_dir=tmp_path)
     cases = [({"model": {"network": "unet"}}, UnknownNameError, "unet"),
@@ -154,10 +159,10 @@ def test_config_errors_name_the_key(tmp_path):
     assert learning_rate(cfg, 0) == pytest.approx(0.003)
 
 
-def test_run_folder_of_another_config_is_refused(tmp_path):
-    config = load_train_config(tiny_config(tmp_path, steps=3))
+def test_run_folder_of_another_config_is_refused(tmp_path, tmp_gt):
+    config = load_train_config(tiny_config(tmp_gt, steps=3))
     train(config, tmp_path / "run")
-    other = load_train_config(tiny_config(tmp_path, steps=3, lr=0.001))
+    other = load_train_config(tiny_config(tmp_gt, steps=3, lr=0.001))
     with pytest.raises(InputError, match="another config"):
         train(other, tmp_path / "run")
     (tmp_path / "busy").mkdir()
@@ -174,8 +179,8 @@ def test_cli_bad_config_is_one_line(tmp_path):
     assert "data.dataset" in done.stderr
 
 
-def test_jcpd_dictionary_learning_gives_a_usable_dictionary(tmp_path):
-    tiny_config(tmp_path)
+def test_jcpd_dictionary_learning_gives_a_usable_dictionary(tmp_path, tmp_gt):
+    tiny_config(tmp_gt)
     path = tmp_path / "dict.yaml"
     path.write_text(textwrap.dedent(f"""
     seed: 2

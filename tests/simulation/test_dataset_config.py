@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support.scenes import smooth_random_scene, write_gt_folder
 
 from capssim.dataset import ConfigError, load_config, parse_config
 from capssim.dataset.augment import rotate_flip_twelve
@@ -27,7 +26,7 @@ def write_config(tmp_path: Path, text: str) -> Path:
 
 
 @pytest.fixture
-def gt_dir(tmp_path):
+def gt_dir(tmp_path, write_gt_folder):
     write_gt_folder(tmp_path / "gt" / "a", seed=1)
     write_gt_folder(tmp_path / "gt" / "b", seed=2)
     return tmp_path / "gt"
@@ -179,7 +178,7 @@ def test_cli_bad_config_exits_2_with_the_message(tmp_path, gt_dir):
     assert proc.returncode == 0 and "000004: seed" in proc.stdout
 
 
-def test_rot90_and_flip_move_polarization_angles():
+def test_rot90_and_flip_move_polarization_angles(smooth_random_scene):
     scene = smooth_random_scene(24, seed=3).astype(np.float64)
     stokes = stokes_from_12(scene)[:, 1]  # green (S0, S1, S2)
     aop, dop = aop_deg(stokes), dolp(stokes)

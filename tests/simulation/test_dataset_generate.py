@@ -13,7 +13,6 @@ import time
 from pathlib import Path
 
 import pytest
-from support.datasets import make_config, records_by_index, tree_bytes
 
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
@@ -25,7 +24,7 @@ from capssim.errors import InputError
 REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
 
-def test_generate_in_process_verify_and_regenerate_identically(tmp_path):
+def test_generate_in_process_verify_and_regenerate_identically(tmp_path, make_config, records_by_index, tree_bytes):
     cfg = load_config(make_config(tmp_path, samples=6))
     out = tmp_path / "out"
     result = generate_dataset(cfg, out, workers=0)
@@ -56,7 +55,7 @@ def test_generate_in_process_verify_and_regenerate_identically(tmp_path):
     assert result.generated == 0 and result.already_done == 6 and result.complete
 
 
-def test_verify_reports_corruption_and_missing_samples(tmp_path):
+def test_verify_reports_corruption_and_missing_samples(tmp_path, make_config):
     cfg = load_config(make_config(tmp_path, samples=5))
     out = tmp_path / "out"
     generate_dataset(cfg, out, workers=0)
@@ -90,7 +89,7 @@ def test_verify_reports_corruption_and_missing_samples(tmp_path):
         verify_dataset(tmp_path / "gt")
 
 
-def test_resume_removes_leftovers_and_redoes_unfinished(tmp_path):
+def test_resume_removes_leftovers_and_redoes_unfinished(tmp_path, make_config, records_by_index, tree_bytes):
     cfg = load_config(make_config(tmp_path, samples=6))
     ref = tmp_path / "ref"
     generate_dataset(cfg, ref, workers=0)
@@ -117,7 +116,7 @@ def test_resume_removes_leftovers_and_redoes_unfinished(tmp_path):
     assert sorted(records_by_index(out)) == list(range(6))
 
 
-def test_extend_refuse_other_config_and_lock(tmp_path):
+def test_extend_refuse_other_config_and_lock(tmp_path, make_config, tree_bytes):
     path = make_config(tmp_path, samples=3)
     out = tmp_path / "out"
     generate_dataset(load_config(path), out, workers=0)
@@ -137,7 +136,7 @@ def test_extend_refuse_other_config_and_lock(tmp_path):
             generate_dataset(load_config(path), out, workers=0)
 
 
-def test_failing_sample_is_recorded_and_bad_input_stops(tmp_path):
+def test_failing_sample_is_recorded_and_bad_input_stops(tmp_path, make_config):
     cfg = load_config(make_config(tmp_path, samples=4))
 
     def flaky(spec, samples_dir):
@@ -157,11 +156,9 @@ def test_failing_sample_is_recorded_and_bad_input_stops(tmp_path):
         generate_dataset(load_config(bad), tmp_path / "bad" / "out", workers=0)
 
 
-def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch):
+def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch, records_by_index, smooth_random_scene):
     """With a stand-in render_capture (simulate underneath), scene samples get the drawn
     parameters, record_timing=False, and byte-identical regeneration."""
-    from support.scenes import smooth_random_scene
-
     import capssim.dataset.sample as sample_module
     from capssim.psf import DEFAULT_PSF, PSF
     from capssim.simulate import simulate_capture
@@ -231,7 +228,7 @@ def _wait_for_lines(manifest: Path, n: int, proc: subprocess.Popen, timeout: flo
     raise AssertionError("timed out waiting for samples")
 
 
-def test_sigkill_mid_run_then_rerun_is_complete_and_byte_identical(tmp_path):
+def test_sigkill_mid_run_then_rerun_is_complete_and_byte_identical(tmp_path, make_config, records_by_index, tree_bytes):
     """Done-when (a): SIGKILL the CLI mid-run, rerun it, and get the uninterrupted dataset."""
     total = 16
     path = make_config(tmp_path, samples=total, size=64, gt_size=72)

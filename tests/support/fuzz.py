@@ -1,4 +1,4 @@
-"""Shared pieces of the fuzz suite (tests/test_fuzz_*.py): Hypothesis settings, odd values, the CLI outcome.
+"""Shared pieces of the fuzz suite (tests/*/test_fuzz_*.py): Hypothesis settings, odd values, the CLI outcome.
 
 Every fuzz test is derandomized (the same examples on every run, so CI is deterministic), has no
 deadline (a machine shared with other jobs varies in speed) and keeps no example database.

@@ -1,7 +1,7 @@
 """Scene and ground-truth builders shared by the tests.
 
-Tests receive them as fixtures of the same name (tests/conftest.py); a module-level helper of a test
-file that needs one imports it from here.
+Tests receive them as fixtures of the same name (tests/conftest.py); a test file's own helper that needs
+one becomes a factory fixture (tests/test_test_hygiene.py checks that no test imports this module).
 """
 
 from __future__ import annotations

@@ -1,0 +1,81 @@
+"""``capssim bench budget``: the error budget of a suite's cases (docs/guides/benchmarks.md, "Error budget")."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, apply_compute, echo_json
+
+
+def budget(
+    suites: List[str] = typer.Argument(..., metavar="SUITE...",
+                                       help="Suite name(s) (eval/suites/NAME.yaml) or YAML path(s); each runs "
+                                            "into OUTPUT/NAME."),
+    output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
+    methods: Optional[List[str]] = typer.Option(None, "--method", "-m", metavar="METHOD",
+                                                help="Method (repeatable; default: caps, caps-iccp, caps-naive, "
+                                                     "dofp-igri2, cpdnet)."),
+    scenes: Optional[List[str]] = typer.Option(None, "--scene", metavar="SCENE",
+                                               help="Only this scene of the suite (repeatable)."),
+    results_page: Optional[Path] = typer.Option(None, "--results-page",
+                                                help="(Re)write this Markdown results page, e.g. "
+                                                     "docs/results/budget.md (plots beside it)."),
+    no_views: bool = typer.Option(False, "--no-views", help="Skip the second views at the ceiling "
+                                                            "(converged solver, prior on the truth)."),
+    no_plots: bool = typer.Option(False, "--no-plots", help="Skip the waterfall plots."),
+    cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/NAME/cache; "
+                                                               "a suite run's cache can be shared)."),
+    fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
+    device: str = DeviceOption,
+    threads: Optional[int] = ThreadsOption,
+    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=0, metavar="N",
+                                          help="Run the cases on a local Dask cluster of N worker processes."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", metavar="ADDRESS",
+                                            help="Run the cases on the Dask cluster at this address."),
+    as_json: bool = JsonOption,
+) -> None:
+    """Error budget: each case's ladder of oracles (as captured -> true warps -> model-exact -> noise-free).
+
+    Each step is what one imperfection costs; the steps sum to the gap between the method as run and
+    its ceiling. Writes OUTPUT/NAME/budget.jsonl (one line per case, as it finishes; run again to
+    resume), budget.md and a waterfall plot per case.
+    """
+    from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
+    from capssim.eval.error_budget.budget_report import write_report, write_results_page
+    from capssim.eval.error_budget.runner import run_budget
+    from capssim.threads import resolve_threads
+
+    specs = [load_suite(name) for name in suites]  # every suite checked before any work
+    apply_compute(threads if threads is not None else resolve_threads(None), device)
+    say = (lambda text: typer.echo(text, err=True)) if as_json else typer.echo
+
+    def events(kind: str, **info) -> None:
+        if kind == "done":
+            say(f"  {info['label']}: {info['status']}")
+
+    runs = []
+    for spec in specs:
+        out = Path(output) / spec["name"] if len(specs) > 1 else Path(output)
+        run = run_budget(spec, out, methods=methods or None, scenes=scenes or None, device=device,
+                         cache_dir=cache, fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
+                         views=not no_views, events=events)
+        report = write_report(run, out, plots=not no_plots)
+        say(f"{spec['name']}: {len(run.records)} case(s), {run.n_errors} error(s), {run.wall_time_s:.1f} s; "
+            f"report {report}")
+        runs.append(run)
+    if results_page is not None:
+        command = "capssim bench budget " + " ".join(suites) + f" -o {output} --results-page {results_page}"
+        say(f"results page: {write_results_page(runs, results_page, command=command, plots=not no_plots)}")
+    if as_json:
+        echo_json([{"suite": r.spec["name"], "wall_time_s": r.wall_time_s, "records": r.records} for r in runs])
+    if any(r.n_errors for r in runs):
+        say("some cases failed; see the budget.jsonl files")
+        raise typer.Exit(1)
+
+
+def add_budget_command(bench_app: typer.Typer) -> None:
+    """Register `capssim bench budget` on the `bench` group (called by capssim.cli.bench)."""
+    bench_app.command("budget")(budget)

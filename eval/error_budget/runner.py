@@ -1,0 +1,205 @@
+"""The error budget of every case of a suite: one task per capture, one per (capture, method).
+
+The captures are the suite's own (:func:`~capssim.eval.benchmarks.cases.capture_task`, the same
+cache and seeds as ``capssim bench suite``); each case's ladder (:func:`~.ladder.run_ladder`) runs in
+one task, in this process or on Dask (:func:`~capssim.eval.benchmarks.executors.open_executor`).
+``budget.jsonl`` gets each case's line as soon as it finishes; a run started again does only the
+cases missing or changed (the case hash covers the capture, the method, the device, the views and
+fingerprints of the reconstruction, scoring and budget code).
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from capssim.capture import read_capture
+from capssim.errors import InputError, UnknownNameError
+from capssim.eval.benchmarks.cases import capture_task, forget_captures
+from capssim.eval.benchmarks.executors import check_execution, open_executor
+from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash
+from capssim.eval.benchmarks.results import ResultsLog
+from capssim.eval.benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE, case_key, plan
+from capssim.eval.evaluate import CaptureScorer
+from capssim.eval.metrics import get_convention
+from capssim.reconstruct.registry import available_methods, resolve_device
+
+from .ladder import run_ladder
+
+#: the methods of a budget by default (issue 32): the paper's method, its cascade ablation, the
+#: camera-array baseline, the best classical and the learned DoFP method
+BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet")
+BUDGET_CODE = ("eval/error_budget",)
+RESULTS_NAME = "budget.jsonl"
+
+
+@dataclass
+class BudgetRun:
+    """A finished budget run: ``records`` in plan order (scene x noise x seed x method)."""
+
+    spec: dict
+    output: Path
+    results_path: Path
+    records: list[dict]
+    wall_time_s: float = 0.0
+    execution: dict = field(default_factory=dict)
+
+    @property
+    def n_errors(self) -> int:
+        return sum(r["status"] == "error" for r in self.records)
+
+
+def budget_methods(names) -> list[dict]:
+    """Method entries ``{name, label, options, registration, true_warps}`` of registered method names."""
+    registered = available_methods()
+    entries = []
+    for name in names:
+        if name not in registered:
+            raise UnknownNameError("--method", name, sorted(registered))
+        entries.append({"name": name, "label": name, "options": {}, "registration": "local-correlation",
+                        "true_warps": False})
+    if len({e["name"] for e in entries}) != len(entries):
+        raise InputError("--method", list(names), "each method once")
+    return entries
+
+
+def budget_task(rec: dict, method: dict, capture_path: str, *, device: str, convention: str, views: bool) -> dict:
+    """The ladder of one case (``rec`` holds its identity); never raises: a failure is in the record."""
+    rec = dict(rec)
+    t0 = time.perf_counter()
+    try:
+        capture = read_capture(capture_path, require_gt=True)
+        if available_methods()[method["name"]].input_kind == "dofp" and capture.dofp_raw is None:
+            rec.update(status="skipped", reason="this capture has no DoFP frame")
+            return rec
+        scorer = CaptureScorer(capture, convention=convention)
+        rec.update(status="ok", **run_ladder(capture, method, scorer, device=device, views=views))
+    except Exception as exc:  # one failing case must not stop the budget
+        rec.update(status="error", reason=f"{type(exc).__name__}: {exc}", traceback=traceback.format_exc(limit=8))
+    rec["wall_time_s"] = time.perf_counter() - t0
+    return rec
+
+
+class _BudgetRun:
+    def __init__(self, spec: dict, output: Path, methods: list[dict], *, device: str, cache: Path, fresh: bool,
+                 views: bool, emit: Callable[..., None]):
+        self.spec, self.methods, self.cache, self.views, self.emit = spec, methods, cache, views, emit
+        self.device = str(resolve_device(device))
+        self.convention = get_convention(spec.get("convention", "capssim")).name
+        self.results = ResultsLog(output / RESULTS_NAME, fresh=fresh)
+        self.code = code_fingerprint(*RECONSTRUCTION_CODE, *SCORING_CODE, *BUDGET_CODE)
+        self.run_id = uuid.uuid4().hex
+        self.groups: list[tuple[dict, dict, int]] = []
+        self.records: dict[int, dict] = {}
+
+    def finish(self, index: int, rec: dict, *, new: bool = True) -> None:
+        self.records[index] = rec
+        if new:
+            self.results.append(rec)
+        self.emit("done", label=rec["key"], status=rec["status"])
+
+    def base(self, g: int, m: dict, scene_name: str) -> dict:
+        _, noise, seed = self.groups[g]
+        return {"suite": self.spec["name"], "scene": scene_name, "noise": noise["name"], "seed": seed,
+                "method": m["label"], "method_name": m["name"], "convention": self.convention,
+                "device": self.device, "key": case_key(scene_name, noise["name"], seed, m["label"])}
+
+    def on_capture(self, executor, g: int, outcome: dict | None, error: BaseException | None) -> None:
+        scene = self.groups[g][0]
+        entry = None if outcome is None or error is not None else outcome["entry"]
+        if entry is None:
+            reason = (f"{type(error).__name__}: {error}" if error is not None
+                      else (outcome["failure"] or (outcome["skip_reason"], ""))[0])
+            status = "skipped" if error is None and outcome["failure"] is None else "error"
+            for j, m in enumerate(self.methods):
+                rec = dict(self.base(g, m, scene["name"]), status=status, reason=reason,
+                           case_id=content_hash([scene["name"], self.groups[g][1:], m, "unavailable"])[:20])
+                self.finish(g * len(self.methods) + j, rec)
+            return
+        used = outcome["scene"]["name"]
+        for j, m in enumerate(self.methods):
+            cid = content_hash({"capture": entry.key, "method": m, "device": self.device, "code": self.code,
+                                "views": self.views, "convention": self.convention})[:20]
+            rec = dict(self.base(g, m, used), case_id=cid, capture=str(entry.path), capture_key=entry.key,
+                       scene_source=outcome["scene"]["source"], requested_scene=scene["name"])
+            previous = self.results.done(cid)
+            if previous is not None:
+                self.finish(g * len(self.methods) + j, previous, new=False)
+                continue
+            executor.submit(budget_task, rec, m, str(entry.path), device=self.device, convention=self.convention,
+                            views=self.views, tag=("case", g * len(self.methods) + j), case=True, name=rec["key"])
+
+    def execute(self, executor, scene_by_name: dict) -> None:
+        for g, (scene, noise, seed) in enumerate(self.groups):
+            chain = [scene] + ([scene_by_name[scene["fallback"]]] if scene.get("fallback") else [])
+            executor.submit(capture_task, str(self.cache), self.run_id, chain, noise, seed, tag=("capture", g),
+                            name=f"capture-{scene['name']}-{noise['name']}-{seed}")
+        for (kind, index), result, error in executor.completed():
+            if kind == "capture":
+                self.on_capture(executor, index, result, error)
+            else:
+                if error is not None:
+                    result = {"key": f"case {index}", "status": "error", "reason": f"{type(error).__name__}: {error}",
+                              "case_id": f"lost-{index}"}
+                self.finish(index, result)
+
+
+def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, device: str = "cpu",
+               cache_dir: str | Path | None = None, fresh: bool = False, workers: int | None = None,
+               scheduler: str | None = None, threads: int | None = None, views: bool = True,
+               events: Callable[..., None] | None = None) -> BudgetRun:
+    """Run (or resume) the error budget of a suite's cases into ``output``.
+
+    Parameters
+    ----------
+    spec : dict
+        A suite (:func:`capssim.eval.benchmarks.suite.load_suite`): its scenes, noise levels and seeds.
+    output : str or pathlib.Path
+        The run's folder: ``budget.jsonl`` (one line per case), the captures' cache (``cache/``).
+    methods : sequence of str, optional
+        Method names (default :data:`BUDGET_METHODS`); they need not be in the suite.
+    scenes : sequence of str, optional
+        Only these scenes of the suite.
+    device, threads : keyword-only
+        Torch device; compute threads of each worker.
+    cache_dir, fresh : keyword-only
+        The captures' cache (default ``output/cache``; a suite run's cache can be shared); redo every case.
+    workers, scheduler : keyword-only
+        A local Dask cluster of that many processes, or the one at that address (default: this process).
+    views : bool, keyword-only
+        Compute the second views at the ceiling (:func:`~.ladder.run_ladder`).
+    events : callable, optional
+        ``events(kind, **info)``: ``start`` (``total``), ``done`` (``label``, ``status``).
+
+    Returns
+    -------
+    BudgetRun
+    """
+    emit = events or (lambda kind, **info: None)
+    t0 = time.perf_counter()
+    entries = budget_methods(list(methods) if methods else BUDGET_METHODS)
+    plan_scenes, scene_by_name, _ = plan(spec, methods=None, scenes=list(scenes) if scenes else None, emit=emit)
+    check_execution(workers=workers, scheduler=scheduler)
+    output = Path(output)
+    output.mkdir(parents=True, exist_ok=True)
+    run = _BudgetRun(spec, output, entries, device=device, cache=Path(cache_dir) if cache_dir else output / "cache",
+                     fresh=fresh, views=views, emit=emit)
+    run.groups = [(s, n, int(seed)) for s in plan_scenes for n in spec["noise"] for seed in spec["seeds"]]
+    emit("start", total=len(run.groups) * len(entries))
+    try:
+        with open_executor(workers=workers, scheduler=scheduler, threads=threads) as executor:
+            execution = {"kind": executor.kind, "workers": getattr(executor, "workers", None)}
+            run.execute(executor, scene_by_name)
+    finally:
+        forget_captures()
+    records = [run.records[i] for i in sorted(run.records)]
+    run.results.finish(records)
+    return BudgetRun(spec=spec, output=output, results_path=run.results.path, records=records,
+                     wall_time_s=time.perf_counter() - t0, execution=execution)
+
+
+__all__ = ["BUDGET_METHODS", "BudgetRun", "budget_methods", "budget_task", "run_budget"]
