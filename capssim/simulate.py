@@ -112,18 +112,30 @@ def simulate_capture(gt: np.ndarray, setup: CameraSetup | Sensor | None = None, 
     gt : numpy.ndarray
         ``(12, 2H, 2W)`` intensities on [0, 1], channel ``c = 3 p + k``; values above full scale are kept
         with a warning (they saturate the sensor), negative ones refused (:func:`prepare_ground_truth`).
-    setup, psf, dofp_layout, extinction_ratio, rig
+    setup : CameraSetup or Sensor, optional
         The camera set-up (a bare :class:`~capssim.sensor.Sensor` takes the default set-up around it;
-        None: the default set-up). ``psf``, ``dofp_layout``, ``extinction_ratio`` and ``rig``, when given,
-        replace its fields (:func:`~capssim.camera_setup.as_setup`).
+        None: the default set-up). The four options below, when given, replace its fields
+        (:func:`~capssim.camera_setup.as_setup`).
+    psf : PSF or dict, optional
+        The optical PSF on the HR grid (``sigma_hr_px`` in HR pixels).
+    dofp_layout : str, optional
+        The DoFP camera's mosaic layout.
+    extinction_ratio : float, optional
+        Polarizer ``T_max / T_min`` (inf: ideal).
+    rig : RigModel, optional
+        The array's imperfections.
     seed : int
         The capture's seed.
     pose_ranges : PoseRanges
         Ranges of the drawn aperture poses (shift, HR px; rotation, deg; scale).
     aperture_homographies : numpy.ndarray, optional
         ``(4, 3, 3)`` HR reference -> aperture (x=col, y=row), replacing the drawn poses.
-    source, kind, extra_meta
-        Provenance, capture kind and extra keys written to ``meta.json``.
+    source : dict, optional
+        Provenance of the ground truth, written to ``meta.json["source"]``.
+    kind : str
+        ``meta.json["kind"]``: ``simulated``, ``rendered`` or ``real``.
+    extra_meta : dict, optional
+        Extra keys for ``meta.json``.
 
     Returns
     -------

@@ -181,8 +181,14 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
     ----------
     capture_path : str or pathlib.Path
         The capture folder.
-    convention, min_s0, min_dolp, border, lpips
-        As in :func:`capssim.eval.metrics.score`.
+    convention : str
+        ``capssim``, ``tokyotech`` or ``qiu`` (as in :func:`capssim.eval.metrics.score`).
+    min_s0, min_dolp : float, optional
+        AoP mask thresholds (default: the convention's).
+    border : int, optional
+        Pixels cropped on each side (default: the convention's).
+    lpips : optional
+        An :class:`capssim.eval.lpips.LPIPS` model, or None.
     methods : list of str, optional
         Only these reconstructions (default: all).
     with_mtf : bool

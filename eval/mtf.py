@@ -305,26 +305,26 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
                  reference_modulation=None, reference_pitch: float = 1.0, threshold: float = HECT,
                  residual_limit: float = 0.5, ring_width: float = 0.04, nyquist: float = NYQUIST,
                  min_radius: float | None = None) -> StarMTF:
-    """MTF of each channel of a sinusoidal Siemens star image, and their mean (module docstring).
-
-    All channels share one centre and one set of rings; ``"mean"`` averages their MTFs (not the images).
+    """MTF of each channel of a sinusoidal Siemens star, and their mean (the method and its limits: module docstring).
 
     Parameters
     ----------
-    images, cycles
+    images, cycles : numpy.ndarray, int
         ``(C, H, W)`` star image; its periods per turn.
-    names, center_rowcol, radius, min_radius
-        Channel names (default ``"0"``, ...); centre ``(row, col)`` (default: found); outer and inner radius, pixels.
-    reference_modulation, reference_pitch
-        None (extrapolate per channel), a number or one per channel; one reference pixel in pixels of this image.
-    threshold, residual_limit, ring_width, nyquist
-        Contrast of the resolution limit (HECT, paper section 5.3); largest trusted residual ratio;
-        relative ring width; Nyquist frequency, cycles per pixel.
+    names, center_rowcol, radius, min_radius, reference_modulation : optional
+        Channel names (default ``"0"``, ...); centre ``(row, col)`` (default: found); outer and inner radius,
+        pixels; the target's modulation, a number or one per channel (default: extrapolated to f = 0).
+    reference_pitch : float
+        One reference pixel in pixels of this image (4 for a capssim HR output).
+    threshold : float
+    residual_limit : float
+    ring_width : float
+    nyquist : float
 
     Returns
     -------
     StarMTF
-        ``results``: one :class:`MTFResult` per channel name, and ``"mean"`` when ``C > 1``.
+        ``results``: one :class:`MTFResult` per channel and ``"mean"`` (``C > 1``: their MTFs averaged ring by ring).
     """
     imgs, cycles, names, refs = _checked_star_inputs(images, cycles, names, reference_modulation)
     notes: list[str] = []

@@ -182,11 +182,11 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
 
     Parameters
     ----------
-    capture, method
+    capture, method : Capture, str
         Raw frames ``(4, H, W)`` (CAPS) or ``(2H, 2W)`` (DoFP) with their ``meta.json``; a method name.
-    device, true_warps, registration, progress, reuse_registration
+    device, true_warps, registration, progress, reuse_registration : optional, default: see signature
         Torch device; use the capture's true warps; the registration mode; ``progress(i, n, stage)``; reuse warps.
-    physical_projection, calibration, **options
+    physical_projection, calibration, **options : optional, default: see signature
         Project onto ``I >= 0``, ``I0 + I90 = I45 + I135``, DoLP <= 1 where all four angles are observed;
         the CAPS array model (None: the capture's calibration file if it names one, ``"ideal"``, ``"truth"``
         or a ``capssim-rig`` file); the method's options (e.g. ``iterations``).

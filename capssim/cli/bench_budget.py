@@ -16,15 +16,15 @@ def budget(
                                             "into OUTPUT/NAME."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
     methods: Optional[List[str]] = typer.Option(None, "--method", "-m", metavar="METHOD",
-                                                help="Method (repeatable; default: caps, caps-iccp, caps-naive, "
-                                                     "dofp-igri2, cpdnet)."),
+                                                help="Method label or name (repeatable; default: the suite's "
+                                                     "methods; a method not in the suite runs with its defaults)."),
     scenes: Optional[List[str]] = typer.Option(None, "--scene", metavar="SCENE",
                                                help="Only this scene of the suite (repeatable)."),
     results_page: Optional[Path] = typer.Option(None, "--results-page",
                                                 help="(Re)write this Markdown results page, e.g. "
                                                      "docs/results/budget.md (plots beside it)."),
-    no_views: bool = typer.Option(False, "--no-views", help="Skip the second views at the ceiling "
-                                                            "(converged solver, prior on the truth)."),
+    views: bool = typer.Option(False, "--views", help="Add the second views at the ceiling: the solver "
+                                                      "with 4x its iterations, NLSTR on the truth."),
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the waterfall plots."),
     cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/NAME/cache; "
                                                                "a suite run's cache can be shared)."),
@@ -61,7 +61,7 @@ def budget(
         out = Path(output) / spec["name"] if len(specs) > 1 else Path(output)
         run = run_budget(spec, out, methods=methods or None, scenes=scenes or None, device=device,
                          cache_dir=cache, fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
-                         views=not no_views, events=events)
+                         views=views, events=events)
         report = write_report(run, out, plots=not no_plots)
         say(f"{spec['name']}: {len(run.records)} case(s), {run.n_errors} error(s), {run.wall_time_s:.1f} s; "
             f"report {report}")

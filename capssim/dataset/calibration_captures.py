@@ -178,9 +178,12 @@ def make_calibration_captures(out_dir, *, setup: CameraSetup | None = None, rig:
     ----------
     out_dir : str or pathlib.Path
         The folder of the set; one capture folder per target inside.
-    setup, rig, sensor : optional
-        The :class:`~capssim.camera_setup.CameraSetup` of every capture (None: the default set-up, an
-        ideal array); a :class:`~capssim.rig.RigModel` and a :class:`~capssim.sensor.Sensor` that replace its own.
+    setup : CameraSetup, optional
+        The camera set-up of every capture (None: the default set-up, an ideal array).
+    rig : RigModel, optional
+        The rig, replacing the set-up's.
+    sensor : Sensor, optional
+        The sensor, replacing the set-up's.
     size : int
         HR pixels of the captures the calibration is for (the homographies depend on it).
     renderer : str
@@ -192,8 +195,12 @@ def make_calibration_captures(out_dir, *, setup: CameraSetup | None = None, rig:
     aperture_homographies : numpy.ndarray, optional
         ``(4, 3, 3)`` HR reference -> aperture, shared by every capture (default: a draw of the
         default pose ranges from ``seed``).
-    frames, spp, overwrite
-        Captures of each uniform target; samples per HR pixel (``mitsuba``); replace an existing set.
+    frames : int
+        Captures of each uniform target (flat, every sweep angle), with independent noise.
+    spp : int, optional
+        Samples per HR pixel (``mitsuba``).
+    overwrite : bool
+        Replace an existing set.
 
     Returns
     -------

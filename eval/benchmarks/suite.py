@@ -1,15 +1,8 @@
 """The benchmark suite runner: scenes x noise levels x seeds x methods from a suite file.
 
-A suite (``eval/suites/NAME.yaml`` or any YAML path; the scoring guide's "Benchmarks") names:
-
-* ``scenes``: each ``{name, source, ...}``, ``source`` one of ``render`` (``capssim.render.render_capture``:
-  ``scene``, ``size``, ``spp``, ``scene_params``), ``shared-gt`` (under ``../shared/data``: ``path``, ``crop``),
-  ``gt`` (a ground-truth folder or 12-channel TIFF: ``path``, ``crop``), ``synthetic`` (:mod:`capssim.eval.synthetic`:
-  ``generator``, ``size``, ``cycles``); optionally ``fallback: OTHER_SCENE_NAME`` (used, and reported, when this
-  one's data or renderer is unavailable) and ``psf_sigma_hr_px`` (HR px, default 0.5);
-* ``noise``: ``{name, noise: none|gaussian|poisson-gaussian, sigma, preset}`` (the sensor keys of the camera set-up);
-* ``seeds``: list of integers (poses, noise and render seeds); ``methods``: names, or ``{name, label, options,
-  true_warps, registration}`` for variants (``registration``: a mode of ``capssim.reconstruct.registration``).
+A suite (``eval/suites/NAME.yaml`` or any YAML path) names ``scenes`` (sources ``render``, ``shared-gt``, ``gt``,
+``synthetic``; optionally ``fallback`` and ``psf_sigma_hr_px``), ``noise`` levels (the sensor keys of the camera
+set-up), ``seeds`` and ``methods`` (names or variants); the guide docs/guides/benchmarks.md gives every key.
 
 Every case is ``(scene, noise, seed, method)``: one capture task per (scene, noise, seed), then one task per case
 (:mod:`capssim.eval.benchmarks.captures`, :mod:`capssim.eval.benchmarks.cases`; scored by
@@ -357,13 +350,19 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
 
     Parameters
     ----------
-    spec, methods, scenes
-        A suite from :func:`load_suite`; only these method labels / scene names (default: all).
-    output, cache_dir, fresh
-        The run's folder (``results.jsonl``); the captures' cache (default ``output/cache``); redo every case.
-    device, threads, workers, scheduler
-        Torch device; compute threads of each worker (default: :func:`capssim.threads.resolve_threads`'s); a local
-        Dask cluster of that many processes, or the one at that address (neither, or ``workers=0``: this process).
+    spec, output : dict, path
+        A suite from :func:`load_suite`; the run's folder (``results.jsonl``).
+    methods, scenes : list of str, optional
+        Only these method labels / scene names (default: all).
+    device : str
+    cache_dir : path, optional
+        The captures' cache (default ``output/cache``).
+    fresh : bool
+        Redo every case, also those already in ``results.jsonl``.
+    workers, scheduler : optional
+        A local Dask cluster of that many processes, or the one at that address (neither, or ``workers=0``: here).
+    threads : int, optional
+        Compute threads of each worker (default: :func:`capssim.threads.resolve_threads`'s).
     events : callable, optional
         ``events(kind, **info)``: ``start`` (``total``), ``case`` (``label``), ``done``, ``skip``, ``note``, ``error``.
 

@@ -38,10 +38,11 @@ from capssim.reconstruct.priors.nlstr import NonlocalSparseTensor
 from capssim.reconstruct.priors.nlstr_prior import NLSTRPrior
 from capssim.reconstruct.registry import available_methods, reconstruct
 
-from .oracles import model_exact_capture
+from .oracles import capture_mismatch, model_exact_capture
 
-#: the scores of a rung: 12-channel mean PSNR (dB), DoLP PSNR (dB), AoP mean absolute error (deg)
-BUDGET_METRICS = ("psnr_mean", "dolp_psnr", "aop_mae_deg")
+#: the scores of a rung: 12-channel mean PSNR (dB), intensity (S0) PSNR (dB), DoLP PSNR (dB), AoP mean
+#: absolute error (deg)
+BUDGET_METRICS = ("psnr_mean", "s0_psnr", "dolp_psnr", "aop_mae_deg")
 CAPS_RUNGS = ("as-captured", "true-warps", "model-exact", "noise-free")
 DOFP_RUNGS = ("as-captured", "model-exact", "noise-free")
 #: what each step removes (the imperfection whose cost it measures)
@@ -140,7 +141,8 @@ def run_ladder(capture, method: dict, scorer, *, device: str = "cpu", views: boo
     dict
         ``rungs`` (``[{rung, scores, wall_time_s}]`` in ladder order), ``steps``
         (:func:`telescoping_steps`), ``gap`` (``{metric: ceiling - as captured}``), ``ceiling``
-        (the last rung's scores), ``telescoping_error``, ``views``.
+        (the last rung's scores), ``telescoping_error``, ``views``, ``model_fidelity``
+        (:func:`~.oracles.capture_mismatch` of the capture and its model-exact oracle).
     """
     names = rungs_of(method["name"])
     captures = rung_captures(capture, names)
@@ -154,6 +156,8 @@ def run_ladder(capture, method: dict, scorer, *, device: str = "cpu", views: boo
            "gap": {k: (None if rungs[0]["scores"][k] is None or rungs[-1]["scores"][k] is None
                        else rungs[-1]["scores"][k] - rungs[0]["scores"][k]) for k in BUDGET_METRICS},
            "views": {}}
+    if "model-exact" in captures:
+        out["model_fidelity"] = capture_mismatch(capture, captures["model-exact"])
     if views:
         out["views"] = _views(captures["noise-free"], method, scorer, rungs[-1], device=device)
     return out

@@ -30,7 +30,7 @@ from capssim.reconstruct.registry import available_methods, resolve_device
 
 from .ladder import run_ladder
 
-#: the methods of a budget by default (issue 32): the paper's method, its cascade ablation, the
+#: the methods of the results page (issue 32): the paper's method, its cascade ablation, the
 #: camera-array baseline, the best classical and the learned DoFP method
 BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet")
 BUDGET_CODE = ("eval/error_budget",)
@@ -53,16 +53,24 @@ class BudgetRun:
         return sum(r["status"] == "error" for r in self.records)
 
 
-def budget_methods(names) -> list[dict]:
-    """Method entries ``{name, label, options, registration, true_warps}`` of registered method names."""
+def budget_methods(spec: dict, names=None) -> list[dict]:
+    """The method entries of a budget: the suite's own (``names`` None), else each name's entry in the
+    suite (by label or name) or a plain entry of a registered method (defaults, estimated warps)."""
     registered = available_methods()
+    suite_entries = [m for m in spec["methods"] if not m.get("true_warps")]
+    if not names:
+        return [m for m in suite_entries if m["name"] in registered]
     entries = []
     for name in names:
-        if name not in registered:
+        found = [m for m in suite_entries if m["label"] == name] or [m for m in suite_entries if m["name"] == name]
+        if found:
+            entries.append(found[0])
+        elif name in registered:
+            entries.append({"name": name, "label": name, "options": {}, "registration": "local-correlation",
+                            "true_warps": False})
+        else:
             raise UnknownNameError("--method", name, sorted(registered))
-        entries.append({"name": name, "label": name, "options": {}, "registration": "local-correlation",
-                        "true_warps": False})
-    if len({e["name"] for e in entries}) != len(entries):
+    if len({e["label"] for e in entries}) != len(entries):
         raise InputError("--method", list(names), "each method once")
     return entries
 
@@ -150,7 +158,7 @@ class _BudgetRun:
 
 def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, device: str = "cpu",
                cache_dir: str | Path | None = None, fresh: bool = False, workers: int | None = None,
-               scheduler: str | None = None, threads: int | None = None, views: bool = True,
+               scheduler: str | None = None, threads: int | None = None, views: bool = False,
                events: Callable[..., None] | None = None) -> BudgetRun:
     """Run (or resume) the error budget of a suite's cases into ``output``.
 
@@ -161,7 +169,8 @@ def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, dev
     output : str or pathlib.Path
         The run's folder: ``budget.jsonl`` (one line per case), the captures' cache (``cache/``).
     methods : sequence of str, optional
-        Method names (default :data:`BUDGET_METHODS`); they need not be in the suite.
+        Method labels or names (default: the suite's methods; :data:`BUDGET_METHODS` are the five of the
+        results page); a name not in the suite runs with its defaults.
     scenes : sequence of str, optional
         Only these scenes of the suite.
     device, threads : keyword-only
@@ -171,7 +180,8 @@ def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, dev
     workers, scheduler : keyword-only
         A local Dask cluster of that many processes, or the one at that address (default: this process).
     views : bool, keyword-only
-        Compute the second views at the ceiling (:func:`~.ladder.run_ladder`).
+        Also compute the second views at the ceiling (:func:`~.ladder.run_ladder`; the converged view
+        costs four ceiling runs).
     events : callable, optional
         ``events(kind, **info)``: ``start`` (``total``), ``done`` (``label``, ``status``).
 
@@ -181,7 +191,7 @@ def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, dev
     """
     emit = events or (lambda kind, **info: None)
     t0 = time.perf_counter()
-    entries = budget_methods(list(methods) if methods else BUDGET_METHODS)
+    entries = budget_methods(spec, list(methods) if methods else None)
     plan_scenes, scene_by_name, _ = plan(spec, methods=None, scenes=list(scenes) if scenes else None, emit=emit)
     check_execution(workers=workers, scheduler=scheduler)
     output = Path(output)
