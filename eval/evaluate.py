@@ -28,10 +28,11 @@ import numpy as np
 from capssim.capture import list_reconstructions, read_capture
 from capssim.conventions import CHANNEL_NAMES, N_CHANNELS
 from capssim.errors import CapssimError, CaptureFormatError, InputError
-from capssim.eval import metrics as M
-from capssim.eval.metric_records import flatten, json_safe
-from capssim.eval.mtf import StarMTF, measure_star
 from capssim.imageio import atomic_write_json, read_tiff
+
+from . import metrics as M
+from .metric_records import flatten, json_safe
+from .mtf import StarMTF, measure_star
 
 log = logging.getLogger(__name__)
 

@@ -64,8 +64,9 @@ import numpy as np
 
 from capssim.conventions import CHANNEL_NAMES, COLOURS, N_CHANNELS, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError, UnknownNameError
-from capssim.eval.metric_records import METRIC_SPECS
 from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
+
+from .metric_records import METRIC_SPECS
 
 #: PSNR reported for identical images (zero MSE), in dB.
 PSNR_CAP_DB = 100.0

@@ -1,8 +1,7 @@
 """MTF from a sinusoidal Siemens star, limit resolution and SR magnification (paper fig. 14-15, Table 4).
 
-Reference: ISO 12233:2014 Annex E (sinusoidal Siemens star, "s-SFR"); Loebich et al.,
-"Digital camera resolution measurement using sinusoidal Siemens stars", Proc. SPIE 6502
-(2007). The star and its ring fits are :mod:`capssim.eval.star`.
+Reference: ISO 12233:2014 Annex E (sinusoidal Siemens star, "s-SFR"); Loebich et al., "Digital camera
+resolution measurement using sinusoidal Siemens stars", Proc. SPIE 6502 (2007). Star fits: :mod:`capssim.eval.star`.
 
 Method (no resampling along arcs):
 
@@ -56,7 +55,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.eval.star import find_star_center, fit_rings, ring_edges, sinusoidal_star
+
+from .star import find_star_center, fit_rings, ring_edges, sinusoidal_star
 
 log = logging.getLogger(__name__)
 
@@ -312,8 +312,7 @@ def measure_star(images: np.ndarray, cycles: int, *, names: list[str] | None = N
     images, cycles : numpy.ndarray, int
         ``(C, H, W)`` star image; its periods per turn.
     names, center_rowcol, radius, min_radius, reference_modulation : optional
-        Channel names (default ``"0"``, ...); centre ``(row, col)`` (default: found); outer and inner radius,
-        pixels; the target's modulation, a number or one per channel (default: extrapolated to f = 0).
+        Channel names; centre ``(row, col)`` (default: found); outer, inner radius (px); target modulation(s).
     reference_pitch : float
         One reference pixel in pixels of this image (4 for a capssim HR output).
     threshold : float

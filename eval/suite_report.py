@@ -17,8 +17,9 @@ from pathlib import Path
 import numpy as np
 
 from capssim.capture import read_capture
-from capssim.eval import plots as P
 from capssim.imageio import atomic_write_text, read_tiff
+
+from . import plots as P
 
 log = logging.getLogger(__name__)
 

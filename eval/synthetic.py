@@ -22,8 +22,9 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from capssim.errors import UnknownNameError
-from capssim.eval.star import sinusoidal_star
 from capssim.polarization import twelve_from_stokes
+
+from .star import sinusoidal_star
 
 GENERATORS = ("texture", "star", "polarization-star")
 

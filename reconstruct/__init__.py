@@ -9,7 +9,7 @@ if __name__ != "capssim.reconstruct":
     raise ImportError(f"{__name__!r} is not an import name of capssim: the folder reconstruct/ is the package "
                       "capssim.reconstruct; write `import capssim.reconstruct` (after `pip install -e .`)")
 
-from capssim.reconstruct.registry import (
+from .registry import (
     MethodOutput,
     RunContext,
     available_methods,

@@ -27,9 +27,10 @@ import torch
 from capssim.capture import Capture, read_capture, write_reconstruction
 from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
 from capssim.physical_validity import project_to_physical
-from capssim.reconstruct.calibration_model import resolve_calibration
-from capssim.reconstruct.registration.parameters import registration_parameters
-from capssim.reconstruct.run_context import MethodOutput, RunContext, StageTimer
+
+from .calibration_model import resolve_calibration
+from .registration.parameters import registration_parameters
+from .run_context import MethodOutput, RunContext, StageTimer
 
 log = logging.getLogger(__name__)
 

@@ -16,8 +16,9 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 
-from capssim.reconstruct.calibration_model import CalibrationModel
 from capssim.threads import adapt_threads
+
+from .calibration_model import CalibrationModel
 
 __all__ = ["MethodOutput", "RunContext", "StageTimer"]
 

@@ -20,16 +20,17 @@ from typing import Callable
 
 from capssim.render.scene_base import Scene
 from capssim.render.scene_registry import all_scenes, get_scene
-from capssim.scenes.aop_wheel import AopWheel
-from capssim.scenes.calibration_sheet import CalibrationSheet
-from capssim.scenes.colorchecker import ColorChecker
-from capssim.scenes.dolp_ramp import DolpRamp
-from capssim.scenes.materials import Materials
-from capssim.scenes.polarization_star import PolarizationStar
-from capssim.scenes.siemens_star import SiemensStar
-from capssim.scenes.textured import Textured
-from capssim.scenes.water_glare import WaterGlare
-from capssim.scenes.window_reflection import WindowReflection
+
+from .aop_wheel import AopWheel
+from .calibration_sheet import CalibrationSheet
+from .colorchecker import ColorChecker
+from .dolp_ramp import DolpRamp
+from .materials import Materials
+from .polarization_star import PolarizationStar
+from .siemens_star import SiemensStar
+from .textured import Textured
+from .water_glare import WaterGlare
+from .window_reflection import WindowReflection
 
 #: every scene class of the library, in name order of their modules
 LIBRARY: tuple[type[Scene], ...] = (AopWheel, CalibrationSheet, ColorChecker, DolpRamp, Materials, PolarizationStar,

@@ -16,7 +16,8 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65
-from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle
+
+from ._targets import FacingCardScene, card_half_size, rectangle
 
 
 class CalibrationSheet(FacingCardScene):

@@ -20,7 +20,8 @@ import numpy as np
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65
 from capssim.render.spectral import CameraResponse, cached_arrays
-from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
+
+from ._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
 CHART = "ColorChecker N Ohta"
 COLUMNS, ROWS = 6, 4

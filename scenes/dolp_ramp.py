@@ -16,7 +16,8 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
-from capssim.scenes._targets import FacingCardScene, card_half_size, rectangle, view_half_width
+
+from ._targets import FacingCardScene, card_half_size, rectangle, view_half_width
 
 RAMP_SPAN = 0.8  # fraction of the view width over which DoLP goes from 0 to 1
 

@@ -19,7 +19,8 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
-from capssim.scenes._targets import DiscCardScene, card_half_size, rectangle
+
+from ._targets import DiscCardScene, card_half_size, rectangle
 
 
 class PolarizationStar(DiscCardScene):

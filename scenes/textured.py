@@ -21,7 +21,8 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern, plate_coordinates
-from capssim.scenes._targets import FacingCardScene, rectangle, view_half_width
+
+from ._targets import FacingCardScene, rectangle, view_half_width
 
 IMAGES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field", "retina",
           "brick", "grass", "gravel", "camera", "moon")  # the last five are grey (shown neutral)

@@ -20,8 +20,9 @@ from __future__ import annotations
 import math
 
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo
-from capssim.scenes._procedural import sand_texture, sky_envmap
-from capssim.scenes.window_reflection import fresnel_dolp
+
+from ._procedural import sand_texture, sky_envmap
+from .window_reflection import fresnel_dolp
 
 N_WATER = 1.333
 HEIGHT, AHEAD = 12.0, 16.0

@@ -24,8 +24,9 @@ import numpy as np
 
 from capssim.errors import InputError
 from capssim.render.scene_base import CameraPose, Scene, SceneInfo, d65, scale_pose, scale_scene
-from capssim.scenes._procedural import poster_texture
-from capssim.scenes.materials import checker
+
+from ._procedural import poster_texture
+from .materials import checker
 
 PANE_ANGLE_DEG = 40.0
 N_GLASS = 1.5

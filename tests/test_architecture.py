@@ -65,8 +65,19 @@ def floor_of(module: str) -> int:
     return best
 
 
-def _imports(path: Path) -> list[tuple[str, bool, int]]:
-    """``(imported project module, inside a function?, line)`` for each project import of a file."""
+def _absolute(module: str, path: Path, node: ast.ImportFrom) -> str:
+    """The absolute module name of ``from <node.module> import ...`` in ``module`` (relative imports resolved)."""
+    if not node.level:
+        return node.module
+    package = module if path.name == "__init__.py" else module.rsplit(".", 1)[0]
+    parts = package.split(".")
+    base = parts[:len(parts) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _imports(path: Path, module: str = "") -> list[tuple[str, bool, int]]:
+    """``(imported project module, inside a function?, line)`` for each project import of a file
+    (relative imports resolved against ``module``, the file's own module name)."""
     tree = ast.parse(path.read_text())
     top_level = {id(node) for node in tree.body}
     for node in ast.walk(tree):  # imports under module-level if/try count as top level
@@ -76,9 +87,10 @@ def _imports(path: Path) -> list[tuple[str, bool, int]]:
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
             names = [alias.name for alias in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+        elif isinstance(node, ast.ImportFrom) and (node.module or node.level):
+            source = _absolute(module, path, node)
             # ``from package import submodule`` depends on the submodule; other names on the module itself
-            names = [f"{node.module}.{alias.name}" if f"{node.module}.{alias.name}" in MODULES else node.module
+            names = [f"{source}.{alias.name}" if f"{source}.{alias.name}" in MODULES else source
                      for alias in node.names]
         else:
             continue
@@ -88,7 +100,7 @@ def _imports(path: Path) -> list[tuple[str, bool, int]]:
     return out
 
 
-GRAPH = {module: _imports(path) for module, path in MODULES.items()}
+GRAPH = {module: _imports(path, module) for module, path in MODULES.items()}
 
 
 def test_every_module_is_on_a_floor():

@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from capssim.errors import InputError
-from capssim.eval.benchmarks.suite import BenchRun
-from capssim.eval.metric_records import metric_direction
 from capssim.imageio import atomic_write_json
+
+from ..metric_records import metric_direction
+from .suite import BenchRun
 
 BASELINE_SCHEMA = "capssim.bench-baseline"
 

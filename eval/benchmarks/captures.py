@@ -27,20 +27,21 @@ import numpy as np
 from capssim.camera_setup import CameraSetup, sensor_from_mapping
 from capssim.capture import Capture, read_capture, read_meta, write_capture
 from capssim.errors import CapssimError, InputError
-from capssim.eval.benchmarks.provenance import REPO_ROOT, code_fingerprint, content_hash, shared_data_dir
-from capssim.eval.benchmarks.rigs import (
-    CALIBRATION_FILE,
-    attach_calibration,
-    calibration_for,
-    rig_geometry,
-)
-from capssim.eval.synthetic import synthetic_scene
 from capssim.imageio import atomic_write_json, read_gt_scene
 from capssim.measurement import CameraArrayMeasurement
 from capssim.psf import PSF
 from capssim.render import list_scenes, render_capture
 from capssim.rig import RigModel
 from capssim.simulate import prepare_ground_truth, simulate_capture
+
+from ..synthetic import synthetic_scene
+from .provenance import REPO_ROOT, code_fingerprint, content_hash, shared_data_dir
+from .rigs import (
+    CALIBRATION_FILE,
+    attach_calibration,
+    calibration_for,
+    rig_geometry,
+)
 
 log = logging.getLogger(__name__)
 

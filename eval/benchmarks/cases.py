@@ -24,10 +24,11 @@ from pathlib import Path
 from typing import Callable
 
 from capssim.capture import read_capture, write_reconstruction
-from capssim.eval.benchmarks.captures import CaptureFactory, Unavailable
-from capssim.eval.benchmarks.provenance import PeakMemory, environment
-from capssim.eval.evaluate import CaptureScorer, mtf_summary
 from capssim.reconstruct.registry import available_methods, reconstruct
+
+from ..evaluate import CaptureScorer, mtf_summary
+from .captures import CaptureFactory, Unavailable
+from .provenance import PeakMemory, environment
 
 
 def _now() -> str:

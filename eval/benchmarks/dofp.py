@@ -18,13 +18,14 @@ from pathlib import Path
 
 from capssim.capture import Capture
 from capssim.errors import InputError
-from capssim.eval.benchmarks.provenance import shared_data_dir
-from capssim.eval.metrics import tokyotech_scores
 from capssim.imageio import read_gt_scene
 from capssim.psf import PSF
 from capssim.reconstruct.registry import reconstruct
 from capssim.sensor import make_sensor
 from capssim.simulate import prepare_ground_truth, simulate_capture
+
+from ..metrics import tokyotech_scores
+from .provenance import shared_data_dir
 
 DEFAULT_SCENES = ("qiu-kettle", "qiu-cellphonecases")
 DEFAULT_METHODS = ("dofp-bilinear", "dofp-eari")

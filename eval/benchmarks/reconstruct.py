@@ -29,13 +29,14 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from capssim.capture import read_capture, write_capture
-from capssim.eval.benchmarks.provenance import shared_data_dir
 from capssim.imageio import read_gt_scene
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registry import RunContext, StageTimer, get_method, resolve_device
 from capssim.sensor import make_sensor
 from capssim.simulate import prepare_ground_truth, simulate_capture
 from capssim.threads import adaptive_decisions, is_adaptive, set_threads
+
+from .provenance import shared_data_dir
 
 #: the worker's module, run in a fresh subprocess per timed run
 WORKER_MODULE = "capssim.eval.benchmarks.reconstruct"

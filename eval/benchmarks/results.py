@@ -16,8 +16,9 @@ import json
 import logging
 from pathlib import Path
 
-from capssim.eval.benchmarks.provenance import json_default
 from capssim.imageio import append_line_durably, atomic_write_text
+
+from .provenance import json_default
 
 log = logging.getLogger(__name__)
 

@@ -23,10 +23,11 @@ from pathlib import Path
 from capssim.array_geometry import ArrayGeometry
 from capssim.dataset.calibration_captures import make_calibration_captures, seeded_aperture_homographies
 from capssim.errors import InputError
-from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash
-from capssim.eval.calibration import calibrate_captures
 from capssim.imageio import atomic_write_json
 from capssim.rig import RigModel
+
+from ..calibration import calibrate_captures
+from .provenance import code_fingerprint, content_hash
 
 log = logging.getLogger(__name__)
 

@@ -31,15 +31,16 @@ from typing import Callable
 import yaml
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.eval.benchmarks.captures import expand_render_scenes, suite_noise
-from capssim.eval.benchmarks.cases import capture_task, forget_captures, method_task
-from capssim.eval.benchmarks.executors import check_execution, open_executor
-from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash, environment
-from capssim.eval.benchmarks.results import ResultsLog
-from capssim.eval.benchmarks.rigs import METHOD_CALIBRATIONS, check_rig_spec
-from capssim.eval.metrics import get_convention
 from capssim.reconstruct.registration.parameters import registration_parameters
 from capssim.reconstruct.registry import available_methods, resolve_device
+
+from ..metrics import get_convention
+from .captures import expand_render_scenes, suite_noise
+from .cases import capture_task, forget_captures, method_task
+from .executors import check_execution, open_executor
+from .provenance import code_fingerprint, content_hash, environment
+from .results import ResultsLog
+from .rigs import METHOD_CALIBRATIONS, check_rig_spec
 
 log = logging.getLogger(__name__)
 

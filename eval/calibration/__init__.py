@@ -10,6 +10,6 @@ One estimator per module, each with its reference:
   ``capssim-rig`` file (:func:`capssim.rig.write_rig_json`).
 """
 
-from capssim.eval.calibration.calibrate import calibrate_captures, load_calibration_set
+from .calibrate import calibrate_captures, load_calibration_set
 
 __all__ = ["calibrate_captures", "load_calibration_set"]

@@ -28,12 +28,13 @@ import numpy as np
 
 from capssim.capture import Capture, read_capture
 from capssim.errors import InputError
-from capssim.eval.calibration.flat_field import MAX_SATURATED_FRACTION, fit_flat_field
-from capssim.eval.calibration.geometry_fit import fit_geometry
-from capssim.eval.calibration.malus import fit_malus
-from capssim.eval.calibration.psf_fit import fit_psf_sigmas
 from capssim.psf import PSF
 from capssim.rig import RigFile, RigModel, write_rig_json
+
+from .flat_field import MAX_SATURATED_FRACTION, fit_flat_field
+from .geometry_fit import fit_geometry
+from .malus import fit_malus
+from .psf_fit import fit_psf_sigmas
 
 log = logging.getLogger(__name__)
 

@@ -19,21 +19,22 @@ from typing import Callable
 
 from capssim.capture import read_capture
 from capssim.errors import InputError, UnknownNameError
-from capssim.eval.benchmarks.cases import capture_task, forget_captures
-from capssim.eval.benchmarks.executors import check_execution, open_executor
-from capssim.eval.benchmarks.provenance import code_fingerprint, content_hash
-from capssim.eval.benchmarks.results import ResultsLog
-from capssim.eval.benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE, case_key, plan
-from capssim.eval.evaluate import CaptureScorer
-from capssim.eval.metrics import get_convention
 from capssim.reconstruct.registry import available_methods, resolve_device
 
+from ..benchmarks.cases import capture_task, forget_captures
+from ..benchmarks.executors import check_execution, open_executor
+from ..benchmarks.provenance import code_fingerprint, content_hash
+from ..benchmarks.results import ResultsLog
+from ..benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE, case_key, plan
+from ..evaluate import CaptureScorer
+from ..metrics import get_convention
 from .ladder import run_ladder
 
 #: the methods of the results page (issue 32): the paper's method, its cascade ablation, the
 #: camera-array baseline, the best classical and the learned DoFP method
 BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet")
-BUDGET_CODE = ("eval/error_budget",)
+#: the code whose change redoes a case (the report, plots and command do not change a number)
+BUDGET_CODE = ("eval/error_budget/ladder.py", "eval/error_budget/oracles.py")
 RESULTS_NAME = "budget.jsonl"
 
 

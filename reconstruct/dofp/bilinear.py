@@ -26,7 +26,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from capssim.reconstruct.dofp.mosaic import (
+from ..filters import normalized_interpolation
+from .mosaic import (
     KERNEL_BILINEAR_QUINCUNX,
     KERNEL_BILINEAR_RECT,
     angle_offsets,
@@ -36,7 +37,6 @@ from capssim.reconstruct.dofp.mosaic import (
     split_submosaics,
     stack_12,
 )
-from capssim.reconstruct.filters import normalized_interpolation
 
 __all__ = ["bilinear_bayer", "bilinear_polarization", "demosaic_dofp_bilinear", "dofp_unobserved"]
 

@@ -8,7 +8,8 @@ import numpy as np
 import torch
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.run_context import MethodOutput
+
+from ..run_context import MethodOutput
 
 #: the range ``(low, high]`` of each float option: the regularizers are on [0, 1] data; below 1e-30
 #: ``1 / weight_floor`` overflows float32; ``bayer_sigma`` is a Gaussian std in pixels (below 0.01 its taps underflow)

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import torch
 
-from capssim.reconstruct.dofp.mosaic import KERNEL_BILINEAR_RECT, bayer_masks, polarization_masks
-from capssim.reconstruct.filters import box_sum, correlate, gaussian_one_sided, mirror_index, normalized_interpolation
+from ..filters import box_sum, correlate, gaussian_one_sided, mirror_index, normalized_interpolation
+from .mosaic import KERNEL_BILINEAR_RECT, bayer_masks, polarization_masks
 
 #: the colour-stage settings of EARI (``dofp-eari``'s defaults), used wherever capssim demosaicks
 #: a Bayer frame by RI: ``eps`` and ``weight_floor`` regularize the MLRI fits, ``bayer_sigma`` (px)

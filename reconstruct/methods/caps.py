@@ -32,8 +32,8 @@ the front end models the calibrated array (:mod:`capssim.reconstruct.pipeline.fr
 
 from __future__ import annotations
 
-from capssim.reconstruct.pipeline import PRESETS, CapsOptions, PipelineConfig, run_pipeline
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from ..pipeline import PRESETS, CapsOptions, PipelineConfig, run_pipeline
+from ..registry import MethodOutput, RunContext, register_method
 
 __all__ = ["CAPS", "NO_CAGF", "NO_NLSTR", "PRESETS", "REFERENCE", "CapsOptions"]
 

@@ -39,14 +39,15 @@ from capssim.operators.base import Composition, Reshape
 from capssim.operators.blur import Convolve
 from capssim.operators.sampling import IntegrateDecimate
 from capssim.operators.warp import Warp
-from capssim.reconstruct.methods.caps import REFERENCE
-from capssim.reconstruct.methods.caps_naive import bayer_demosaic_function, flat_corrected_raw
-from capssim.reconstruct.methods.caps_naive import demosaic_apertures as demosaic
-from capssim.reconstruct.model.data_term import field_of_view_mask
-from capssim.reconstruct.model.observation_model import calibrated_analyzer, method_geometry, method_psf_kernels
-from capssim.reconstruct.model.rearrange import Observations
-from capssim.reconstruct.pipeline import FrontEnd, PipelineConfig, Problem, run_pipeline
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+
+from ..model.data_term import field_of_view_mask
+from ..model.observation_model import calibrated_analyzer, method_geometry, method_psf_kernels
+from ..model.rearrange import Observations
+from ..pipeline import FrontEnd, PipelineConfig, Problem, run_pipeline
+from ..registry import MethodOutput, RunContext, register_method
+from .caps import REFERENCE
+from .caps_naive import bayer_demosaic_function, flat_corrected_raw
+from .caps_naive import demosaic_apertures as demosaic
 
 #: the paper's ICCP demosaicking: residual interpolation, the colour stage of [15]
 DEFAULT_BAYER_METHOD = "ri"

@@ -50,11 +50,12 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.dofp.residual_interpolation import ri_bayer_demosaic_frames
-from capssim.reconstruct.methods.caps import REFERENCE as CAPS_REFERENCE
-from capssim.reconstruct.model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
-from capssim.reconstruct.pipeline import caps_option_names, coerce_option, mean_psnr
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+
+from ..dofp.residual_interpolation import ri_bayer_demosaic_frames
+from ..model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
+from ..pipeline import caps_option_names, coerce_option, mean_psnr
+from ..registry import MethodOutput, RunContext, register_method
+from .caps import REFERENCE as CAPS_REFERENCE
 
 log = logging.getLogger(__name__)
 

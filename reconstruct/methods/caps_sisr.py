@@ -40,10 +40,11 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import CapssimError, InputError
-from capssim.reconstruct.methods.caps_naive import NaiveOptions, bicubic_warp, demosaic_and_register, finish
-from capssim.reconstruct.networks import is_model_file, load_model, shipped_weights
-from capssim.reconstruct.pipeline import coerce_option
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+
+from ..networks import is_model_file, load_model, shipped_weights
+from ..pipeline import coerce_option
+from ..registry import MethodOutput, RunContext, register_method
+from .caps_naive import NaiveOptions, bicubic_warp, demosaic_and_register, finish
 
 REFERENCE = ("Optics Express 32(2) 2364 (2024), section 5.2: single-image SR (EDSR/SwinIR/HAT) after "
              "demosaicking; Lim et al., 'Enhanced deep residual networks for single image super-resolution', "

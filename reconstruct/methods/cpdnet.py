@@ -17,13 +17,14 @@ import numpy as np
 import torch
 
 from capssim.capture import Capture
-from capssim.reconstruct.dofp.bilinear import dofp_unobserved
-from capssim.reconstruct.dofp.method_body import reject_unknown_options
-from capssim.reconstruct.dofp.mosaic import check_mosaic
-from capssim.reconstruct.networks import load_model, shipped_weights
-from capssim.reconstruct.networks.cpdnet import dofp_network_input
-from capssim.reconstruct.networks.tiling import apply_tiled
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+
+from ..dofp.bilinear import dofp_unobserved
+from ..dofp.method_body import reject_unknown_options
+from ..dofp.mosaic import check_mosaic
+from ..networks import load_model, shipped_weights
+from ..networks.cpdnet import dofp_network_input
+from ..networks.tiling import apply_tiled
+from ..registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Wen, Zheng, Lu, Zhao, 'Convolutional demosaicing network for joint chromatic and polarimetric "
              "imagery', Optics Letters 44(22) 5646, 2019; trained with capssim train")

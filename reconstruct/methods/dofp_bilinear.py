@@ -8,9 +8,10 @@ from __future__ import annotations
 import torch
 
 from capssim.capture import Capture
-from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear, dofp_unobserved
-from capssim.reconstruct.dofp.method_body import reject_unknown_options
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+
+from ..dofp.bilinear import demosaic_dofp_bilinear, dofp_unobserved
+from ..dofp.method_body import reject_unknown_options
+from ..registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Two-step bilinear colour-polarization demosaicking: bilinear Bayer demosaicking of each polarizer "
              "sub-mosaic, then bilinear interpolation of each polarizer lattice (polanalyser COLOR_PolarRGB; "

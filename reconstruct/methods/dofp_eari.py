@@ -46,9 +46,10 @@ from contextlib import nullcontext
 import torch
 
 from capssim.capture import Capture
-from capssim.reconstruct.dofp.bilinear import dofp_unobserved
-from capssim.reconstruct.dofp.method_body import run_dofp_method
-from capssim.reconstruct.dofp.mosaic import (
+
+from ..dofp.bilinear import dofp_unobserved
+from ..dofp.method_body import run_dofp_method
+from ..dofp.mosaic import (
     as_output,
     check_mosaic,
     clip_ceiling,
@@ -56,13 +57,13 @@ from capssim.reconstruct.dofp.mosaic import (
     split_submosaics,
     stack_12,
 )
-from capssim.reconstruct.dofp.residual_interpolation import (
+from ..dofp.residual_interpolation import (
     RI_BAYER_DEFAULTS,
     polarization_residual_interpolation,
     ri_bayer_demosaic,
 )
-from capssim.reconstruct.filters import correlate
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from ..filters import correlate
+from ..registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "
              "residual interpolation', IEEE ICIP 2020; colour stage: Kiku et al., 'Beyond color difference: residual "

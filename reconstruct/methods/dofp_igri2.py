@@ -40,9 +40,10 @@ import torch
 from capssim.capture import Capture
 from capssim.conventions import dofp_layout
 from capssim.errors import InputError
-from capssim.reconstruct.dofp.bilinear import dofp_unobserved
-from capssim.reconstruct.dofp.method_body import run_dofp_method
-from capssim.reconstruct.dofp.mosaic import (
+
+from ..dofp.bilinear import dofp_unobserved
+from ..dofp.method_body import run_dofp_method
+from ..dofp.mosaic import (
     angle_offsets,
     as_output,
     check_mosaic,
@@ -51,13 +52,13 @@ from capssim.reconstruct.dofp.mosaic import (
     split_submosaics,
     stack_12,
 )
-from capssim.reconstruct.dofp.residual_interpolation import (
+from ..dofp.residual_interpolation import (
     polarization_residual_interpolation,
     ri_bayer_demosaic,
     ri_green,
 )
-from capssim.reconstruct.methods.dofp_eari import DEFAULTS
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+from ..registry import MethodOutput, RunContext, register_method
+from .dofp_eari import DEFAULTS
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking based on "
              "intensity-guided residual interpolation', IEEE Sensors Journal 21(23) 2021 (IGRI2); colour stage: "

@@ -58,12 +58,13 @@ import torch.nn.functional as F
 from capssim.capture import Capture
 from capssim.conventions import dofp_channel_map
 from capssim.errors import InputError
-from capssim.reconstruct.dofp.bilinear import dofp_unobserved
-from capssim.reconstruct.dofp.method_body import reject_unknown_options
-from capssim.reconstruct.dofp.mosaic import angle_offsets, as_output, check_mosaic, clip_ceiling
-from capssim.reconstruct.networks import WEIGHTS_DIR
-from capssim.reconstruct.priors.sparse_coding import constant_atoms, joint_dictionary, omp
-from capssim.reconstruct.registry import MethodOutput, RunContext, register_method
+
+from ..dofp.bilinear import dofp_unobserved
+from ..dofp.method_body import reject_unknown_options
+from ..dofp.mosaic import angle_offsets, as_output, check_mosaic, clip_ceiling
+from ..networks import WEIGHTS_DIR
+from ..priors.sparse_coding import constant_atoms, joint_dictionary, omp
+from ..registry import MethodOutput, RunContext, register_method
 
 REFERENCE = ("Wen, Zheng, Lu, 'A Sparse Representation Based Joint Demosaicing Method for Single-Chip Polarized "
              "Color Sensor', IEEE Trans. Image Processing 30, 2021 (JCPD)")

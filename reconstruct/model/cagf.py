@@ -33,7 +33,8 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.reconstruct.filters import sliding_window_sum
+
+from ..filters import sliding_window_sum
 
 DEFAULT_NU = 0.2
 DEFAULT_RADIUS = 4

@@ -34,7 +34,8 @@ import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.operators.base import LinearOperator
-from capssim.reconstruct.model.rearrange import Observations
+
+from .rearrange import Observations
 
 #: sampling density, relative to a fully observed channel's mean, under which an HR pixel counts as unobserved
 UNOBSERVED_DENSITY = 1e-2

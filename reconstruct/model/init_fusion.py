@@ -36,9 +36,10 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.reconstruct.filters import gaussian_blur, gaussian_kernel
-from capssim.reconstruct.model.cagf import box_mean
-from capssim.reconstruct.model.rearrange import Observations
+
+from ..filters import gaussian_blur, gaussian_kernel
+from .cagf import box_mean
+from .rearrange import Observations
 
 
 def sample_positions(homographies, lr_shape: tuple[int, int]) -> np.ndarray:

@@ -27,11 +27,12 @@ from capssim.capture import Capture
 from capssim.errors import CapssimError, InputError
 from capssim.homography import registration_error_hr_px
 from capssim.psf import PSF
-from capssim.reconstruct.registration.estimate import estimate_lr_homographies
-from capssim.reconstruct.registration.parameters import registration_parameters
-from capssim.reconstruct.registration.store import stored_or_computed
-from capssim.reconstruct.run_context import RunContext
 from capssim.threads import registration_threads
+
+from ..registration.estimate import estimate_lr_homographies
+from ..registration.parameters import registration_parameters
+from ..registration.store import stored_or_computed
+from ..run_context import RunContext
 
 
 def truth_known(capture: Capture) -> bool:

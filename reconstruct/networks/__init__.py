@@ -21,8 +21,9 @@ from torch import nn
 
 from capssim.errors import InputError, UnknownNameError
 from capssim.imageio import atomic_write_bytes
-from capssim.reconstruct.networks.cpdnet import CPDNet
-from capssim.reconstruct.networks.edsr import EDSR
+
+from .cpdnet import CPDNet
+from .edsr import EDSR
 
 MODEL_FORMAT = "capssim-model"
 MODEL_VERSION = 1

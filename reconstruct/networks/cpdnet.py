@@ -33,9 +33,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from capssim.conventions import BAYER_RGGB
-from capssim.reconstruct.dofp.bilinear import demosaic_dofp_bilinear
-from capssim.reconstruct.dofp.mosaic import angle_offsets
-from capssim.reconstruct.networks.edsr import ResidualBlock
+
+from ..dofp.bilinear import demosaic_dofp_bilinear
+from ..dofp.mosaic import angle_offsets
+from .edsr import ResidualBlock
 
 
 def conv_stack(in_channels: int, out_channels: int, features: int, blocks: int) -> nn.Sequential:

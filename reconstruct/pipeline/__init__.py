@@ -8,18 +8,18 @@ parses its own options with :func:`coerce_option` (:mod:`.options`). The front e
 :mod:`.front_end`, what it hands on :mod:`.problem`, the ground-truth diagnostics :mod:`.diagnostics`.
 """
 
-from capssim.reconstruct.pipeline.diagnostics import channel_mean_psnr, mean_psnr, psnr_observer
-from capssim.reconstruct.pipeline.front_end import caps_observations
-from capssim.reconstruct.pipeline.options import (
+from .diagnostics import channel_mean_psnr, mean_psnr, psnr_observer
+from .front_end import caps_observations
+from .options import (
     PRESETS,
     CapsOptions,
     caps_option_names,
     coerce_option,
     explain_divergence,
 )
-from capssim.reconstruct.pipeline.problem import FrontEnd, Problem
-from capssim.reconstruct.pipeline.run import PipelineConfig, parse_pipeline_options, run_pipeline
-from capssim.reconstruct.pipeline.slots import (
+from .problem import FrontEnd, Problem
+from .run import PipelineConfig, parse_pipeline_options, run_pipeline
+from .slots import (
     available_data_terms,
     available_priors,
     get_data_term,

@@ -19,16 +19,17 @@ from dataclasses import replace
 import torch
 
 from capssim.operators.camera import lr_sampling_operator
-from capssim.reconstruct.model.data_term import field_of_view_mask
-from capssim.reconstruct.model.observation_model import (
+
+from ..model.data_term import field_of_view_mask
+from ..model.observation_model import (
     calibrated_analyzer,
     lr_flat_field,
     method_geometry,
     method_psf_kernels,
 )
-from capssim.reconstruct.model.rearrange import observations_from_capture
-from capssim.reconstruct.pipeline.problem import FrontEnd, Problem
-from capssim.reconstruct.run_context import RunContext
+from ..model.rearrange import observations_from_capture
+from ..run_context import RunContext
+from .problem import FrontEnd, Problem
 
 __all__ = ["caps_observations", "sampling_operator"]
 

@@ -14,9 +14,14 @@ import math
 from dataclasses import dataclass, field, fields
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.model.cagf import CAGFParameters
-from capssim.reconstruct.model.observation_model import CAPTURE_PSF_SIGMA
-from capssim.reconstruct.pipeline.slots import (
+
+from ..model.cagf import CAGFParameters
+from ..model.observation_model import CAPTURE_PSF_SIGMA
+from ..priors.nlstr import NLSTRParameters
+from ..priors.nlstr_prior import MatchSchedule
+from ..solvers.admm import ADMMParameters
+from ..solvers.interfaces import DivergenceError
+from .slots import (
     DEFAULT_DATA_TERM,
     DEFAULT_PRIOR,
     available_priors,
@@ -26,10 +31,6 @@ from capssim.reconstruct.pipeline.slots import (
     prior_option_names,
     reserve_option_names,
 )
-from capssim.reconstruct.priors.nlstr import NLSTRParameters
-from capssim.reconstruct.priors.nlstr_prior import MatchSchedule
-from capssim.reconstruct.solvers.admm import ADMMParameters
-from capssim.reconstruct.solvers.interfaces import DivergenceError
 
 __all__ = ["PRESETS", "CapsOptions", "caps_option_names", "coerce_option", "explain_divergence"]
 

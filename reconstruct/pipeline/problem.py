@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from capssim.operators.base import LinearOperator
-from capssim.reconstruct.model.rearrange import Observations
+
+from ..model.rearrange import Observations
 
 __all__ = ["FrontEnd", "Problem"]
 

@@ -34,17 +34,18 @@ import torch
 
 from capssim.allocator import reuse_freed_memory
 from capssim.conventions import N_CHANNELS
-from capssim.reconstruct.model.init_fusion import fuse_initial_estimate
-from capssim.reconstruct.model.observation_model import unmix_analyzer
-from capssim.reconstruct.pipeline.diagnostics import mean_psnr, psnr_observer
-from capssim.reconstruct.pipeline.front_end import caps_observations
-from capssim.reconstruct.pipeline.options import CapsOptions, coerce_option, explain_divergence
-from capssim.reconstruct.pipeline.problem import FrontEnd, Problem
-from capssim.reconstruct.pipeline.slots import get_data_term, get_prior
-from capssim.reconstruct.run_context import MethodOutput, RunContext
-from capssim.reconstruct.solvers.admm import admm
-from capssim.reconstruct.solvers.descent import steepest_descent
-from capssim.reconstruct.solvers.interfaces import DivergenceError
+
+from ..model.init_fusion import fuse_initial_estimate
+from ..model.observation_model import unmix_analyzer
+from ..run_context import MethodOutput, RunContext
+from ..solvers.admm import admm
+from ..solvers.descent import steepest_descent
+from ..solvers.interfaces import DivergenceError
+from .diagnostics import mean_psnr, psnr_observer
+from .front_end import caps_observations
+from .options import CapsOptions, coerce_option, explain_divergence
+from .problem import FrontEnd, Problem
+from .slots import get_data_term, get_prior
 
 __all__ = ["PipelineConfig", "parse_pipeline_options", "run_pipeline"]
 

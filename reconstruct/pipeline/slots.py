@@ -28,13 +28,14 @@ from typing import Callable
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.model.cagf import cagf_confidence
-from capssim.reconstruct.model.data_term import ConfidenceDataTerm
-from capssim.reconstruct.pipeline.problem import Problem
-from capssim.reconstruct.priors.nlstr import NonlocalSparseTensor
-from capssim.reconstruct.priors.nlstr_prior import NLSTRPrior
-from capssim.reconstruct.priors.tikhonov import TikhonovPrior
-from capssim.reconstruct.solvers.interfaces import DataFidelity, Prior, StageFactory
+
+from ..model.cagf import cagf_confidence
+from ..model.data_term import ConfidenceDataTerm
+from ..priors.nlstr import NonlocalSparseTensor
+from ..priors.nlstr_prior import NLSTRPrior
+from ..priors.tikhonov import TikhonovPrior
+from ..solvers.interfaces import DataFidelity, Prior, StageFactory
+from .problem import Problem
 
 __all__ = ["DEFAULT_DATA_TERM", "DEFAULT_PRIOR", "DataTermSpec", "PriorSpec", "available_data_terms",
            "available_priors", "get_data_term", "get_prior", "register_data_term", "register_prior"]

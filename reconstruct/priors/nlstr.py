@@ -51,7 +51,9 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.reconstruct.priors.nlstr_blocks import (
+from capssim.resources import check_memory, check_range
+
+from .nlstr_blocks import (
     gather_blocks,
     gram_maps,
     group_matrix,
@@ -65,8 +67,7 @@ from capssim.reconstruct.priors.nlstr_blocks import (
     weighted_block_sums,
     window_sums_at,
 )
-from capssim.reconstruct.priors.nlstr_parameters import NLSTRParameters
-from capssim.resources import check_memory, check_range
+from .nlstr_parameters import NLSTRParameters
 
 log = logging.getLogger(__name__)
 

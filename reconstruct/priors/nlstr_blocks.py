@@ -14,7 +14,8 @@ import warnings
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.filters import sliding_window_sum
+
+from ..filters import sliding_window_sum
 
 
 def principal_channels(z: torch.Tensor, count: int) -> torch.Tensor:

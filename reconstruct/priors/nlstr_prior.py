@@ -30,8 +30,9 @@ from dataclasses import asdict, dataclass
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.priors.nlstr import BlockMatches, NonlocalSparseTensor
-from capssim.reconstruct.solvers.interfaces import StageFactory
+
+from ..solvers.interfaces import StageFactory
+from .nlstr import BlockMatches, NonlocalSparseTensor
 
 
 @dataclass(frozen=True)

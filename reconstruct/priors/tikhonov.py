@@ -19,7 +19,8 @@ import math
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.solvers.interfaces import StageFactory
+
+from ..solvers.interfaces import StageFactory
 
 
 def laplacian_eigenvalues(shape: tuple[int, int], *, device=None, dtype=torch.float64) -> torch.Tensor:

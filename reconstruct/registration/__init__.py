@@ -7,7 +7,7 @@ The room's public face is :func:`estimate_lr_homographies` (:mod:`.estimate`) an
 image operations :mod:`.image_ops`) and the store of estimated warps beside a capture (:mod:`.store`).
 """
 
-from capssim.reconstruct.registration.estimate import (
+from .estimate import (
     REGISTRATION_MODES,
     RegistrationParameters,
     RegistrationResult,

@@ -28,10 +28,11 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.reconstruct.registration.image_ops import box_sum
-from capssim.reconstruct.registration.lbfgs import minimize_lbfgs
-from capssim.reconstruct.registration.motion import params_to_matrices, spline_coefficients, spline_sample
 from capssim.threads import adapt_threads
+
+from .image_ops import box_sum
+from .lbfgs import minimize_lbfgs
+from .motion import params_to_matrices, spline_coefficients, spline_sample
 
 
 class LevelCriterion:

@@ -26,20 +26,21 @@ import numpy as np
 import torch
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.registration.criterion import final_fit, stokes_residual_rms
-from capssim.reconstruct.registration.levels import (
+
+from .criterion import final_fit, stokes_residual_rms
+from .levels import (
     LevelCriteria,
     coarse_translation,
     pyramid_level_count,
     refine_levels,
 )
-from capssim.reconstruct.registration.motion import (
+from .motion import (
     MOTION_MODELS,
     params_to_matrices,
     spline_coefficients,
     spline_sample,
 )
-from capssim.reconstruct.registration.rescue import (
+from .rescue import (
     rescue_from_more_peaks,
     stokes_joint_rescue,
     stokes_subspace_refine,

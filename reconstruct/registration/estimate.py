@@ -51,17 +51,18 @@ from capssim.array_geometry import raw_matrix
 from capssim.conventions import N_APERTURES, N_LR_IMAGES
 from capssim.errors import InputError
 from capssim.homography import rotation_and_scale
-from capssim.reconstruct.filters import gaussian_blur
-from capssim.reconstruct.registration.criterion import stokes_residual_rms
-from capssim.reconstruct.registration.engine import StackRegistration, register_stack
-from capssim.reconstruct.registration.image_ops import noise_sigma
-from capssim.reconstruct.registration.luminance import (
+
+from ..filters import gaussian_blur
+from .criterion import stokes_residual_rms
+from .engine import StackRegistration, register_stack
+from .image_ops import noise_sigma
+from .luminance import (
     LUMINANCE_METHODS,
     mosaic_from_sub_images,
     ri_binomial_luminance,
     usable_pixels,
 )
-from capssim.reconstruct.registration.parameters import (
+from .parameters import (
     REGISTRATION_MODES,
     RegistrationParameters,
     registration_parameters,

@@ -11,7 +11,7 @@ import math
 import torch
 import torch.nn.functional as F
 
-from capssim.reconstruct.filters import box_sum as separable_box_sum
+from ..filters import box_sum as separable_box_sum
 
 
 def box_sum(x: torch.Tensor, radius: int) -> torch.Tensor:

@@ -21,15 +21,15 @@ import time
 import torch
 import torch.nn.functional as F
 
-from capssim.reconstruct.filters import gaussian_blur
-from capssim.reconstruct.registration.criterion import LevelCriterion, minimize
-from capssim.reconstruct.registration.image_ops import (
+from ..filters import gaussian_blur
+from .criterion import LevelCriterion, minimize
+from .image_ops import (
     gradient_magnitude,
     noise_sigma,
     phase_correlation_peaks,
 )
-from capssim.reconstruct.registration.lbfgs import Memory
-from capssim.reconstruct.registration.motion import spline_sample
+from .lbfgs import Memory
+from .motion import spline_sample
 
 log = logging.getLogger(__name__)
 

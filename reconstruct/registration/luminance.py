@@ -24,7 +24,8 @@ import torch
 import torch.nn.functional as F
 
 from capssim.conventions import BAYER_OFFSETS, N_APERTURES
-from capssim.reconstruct.dofp.residual_interpolation import ri_bayer_demosaic_frames
+
+from ..dofp.residual_interpolation import ri_bayer_demosaic_frames
 
 
 def mosaic_from_sub_images(sub: torch.Tensor) -> torch.Tensor:

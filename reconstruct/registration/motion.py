@@ -20,7 +20,8 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import UnknownNameError
-from capssim.reconstruct.filters import correlate
+
+from ..filters import correlate
 
 #: motion models and their number of parameters
 MOTION_MODELS: dict[str, int] = {"translation": 2, "euclidean": 3, "similarity": 4, "affine": 6, "homography": 8}

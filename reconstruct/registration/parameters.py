@@ -12,8 +12,9 @@ import math
 from dataclasses import dataclass
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.registration.luminance import LUMINANCE_METHODS
-from capssim.reconstruct.registration.motion import MOTION_MODELS
+
+from .luminance import LUMINANCE_METHODS
+from .motion import MOTION_MODELS
 
 #: the largest aperture rotation (deg) and relative scale error a camera array plausibly has; the
 #: simulator draws at most 0.5 deg and 0.005. A larger estimate is a false match (e.g. a polarizing

@@ -25,9 +25,9 @@ import math
 
 import torch
 
-from capssim.reconstruct.registration.criterion import final_fit, minimize
-from capssim.reconstruct.registration.image_ops import gradient_magnitude, phase_correlation_peaks
-from capssim.reconstruct.registration.motion import spline_sample
+from .criterion import final_fit, minimize
+from .image_ops import gradient_magnitude, phase_correlation_peaks
+from .motion import spline_sample
 
 
 def rescue_from_more_peaks(p: torch.Tensor, ref: torch.Tensor, moving: torch.Tensor, criteria, *, threshold: float,

@@ -37,7 +37,8 @@ import numpy as np
 from capssim import array_geometry, homography
 from capssim.errors import CapssimError
 from capssim.imageio import atomic_write_json
-from capssim.reconstruct.registration.parameters import RegistrationParameters
+
+from .parameters import RegistrationParameters
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,9 @@ from dataclasses import asdict, dataclass
 import torch
 
 from capssim.errors import InputError
-from capssim.reconstruct.solvers.interfaces import (
+from capssim.resources import check_range
+
+from .interfaces import (
     DataFidelity,
     Observer,
     Prior,
@@ -44,7 +46,6 @@ from capssim.reconstruct.solvers.interfaces import (
     no_stage,
     relative_change,
 )
-from capssim.resources import check_range
 
 #: the most iterations one run may ask for (a sane range: the paper uses 25; divergence tests a few thousand)
 MAX_ITERATIONS = 10_000

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import torch
 
-from capssim.reconstruct.solvers.admm import ADMMParameters, mu_schedule
-from capssim.reconstruct.solvers.interfaces import (
+from .admm import ADMMParameters, mu_schedule
+from .interfaces import (
     DataFidelity,
     Observer,
     Progress,

@@ -33,8 +33,9 @@ from pathlib import Path
 import yaml
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.networks import NETWORKS
-from capssim.reconstruct.training.pairs import INPUT_KINDS
+
+from ..networks import NETWORKS
+from .pairs import INPUT_KINDS
 
 OPTIMIZERS = ("adam", "adamw", "sgd")
 DECAYS = ("cosine", "constant", "step")

@@ -32,9 +32,10 @@ import torch.nn.functional as F
 from capssim.dataset.torch import CaptureDataset
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_bytes, atomic_write_json
-from capssim.reconstruct.methods.dofp_jcpd import demosaic_dofp_jcpd
-from capssim.reconstruct.priors.sparse_coding import constant_atoms, joint_dictionary, learn_dictionary
-from capssim.reconstruct.training.config import DICTIONARY_DEFAULTS
+
+from ..methods.dofp_jcpd import demosaic_dofp_jcpd
+from ..priors.sparse_coding import constant_atoms, joint_dictionary, learn_dictionary
+from .config import DICTIONARY_DEFAULTS
 
 DICTIONARY_FILE = "dictionary.npz"
 

@@ -21,8 +21,9 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.reconstruct.methods.caps_naive import bicubic_warp, demosaic_apertures, sampling_grid
-from capssim.reconstruct.networks.cpdnet import cpdnet_loss, dofp_network_input
+
+from ..methods.caps_naive import bicubic_warp, demosaic_apertures, sampling_grid
+from ..networks.cpdnet import cpdnet_loss, dofp_network_input
 
 INPUT_KINDS = ("dofp", "aperture")
 #: aperture targets read the ground truth at least this far (HR px) inside its border

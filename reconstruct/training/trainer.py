@@ -32,11 +32,12 @@ from capssim.dataset.generate import dataset_is_finished, generate_dataset
 from capssim.dataset.torch import CaptureDataset
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_bytes, atomic_write_json, atomic_write_text
-from capssim.reconstruct.networks import build_network, save_model
-from capssim.reconstruct.training.config import DICTIONARY_MODEL, TrainConfig, learning_rate
-from capssim.reconstruct.training.dictionary import DICTIONARY_FILE, learn_jcpd_dictionary
-from capssim.reconstruct.training.pairs import PairSet, build_pairs, masked_psnr
 from capssim.resources import check_memory
+
+from ..networks import build_network, save_model
+from .config import DICTIONARY_MODEL, TrainConfig, learning_rate
+from .dictionary import DICTIONARY_FILE, learn_jcpd_dictionary
+from .pairs import PairSet, build_pairs, masked_psnr
 
 log = logging.getLogger(__name__)
 CHECKPOINT, MODEL, HISTORY, PLOT, CONFIG_COPY = "checkpoint.pt", "model.pt", "history.jsonl", "training.png", \
