@@ -79,3 +79,20 @@ def test_cases_section_puts_the_two_ladders_side_by_side():
     assert "`textured` (ablation, n, seed 0): `caps` against `caps-iccp`" in text
     assert "as-captured: +1.00; true-warps: +0.50; model-exact: +0.50; noise-free: -1.00 dB" in text
     assert findings.cases_section([SimpleNamespace(spec={"name": "x"}, records=[caps])]).startswith("None")
+
+
+def test_a_rung_with_the_same_input_is_reused_and_equals_a_real_run(capture):
+    """A simulated capture is model-exact: the model-exact rung reuses the true-warps run; running it for
+    real gives the same scores, bit for bit (the reconstruction is deterministic)."""
+    from capssim.eval.error_budget.ladder import BUDGET_METRICS, run_ladder
+    from capssim.eval.evaluate import CaptureScorer
+    from capssim.reconstruct.registry import reconstruct
+
+    scorer = CaptureScorer(capture)
+    result = run_ladder(capture, {"name": "caps", "options": {"iterations": 2}}, scorer, views=False)
+    rungs = {r["rung"]: r for r in result["rungs"]}
+    assert rungs["model-exact"]["same_input_as"] == "true-warps" and rungs["model-exact"]["wall_time_s"] == 0.0
+    assert "same_input_as" not in rungs["true-warps"] and "same_input_as" not in rungs["noise-free"]
+    out, _ = reconstruct(model_exact_capture(capture), "caps", true_warps=True, iterations=2)
+    real = scorer.score(out.image).flat()
+    assert all(rungs["model-exact"]["scores"][k] == real[k] for k in BUDGET_METRICS)
