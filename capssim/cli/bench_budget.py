@@ -26,6 +26,8 @@ def budget(
     views: bool = typer.Option(False, "--views", help="Add the second views at the ceiling: the solver "
                                                       "with 4x its iterations, NLSTR on the truth."),
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the waterfall plots."),
+    report_only: bool = typer.Option(False, "--report-only", help="Run nothing: rewrite budget.md, the plots and "
+                                                                   "the results page from the stored budget.jsonl."),
     cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/NAME/cache; "
                                                                "a suite run's cache can be shared)."),
     fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
@@ -45,7 +47,7 @@ def budget(
     """
     from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
     from capssim.eval.error_budget.budget_report import write_report, write_results_page
-    from capssim.eval.error_budget.runner import run_budget
+    from capssim.eval.error_budget.runner import load_budget, run_budget
     from capssim.threads import resolve_threads
 
     specs = [load_suite(name) for name in suites]  # every suite checked before any work
@@ -59,16 +61,25 @@ def budget(
     runs = []
     for spec in specs:
         out = Path(output) / spec["name"] if len(specs) > 1 else Path(output)
-        run = run_budget(spec, out, methods=methods or None, scenes=scenes or None, device=device,
-                         cache_dir=cache, fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
-                         views=views, events=events)
+        if report_only:
+            run = load_budget(spec, out, methods=methods or None, scenes=scenes or None)
+        else:
+            run = run_budget(spec, out, methods=methods or None, scenes=scenes or None, device=device,
+                             cache_dir=cache, fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
+                             views=views, events=events)
         report = write_report(run, out, plots=not no_plots)
         say(f"{spec['name']}: {len(run.records)} case(s), {run.n_errors} error(s), {run.wall_time_s:.1f} s; "
             f"report {report}")
         runs.append(run)
     if results_page is not None:
-        command = "capssim bench budget " + " ".join(suites) + f" -o {output} --results-page {results_page}"
-        say(f"results page: {write_results_page(runs, results_page, command=command, plots=not no_plots)}")
+        picked = "".join(f" -m {m}" for m in methods or ()) + "".join(f" --scene {x}" for x in scenes or ())
+        command = ("capssim bench budget " + " ".join(suites) + f" -o {output}{picked}" + (" --views" if views else "")
+                   + f" --results-page {results_page}")
+        notes_page = Path(results_page).parent.parent / "notes" / "error-budget.md"
+        notes = ("What the budget finds, case by case, and what it rules out: the "
+                 "[error-budget notes](../notes/error-budget.md)." if notes_page.is_file() else None)
+        page = write_results_page(runs, results_page, command=command, plots=not no_plots, notes=notes)
+        say(f"results page: {page}")
     if as_json:
         echo_json([{"suite": r.spec["name"], "wall_time_s": r.wall_time_s, "records": r.records} for r in runs])
     if any(r.n_errors for r in runs):

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from capssim.capture import Capture
+from capssim.conventions import DEFAULT_DOFP_LAYOUT
 from capssim.errors import InputError
 from capssim.imageio import read_gt_scene
 from capssim.psf import PSF
@@ -54,7 +55,7 @@ def default_gt_root() -> Path:
 PUBLISHED_PSF_SIGMA_HR_PX = 0.0
 
 
-def make_capture(gt_dir: Path, *, layout: str = "sony", psf_sigma_hr_px: float = PUBLISHED_PSF_SIGMA_HR_PX) -> Capture:
+def make_capture(gt_dir: Path, *, layout: str = DEFAULT_DOFP_LAYOUT, psf_sigma_hr_px: float = PUBLISHED_PSF_SIGMA_HR_PX) -> Capture:
     """Noise-free DoFP (and CAPS) capture of a ground-truth folder, as ``capssim simulate`` makes it."""
     image, source = read_gt_scene(gt_dir)
     image, info = prepare_ground_truth(image)
@@ -74,7 +75,7 @@ def run_one(capture: Capture, method: str, *, device: str, repeats: int, options
 
 
 def run_dofp_benchmark(scenes=DEFAULT_SCENES, methods=DEFAULT_METHODS, *, gt_root: Path | None = None,
-                       layout: str = "sony", psf_sigma_hr_px: float = PUBLISHED_PSF_SIGMA_HR_PX, border: int | None = None, device: str = "cpu",
+                       layout: str = DEFAULT_DOFP_LAYOUT, psf_sigma_hr_px: float = PUBLISHED_PSF_SIGMA_HR_PX, border: int | None = None, device: str = "cpu",
                        repeats: int = 1, eari_variants: bool = False) -> list[dict]:
     """One row per (scene, method): the Tokyo Tech columns and ``time_s``.
 

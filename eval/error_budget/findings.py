@@ -11,7 +11,7 @@ same command as the tables. The analysis of what they show is in ``docs/notes/er
 
 from __future__ import annotations
 
-import os
+import json
 from pathlib import Path
 
 #: the model-exact step (dB of intensity PSNR) above which a capture counts as mis-modelled (issue 32)
@@ -41,6 +41,20 @@ def _f(value, fmt: str = "{:+.2f}") -> str:
     return "-" if value is None else fmt.format(value)
 
 
+def scene_geometry(record: dict) -> str:
+    """``planar``, ``3-D`` (a rendered scene with parallax: no homography is its truth) or ``simulated``
+    (warped by the homographies themselves), from the capture's ``meta.json`` (``?`` if it is gone)."""
+    path = Path(record.get("capture") or "") / "meta.json"
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return "?"
+    if meta.get("kind") != "rendered":
+        return "simulated"
+    planar = (meta.get("scene") or {}).get("planar")
+    return "?" if planar is None else "planar" if planar else "3-D"
+
+
 def fidelity_rows(runs) -> list[dict]:
     """One row per (suite, scene, noise, seed): the capture's mismatch and each method's model-exact step."""
     rows: dict[tuple, dict] = {}
@@ -51,7 +65,8 @@ def fidelity_rows(runs) -> list[dict]:
                 continue
             key = (run.spec["name"], r["scene"], r["noise"], r["seed"])
             row = rows.setdefault(key, {"suite": key[0], "scene": r["scene"], "noise": r["noise"], "seed": r["seed"],
-                                        "source": r.get("scene_source", "?"), "fidelity": fid, "steps": {}})
+                                        "source": r.get("scene_source", "?"), "geometry": scene_geometry(r),
+                                        "fidelity": fid, "steps": {}})
             row["steps"][r["method"]] = (_step(r, "model-exact", "psnr_mean"), _step(r, "model-exact", "s0_psnr"))
     return list(rows.values())
 
@@ -61,14 +76,14 @@ def fidelity_table(runs) -> str:
     rows = fidelity_rows(runs)
     if not rows:
         return "No case with a model-exact rung."
-    lines = ["| suite | scene | source | RMS(capture - model) | noise std | RMS / noise | RMS per aperture "
-             "| model-exact step, 12-ch PSNR / S0 PSNR (dB), per method | over 0.3 dB |", "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| suite | scene | source | geometry | RMS(capture - model) | noise std | RMS / noise | RMS per aperture "
+             "| model-exact step, 12-ch PSNR / S0 PSNR (dB), per method | over 0.3 dB |", "|---|---|---|---|---|---|---|---|---|---|"]
     for row in rows:
         fid = row["fidelity"]
         steps = "; ".join(f"{m}: {_f(a)} / {_f(b)}" for m, (a, b) in row["steps"].items())
         worst = max((abs(v) for pair in row["steps"].values() for v in pair if v is not None), default=0.0)
         per = ", ".join(f"{v:.4f}" for v in fid["caps_rms_per_aperture"])
-        lines.append(f"| {row['suite']} | {row['scene']} | {row['source']} | {fid['caps_rms']:.4f} | "
+        lines.append(f"| {row['suite']} | {row['scene']} | {row['source']} | {row['geometry']} | {fid['caps_rms']:.4f} | "
                      f"{fid['noise_sigma']:.4f} | {_f(fid.get('caps_rms_over_noise'), '{:.2f}')} | {per} | {steps} | "
                      f"{'**yes**' if worst > FIDELITY_LIMIT_DB else 'no'} |")
     return "\n".join(lines)
@@ -111,23 +126,15 @@ def cases_section(runs, *, level: str = "###") -> str:
     return "\n".join(parts) if parts else "None of the cases is in these runs."
 
 
-#: the analysis of the findings, relative to the documentation root
-NOTES_PAGE = Path("notes") / "error-budget.md"
-
-
-def findings_section(runs, page: Path) -> str:
-    """The page's generated findings (model fidelity, the three cases) and a link to the analysis."""
-    page = Path(page).resolve()
-    docs = next((p for p in page.parents if p.name == "docs"), None)
-    link = (f"The analysis of these numbers: [notes/error-budget.md]"
-            f"({os.path.relpath(docs / NOTES_PAGE, page.parent)})." if docs is not None else "")
+def findings_section(runs) -> str:
+    """The page's generated findings: model fidelity and the three cases, in Markdown."""
     return "\n".join([
         "## Model fidelity", "",
         "How far each capture is from its model-exact oracle (the ground truth through the reconstruction's own "
         "operator, same noise draw: their difference is the signal the operator does not model), and what "
         f"replacing it changes in each method's intensity PSNR. Above {FIDELITY_LIMIT_DB} dB the operator or the "
         "renderer mis-models the capture (issue 32).", "", fidelity_table(runs), "",
-        "## The three cases of issue 32", "", cases_section(runs), "", link, ""])
+        "## The three cases of issue 32", "", cases_section(runs), ""])
 
 
 __all__ = ["CASES", "findings_section", "FIDELITY_LIMIT_DB", "cases_section", "fidelity_rows", "fidelity_table"]

@@ -24,7 +24,7 @@ from capssim.reconstruct.registry import available_methods, resolve_device
 from ..benchmarks.cases import capture_task, forget_captures
 from ..benchmarks.executors import check_execution, open_executor
 from ..benchmarks.provenance import code_fingerprint, content_hash
-from ..benchmarks.results import ResultsLog
+from ..benchmarks.results import ResultsLog, read_results
 from ..benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE, case_key, plan
 from ..evaluate import CaptureScorer
 from ..metrics import get_convention
@@ -213,4 +213,20 @@ def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, dev
                      wall_time_s=time.perf_counter() - t0, execution=execution)
 
 
-__all__ = ["BUDGET_METHODS", "BudgetRun", "budget_methods", "budget_task", "run_budget"]
+def load_budget(spec: dict, output: str | Path, *, methods=None, scenes=None) -> BudgetRun:
+    """The stored records of a budget run (``output/budget.jsonl``), nothing run: for rewriting its reports.
+
+    ``methods`` (labels) and ``scenes`` keep only those cases; the records are those of whatever code
+    wrote them (their ``case_id`` hashes it). :class:`~capssim.errors.InputError` if there is no record.
+    """
+    path = Path(output) / RESULTS_NAME
+    records = [r for r in read_results(path).values() if r.get("suite", spec["name"]) == spec["name"]
+               and (not methods or r.get("method") in methods) and (not scenes or r.get("scene") in scenes)]
+    if not records:
+        raise InputError("--report-only", str(path), "a budget.jsonl with this suite's cases",
+                         f"Run `capssim bench budget {spec['name']} -o {output}` first.")
+    return BudgetRun(spec=spec, output=Path(output), results_path=path, records=records,
+                     execution={"kind": "stored"})
+
+
+__all__ = ["BUDGET_METHODS", "BudgetRun", "budget_methods", "budget_task", "load_budget", "run_budget"]

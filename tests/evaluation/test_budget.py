@@ -96,3 +96,43 @@ def test_a_rung_with_the_same_input_is_reused_and_equals_a_real_run(capture):
     out, _ = reconstruct(model_exact_capture(capture), "caps", true_warps=True, iterations=2)
     real = scorer.score(out.image).flat()
     assert all(rungs["model-exact"]["scores"][k] == real[k] for k in BUDGET_METRICS)
+
+
+def test_scene_geometry_reads_the_capture_meta(tmp_path):
+    import json
+
+    for name, meta in {"star": {"kind": "rendered", "scene": {"planar": True}},
+                       "glass": {"kind": "rendered", "scene": {"planar": False}},
+                       "sim": {"kind": "simulated"}}.items():
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "meta.json").write_text(json.dumps(meta))
+    geometry = {n: findings.scene_geometry({"capture": str(tmp_path / n)}) for n in ("star", "glass", "sim", "gone")}
+    assert geometry == {"star": "planar", "glass": "3-D", "sim": "simulated", "gone": "?"}
+
+
+def test_report_only_rewrites_the_reports_from_stored_records_and_runs_nothing(tmp_path, monkeypatch):
+    import json
+
+    from typer.testing import CliRunner
+
+    from capssim.cli import app
+    from capssim.eval.error_budget import runner
+
+    suite = tmp_path / "tiny.yaml"
+    suite.write_text("name: tiny\nseeds: [0]\nnoise:\n  - {name: clean, noise: none}\nmethods: [caps]\n"
+                     "scenes:\n  - {name: a, source: synthetic, generator: texture, size: 32}\n")
+    rungs = [("as-captured", 30.0), ("true-warps", 30.5), ("model-exact", 30.5), ("noise-free", 31.0)]
+    records = [dict(_record("a", m, rungs), suite="tiny", key=f"a/clean/seed0/{m}", case_id=m) for m in ("caps", "x")]
+    for r in records:
+        r["ceiling"] = r["rungs"][-1]["scores"]
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "budget.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    monkeypatch.setattr(runner, "run_budget", lambda *a, **k: pytest.fail("--report-only ran the budget"))
+    result = CliRunner().invoke(app, ["bench", "budget", str(suite), "-o", str(out), "--report-only", "-m", "caps",
+                                      "--no-plots"])
+    assert result.exit_code == 0, result.output
+    report = (out / "budget.md").read_text()
+    assert "| a | caps | 30.00 | +0.50 | +0.00 | +0.50 | 31.00 |" in report and "| a | x |" not in report
+    empty = CliRunner().invoke(app, ["bench", "budget", str(suite), "-o", str(tmp_path / "none"), "--report-only"])
+    assert empty.exit_code == 2 and "--report-only" in empty.output and "Traceback" not in empty.output
