@@ -52,8 +52,9 @@ def _record(scene, method, rungs, fid=None):
            "rungs": [{"rung": name, "scores": {"psnr_mean": v, "s0_psnr": v + 1, "dolp_psnr": None,
                                                "aop_mae_deg": None}} for name, v in rungs],
            "model_fidelity": fid}
-    out["steps"] = [{"to": b["rung"], "d_psnr_mean": b["scores"]["psnr_mean"] - a["scores"]["psnr_mean"],
-                     "d_s0_psnr": b["scores"]["s0_psnr"] - a["scores"]["s0_psnr"]}
+    out["steps"] = [{"from": a["rung"], "to": b["rung"], "cause": b["rung"],
+                     **{f"d_{k}": None if a["scores"][k] is None else b["scores"][k] - a["scores"][k]
+                        for k in a["scores"]}}
                     for a, b in zip(out["rungs"], out["rungs"][1:])]
     return out
 
@@ -135,4 +136,7 @@ def test_report_only_rewrites_the_reports_from_stored_records_and_runs_nothing(t
     report = (out / "budget.md").read_text()
     assert "| a | caps | 30.00 | +0.50 | +0.00 | +0.50 | 31.00 |" in report and "| a | x |" not in report
     empty = CliRunner().invoke(app, ["bench", "budget", str(suite), "-o", str(tmp_path / "none"), "--report-only"])
-    assert empty.exit_code == 2 and "--report-only" in empty.output and "Traceback" not in empty.output
+    from capssim.errors import InputError  # the command line prints it as one line (test_error_budget.py)
+
+    assert isinstance(empty.exception, InputError) and "--report-only" in str(empty.exception)
+    assert "\n" not in str(empty.exception) and not (tmp_path / "none" / "budget.md").exists()
