@@ -11,7 +11,7 @@ from __future__ import annotations
 from capssim.camera_setup import SETUP_KEYS
 from capssim.conventions import dofp_layout, dofp_layout_name
 from capssim.dataset.distributions import Distribution
-from capssim.dataset.schema import (
+from capssim.schema import (
     AnyMapping,
     Anything,
     Boolean,

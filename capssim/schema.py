@@ -1,4 +1,7 @@
-"""A tiny schema validator for the dataset config: every error names the key path.
+"""A small schema validator for the files users write by hand: every error names the file and the key path.
+
+Used by the dataset config, suite files, baselines, ``meta.json``, rig and calibration files and
+training configs (one schema each, checked on load, before any work).
 
 A schema is a tree of small spec objects (:class:`Integer`, :class:`Number`, :class:`String`,
 :class:`Mapping`, :class:`Sequence`, ...). ``spec.check(value, path)`` returns the normalised
@@ -21,13 +24,18 @@ from capssim.errors import InputError
 
 
 class ConfigError(InputError):
-    """A dataset config is unreadable or invalid; ``key_path`` names the offending key."""
+    """A hand-written file is unreadable or invalid; ``key_path`` names the offending key.
+
+    ``config_file`` is the file's path; ``kind`` says what the file is ("config", "suite",
+    "baseline", "meta.json", ...) and is written before it in the message.
+    """
 
     def __init__(self, key_path: str, received: object, valid: str, fix: str | None = None, *,
-                 config_file: str | None = None):
+                 config_file: str | None = None, kind: str = "config"):
         self.key_path = key_path
         self.config_file = config_file
-        where = f"config {config_file}" if config_file else "config"
+        self.kind = kind
+        where = f"{kind} {config_file}" if config_file else kind
         argument = f"{where}, key {key_path!r}" if key_path else where  # repr: one line, whatever the key
         super().__init__(argument, received, valid, fix)
 
@@ -248,3 +256,93 @@ class Mapping(Spec):
                                   f"Did you mean {close[0]!r}?" if close else None)
             out[key] = spec.check(item, key_path)
         return out
+
+
+# -- reading hand-written files -------------------------------------------------------------------
+MAX_NESTING = 64
+"""Deepest nesting of lists and mappings accepted in a hand-written file (JSON's and YAML's parsers
+recurse per level; a file nested 200,000 deep would otherwise end in a RecursionError)."""
+
+
+def _depth_ok(text: str) -> bool:
+    """Whether the brackets of ``text`` nest at most :data:`MAX_NESTING` deep (a cheap upper bound:
+    brackets inside strings count too, which only matters for files far past any real one)."""
+    depth = worst = 0
+    for char in text:
+        if char in "[{":
+            depth += 1
+            worst = max(worst, depth)
+        elif char in "]}":
+            depth -= 1
+    return worst <= MAX_NESTING
+
+
+def read_text_file(path, *, kind: str, example: str | None = None) -> str:
+    """The UTF-8 text of a hand-written file, or a :class:`ConfigError` naming ``kind`` and the path."""
+    from pathlib import Path
+
+    path = Path(path)
+    hint = f" See {example}." if example else ""
+    if not path.is_file():
+        what = "a folder" if path.is_dir() else "no file"
+        raise ConfigError("", f"{what} at {str(path)!r}", f"a readable {kind} file", f"Check the path.{hint}",
+                          kind=kind)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError("", f"an unreadable file ({type(exc).__name__})", f"a UTF-8 {kind} file",
+                          config_file=str(path), kind=kind) from None
+    if not _depth_ok(text):
+        raise ConfigError("", f"lists or mappings nested more than {MAX_NESTING} deep", f"a {kind} file",
+                          "Flatten the file; no capssim file nests that deep.", config_file=str(path), kind=kind)
+    return text
+
+
+def load_json_file(path, *, kind: str, example: str | None = None):
+    """Parse a hand-written JSON file (``meta.json``, baselines, rig and calibration files).
+
+    Raises :class:`ConfigError` (exit 2, one line) for a missing, unreadable, too deeply nested or
+    invalid file. The result is *not* validated: check it with the file's schema spec.
+    """
+    import json
+
+    text = read_text_file(path, kind=kind, example=example)
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        where = f" at line {exc.lineno}, column {exc.colno}" if hasattr(exc, "lineno") else ""
+        raise ConfigError("", f"text that is not valid JSON{where}", f"a JSON {kind} file",
+                          "Fix the JSON syntax (quotes, commas, brackets).", config_file=str(path),
+                          kind=kind) from None
+
+
+def load_yaml_file(path, *, kind: str, example: str | None = None):
+    """Parse a hand-written YAML file (suite files, dataset and training configs), safely.
+
+    Raises :class:`ConfigError` as :func:`load_json_file` does.
+    """
+    import yaml
+
+    text = read_text_file(path, kind=kind, example=example)
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError("", f"text that is not valid YAML{where} ({problem})", f"a YAML {kind} file",
+                          "Fix the YAML syntax (indentation, colons, brackets).", config_file=str(path),
+                          kind=kind) from None
+    except RecursionError:
+        raise ConfigError("", "a file nested too deeply", f"a YAML {kind} file", config_file=str(path),
+                          kind=kind) from None
+
+
+def validate(spec: Spec, value, *, config_file=None, kind: str = "config"):
+    """``spec.check(value, "")`` with the file's path and kind added to any :class:`ConfigError`."""
+    try:
+        return spec.check(value, "")
+    except ConfigError as exc:
+        raise ConfigError(exc.key_path, exc.received, exc.valid, exc.fix,
+                          config_file=str(config_file) if config_file is not None else exc.config_file,
+                          kind=kind) from None
