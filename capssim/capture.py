@@ -15,7 +15,6 @@ Raw frames are float32 on [0, 1] for ``sensor.model == "none"``, else uint16 DN 
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,12 +32,22 @@ from capssim.capture_meta import (  # noqa: F401  (re-exported: the capture form
     software_versions,
     validate_meta,
 )
-from capssim.conventions import N_APERTURES, N_CHANNELS, dofp_layout, split_bayer
+from capssim.capture_schema import MetaSchemaError
+from capssim.conventions import (
+    N_APERTURES,
+    N_CHANNELS,
+    cfa_pattern,
+    dofp_layout,
+    flip_to_rggb,
+    mirror_layout,
+    split_bayer,
+)
 from capssim.errors import CapssimError, CaptureFormatError, InputError
 from capssim.imageio import atomic_directory, atomic_write_json, write_tiff
 from capssim.psf import PSF
 from capssim.resources import check_memory
 from capssim.rig import RigModel
+from capssim.schema import ConfigError, load_json_file
 from capssim.sensor import Sensor, sensor_from_meta
 
 log = logging.getLogger(__name__)
@@ -86,6 +95,11 @@ class Capture:
     @property
     def dofp_layout(self):
         return dofp_layout(self.meta.get("dofp_layout", DEFAULT_DOFP_LAYOUT))
+
+    @property
+    def cfa(self) -> str:
+        """The Bayer pattern of the raw frames (``meta.json["cfa"]``; RGGB when absent)."""
+        return cfa_pattern(self.meta.get("cfa", "RGGB"))
 
     @property
     def setup(self) -> CameraSetup:
@@ -151,6 +165,19 @@ class Capture:
         if self.dofp_raw is None:
             raise CaptureFormatError(f"{self.path or 'capture'}: no dofp_raw.tiff in this capture.")
         return self.sensor.saturation_mask(self.dofp_raw)
+
+    def dofp_as_rggb(self) -> "Capture":
+        """This capture with its DoFP mosaic read as an RGGB quad Bayer: rows and/or columns reversed
+        (:func:`capssim.conventions.flip_to_rggb`, exact: the mosaic's sides are multiples of 4) and the
+        polarizer cell mirrored alike. A result on its grid maps back with ``flip_to_rggb(result, cfa)``.
+        The capture itself when its ``cfa`` is RGGB."""
+        cfa = self.cfa
+        if cfa == "RGGB" or self.dofp_raw is None:
+            return self
+        meta = dict(self.meta, cfa="RGGB", dofp_layout=[list(r) for r in mirror_layout(self.dofp_layout, cfa)])
+        meta.pop("dofp_layout_name", None)
+        return Capture(meta=meta, caps_raw=self.caps_raw, dofp_raw=flip_to_rggb(self.dofp_raw, cfa), gt=None,
+                       path=self.path)
 
 
 def _check_layout(name: str, shape: tuple, dtype, expected: tuple, sensor: Sensor | None) -> None:
@@ -244,11 +271,13 @@ def read_meta(path) -> dict:
     meta_path = path / "meta.json"
     if not meta_path.is_file():
         raise CaptureFormatError(f"{path}: no meta.json; this is not a capture folder. See README 'Capture folder format'.")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise CaptureFormatError(f"{meta_path}: corrupt JSON ({exc}).") from exc
-    validate_meta(meta)
+    try:  # nesting, encoding and syntax guarded; a CaptureFormatError as well as a ConfigError
+        meta = load_json_file(meta_path, kind="meta.json", example="docs: guides/captures.md")
+    except ConfigError as exc:
+        received = str(exc.received).replace("text that is not valid JSON", "corrupt JSON: text that is not valid")
+        raise MetaSchemaError(exc.key_path, received, exc.valid, exc.fix, config_file=exc.config_file,
+                              kind="meta.json") from None
+    validate_meta(meta, path=meta_path)
     return meta
 
 

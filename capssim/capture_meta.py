@@ -16,6 +16,7 @@ import numpy as np
 from capssim import __version__
 from capssim.array_geometry import ArrayGeometry
 from capssim.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup
+from capssim.capture_schema import CAPTURE_KINDS, MetaSchemaError, check_meta_schema
 from capssim.conventions import (
     BAYER_OFFSETS,
     BAYER_SITE_COLOUR,
@@ -31,11 +32,11 @@ from capssim.conventions import (
 from capssim.errors import CaptureFormatError, InputError, UnknownNameError
 from capssim.psf import PSF
 from capssim.rig import RigModel
+from capssim.rig_checks import check_homographies
 from capssim.sensor import sensor_from_meta
 
 SCHEMA = "capssim.capture"
 SCHEMA_VERSION = 1
-CAPTURE_KINDS = ("simulated", "rendered", "real")
 
 
 def software_versions() -> dict:
@@ -167,37 +168,6 @@ def _matrices(value, shape: tuple, where: str) -> np.ndarray:
     return array
 
 
-def _is_int(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _validate_types(meta) -> None:
-    """The JSON types of the fields every reader relies on (values are checked after)."""
-    geo = _expect(_require(meta, "geometry"), isinstance(meta["geometry"], dict), "meta.json geometry",
-                  "an object with hr_height, hr_width, raw_height, raw_width")
-    for key in ("hr_height", "hr_width", "raw_height", "raw_width"):
-        value = _require(geo, key, "meta.json geometry")
-        _expect(value, _is_int(value) and value > 0, f"meta.json geometry.{key}", "a positive integer (pixels)")
-    lr = _require(meta, "lr_images")
-    _expect(lr, isinstance(lr, list) and all(isinstance(e, dict) for e in lr), "meta.json lr_images",
-            f"a list of {N_LR_IMAGES} objects")
-    sensor = _require(meta, "sensor")
-    _expect(sensor, isinstance(sensor, dict) and isinstance(sensor.get("model"), str), "meta.json sensor",
-            "an object with a string 'model' (none, gaussian or poisson-gaussian)")
-    files = _require(meta, "files")
-    _expect(files, isinstance(files, dict) and all(v is None or (isinstance(v, str) and v) for v in files.values()),
-            "meta.json files", "an object of file names, e.g. {\"caps_raw\": \"caps_raw.tiff\"}")
-    _expect(files.get("caps_raw"), isinstance(files.get("caps_raw"), str), "meta.json files.caps_raw",
-            "the file name of the raw frames, e.g. \"caps_raw.tiff\"")
-    for key, ok, valid in (("psf", lambda v: v is None or isinstance(v, dict), "null or a PSF object"),
-                           ("extinction_ratio", lambda v: v is None or (isinstance(v, (int, float))
-                            and not isinstance(v, bool) and v >= 1), "null or a number >= 1"),
-                           ("seed", lambda v: v is None or (_is_int(v) and v >= 0), "null or an integer >= 0"),
-                           ("source", lambda v: isinstance(v, dict), "an object")):
-        if key in meta:
-            _expect(meta[key], ok(meta[key]), f"meta.json {key}", valid)
-
-
 def _validate_sensor(sensor: dict) -> None:
     try:
         sensor_from_meta(sensor)
@@ -208,13 +178,15 @@ def _validate_sensor(sensor: dict) -> None:
                                  f"model {sensor['model']!r}. See README 'Capture folder format'.") from None
 
 
-def validate_meta(meta: dict) -> None:
-    """Check a ``meta.json`` dictionary.
+def validate_meta(meta: dict, *, path=None) -> None:
+    """Check a ``meta.json`` dictionary: its schema (:mod:`capssim.capture_schema`), then its values.
 
     Parameters
     ----------
     meta : dict
         The parsed ``meta.json``.
+    path : str or pathlib.Path, optional
+        The file it was read from, named in the messages.
 
     Raises
     ------
@@ -227,22 +199,24 @@ def validate_meta(meta: dict) -> None:
     version = meta.get("schema_version")
     if version != SCHEMA_VERSION:
         raise CaptureFormatError(f"meta.json: schema_version {version!r} is not supported; expected {SCHEMA_VERSION}.")
-    _validate_types(meta)
+    check_meta_schema(meta, path=path)  # every field's JSON type and range, and the fields that must agree
     geo = meta["geometry"]
     if geo["hr_height"] != 2 * geo["raw_height"] or geo["hr_width"] != 2 * geo["raw_width"]:
         raise CaptureFormatError("meta.json geometry: hr size must be twice the raw size.")
     if geo["raw_height"] % 2 or geo["raw_width"] % 2:
         raise CaptureFormatError("meta.json geometry: raw height and width must be even (RGGB cells).")
-    _matrices(_require(meta, "aperture_homographies"), (N_APERTURES, 3, 3), "meta.json aperture_homographies")
+    stored = _matrices(_require(meta, "aperture_homographies"), (N_APERTURES, 3, 3), "meta.json aperture_homographies")
+    try:  # invertible (a horizon across the image is refused where the warps are used: --true-warps)
+        check_homographies(stored, (geo["hr_height"], geo["hr_width"]), where="aperture_homographies", horizon=False)
+    except InputError as exc:
+        raise MetaSchemaError(exc.argument, exc.received, exc.valid, exc.fix, config_file=path,
+                              kind="meta.json") from None
     lr = meta["lr_images"]
     if len(lr) != N_LR_IMAGES:
         raise CaptureFormatError(f"meta.json: lr_images must list 16 images; got {len(lr)}.")
     for m, entry in enumerate(lr):
         _matrices(_require(entry, "homography", f"meta.json lr_images[{m}]"), (3, 3),
                   f"meta.json lr_images[{m}].homography")
-        if entry.get("channel", LR_IMAGE_CHANNELS[m]) != LR_IMAGE_CHANNELS[m]:
-            raise CaptureFormatError(f"meta.json lr_images[{m}].channel is {entry.get('channel')}; "
-                                     f"the convention m = 4n + q gives {LR_IMAGE_CHANNELS[m]}.")
     ArrayGeometry.from_meta(meta)
     _validate_sensor(meta["sensor"])
     try:

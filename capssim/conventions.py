@@ -31,6 +31,15 @@ BAYER_SITE_COLOUR: tuple[int, ...] = (0, 1, 1, 2)
 #: RGGB colour index at raw (row % 2, col % 2)
 BAYER_RGGB = ((0, 1), (1, 2))
 
+#: the Bayer patterns a capture's ``meta.json["cfa"]`` may name: the colour index of the 2x2 cell's sites
+#: at raw (0, 0), (0, 1), (1, 0), (1, 1) (the order of :data:`BAYER_OFFSETS`)
+CFA_PATTERNS: dict[str, tuple[int, int, int, int]] = {
+    "RGGB": (0, 1, 1, 2), "BGGR": (2, 1, 1, 0), "GRBG": (1, 0, 2, 1), "GBRG": (1, 2, 0, 1)}
+#: the axes ``(rows, cols)`` to reverse so that a frame of even size with this pattern reads as RGGB
+#: (an involution: reversing them again restores the frame; the 4x4 DoFP quad Bayer alike)
+CFA_FLIPS: dict[str, tuple[bool, bool]] = {
+    "RGGB": (False, False), "BGGR": (True, True), "GRBG": (False, True), "GBRG": (True, False)}
+
 DOFP_LAYOUTS: dict[str, tuple[tuple[int, int], tuple[int, int]]] = {
     "sony": ((90, 45), (135, 0)),
     "0-45-135-90": ((0, 45), (135, 90)),
@@ -60,6 +69,42 @@ def lr_image_channel(m: int) -> int:
 
 
 LR_IMAGE_CHANNELS: tuple[int, ...] = tuple(lr_image_channel(m) for m in range(N_LR_IMAGES))
+
+
+def cfa_pattern(cfa: str = "RGGB") -> str:
+    """The Bayer pattern ``cfa`` (one of :data:`CFA_PATTERNS`, any case) in capitals; InputError otherwise."""
+    key = cfa.strip().upper() if isinstance(cfa, str) else cfa
+    if key not in CFA_PATTERNS:
+        raise InputError("cfa", repr(cfa), f"one of {', '.join(CFA_PATTERNS)} (the colour of raw pixels (0,0), "
+                         "(0,1), (1,0), (1,1))")
+    return key
+
+
+def lr_image_channels(cfa: str = "RGGB") -> tuple[int, ...]:
+    """The 12-channel index seen by each of the 16 low-resolution images ``m = 4*n + q`` under ``cfa``
+    (RGGB: :data:`LR_IMAGE_CHANNELS`); the sites' positions, hence their homographies, do not change."""
+    colours = CFA_PATTERNS[cfa_pattern(cfa)]
+    return tuple(3 * (m // 4) + colours[m % 4] for m in range(N_LR_IMAGES))
+
+
+def flip_to_rggb(array, cfa: str = "RGGB"):
+    """``(..., H, W)`` frames of pattern ``cfa`` (H, W even) -> the same frames with rows and/or columns
+    reversed so that they read as RGGB (RGGB: the array itself). Applying it twice restores the array,
+    so it also maps a result computed on the flipped frames back onto the original pixel grid."""
+    flip_rows, flip_cols = CFA_FLIPS[cfa_pattern(cfa)]
+    axes = tuple(a for a, f in ((-2, flip_rows), (-1, flip_cols)) if f)
+    if not axes:
+        return array
+    return np.ascontiguousarray(np.flip(array, axis=axes))
+
+
+def mirror_layout(layout, cfa: str = "RGGB") -> tuple[tuple[int, int], tuple[int, int]]:
+    """The DoFP 2x2 polarizer cell as seen after :func:`flip_to_rggb` of a mosaic of pattern ``cfa``."""
+    cell = np.asarray(dofp_layout(layout))
+    flip_rows, flip_cols = CFA_FLIPS[cfa_pattern(cfa)]
+    cell = cell[::-1] if flip_rows else cell
+    cell = cell[:, ::-1] if flip_cols else cell
+    return (int(cell[0, 0]), int(cell[0, 1])), (int(cell[1, 0]), int(cell[1, 1]))
 
 
 def lr_image_name(m: int) -> str:

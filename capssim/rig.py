@@ -38,6 +38,7 @@ from capssim.conventions import BAYER_OFFSETS, BAYER_SITE_COLOUR, N_APERTURES, N
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_text
 from capssim.psf import PSF
+from capssim.rig_checks import RIG_FILE_SPEC, check_homographies, check_vignetting
 from capssim.rig_parts import (  # noqa: F401  (re-exported: the rig's parts, capssim.rig's public names)
     N_VIGNETTING_TERMS,
     VIGNETTING_MONOMIALS,
@@ -48,6 +49,7 @@ from capssim.rig_parts import (  # noqa: F401  (re-exported: the rig's parts, ca
     radial_vignetting,
     vignetting_design,
 )
+from capssim.schema import load_json_file, validate
 
 RIG_FORMAT, RIG_FORMAT_VERSION = "capssim-rig", 1
 
@@ -125,6 +127,7 @@ class RigModel:
             raise InputError("rig extinction_ratio", self.extinction_ratio.min(), "T_max/T_min > 1 (inf: ideal)")
         set_(self, "gain", _array(self.gain, (N_APERTURES,), "rig gain", minimum=1e-3))
         set_(self, "vignetting", _array(self.vignetting, (N_APERTURES, N_VIGNETTING_TERMS), "rig vignetting"))
+        check_vignetting(self.gain, self.vignetting)  # the flat field > 0 everywhere
         if self.psf is not None:
             if len(self.psf) != N_APERTURES:
                 raise InputError("rig psf", f"{len(self.psf)} entries", f"{N_APERTURES} PSF specs or null")
@@ -347,15 +350,13 @@ def read_rig_json(path, *, argument: str = "rig") -> RigFile:
     if not path.is_file():
         raise InputError(argument, str(path), "an existing capssim-rig JSON file",
                          "Write one with `capssim calibrate` (or give a preset name).")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(argument, f"{path}: {exc}", "a readable JSON file") from None
+    data = load_json_file(path, kind=f"{argument} file")  # nesting, encoding and syntax guarded
     if not isinstance(data, dict) or data.get("format") != RIG_FORMAT:
         raise InputError(argument, f"{path}: format {data.get('format') if isinstance(data, dict) else '?'!r}",
                          f"a {RIG_FORMAT!r} file", "Write one with `capssim calibrate`.")
     if data.get("version") != RIG_FORMAT_VERSION:
         raise InputError(argument, f"{path}: version {data.get('version')!r}", f"version {RIG_FORMAT_VERSION}")
+    validate(RIG_FILE_SPEC, data, config_file=path, kind=f"{argument} file")
     rig = RigModel.from_dict(data.get("rig"), where=f"{argument} {path.name}: rig")
     geometry = None
     if data.get("geometry") is not None:
@@ -365,6 +366,10 @@ def read_rig_json(path, *, argument: str = "rig") -> RigFile:
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{argument} {path.name}: geometry", repr(exc)[:80],
                              "a mapping with hr_height, hr_width and aperture_homographies (4x3x3)") from None
+        except InputError as exc:  # shape, non-finite values
+            raise InputError(f"{argument} {path.name}: geometry.{exc.argument}", exc.received, exc.valid) from None
+        check_homographies(geometry.aperture_homographies, geometry.hr_shape,
+                           where=f"{argument} {path.name}: geometry.aperture_homographies")
     return RigFile(rig, geometry, tuple(data.get("calibrated") or ()), data.get("uncertainty") or {},
                    data.get("residuals") or {}, data.get("source") or {}, path)
 

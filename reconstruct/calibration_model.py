@@ -43,6 +43,10 @@ def resolve_calibration(capture: Capture, calibration) -> CalibrationModel | Non
         calibration = str(Path(capture.path) / named)
     if isinstance(calibration, str) and calibration.lower() in IDEAL_NAMES:
         return None
+    if capture.cfa != "RGGB":  # the calibrated analyzer and flat field are per RGGB site
+        raise InputError("--calibration", f"{calibration} for a capture with cfa {capture.cfa}",
+                         "an RGGB capture (calibrated array models assume the RGGB sites)",
+                         "Reconstruct with --calibration ideal.")
     if isinstance(calibration, str) and calibration.lower() == "truth":
         rig = capture.rig
         if rig is None:

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from capssim.capture import Capture, read_capture, write_reconstruction
+from capssim.conventions import flip_to_rggb
 from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
 from capssim.physical_validity import project_to_physical
 
@@ -175,6 +176,21 @@ def check_horizon(capture: Capture) -> None:
                 "image would map behind the camera. Check the calibration, or reconstruct without --true-warps.")
 
 
+def run_on_rggb(spec: MethodSpec, capture: Capture, context: RunContext) -> MethodOutput:
+    """``spec.function(capture)``; a DoFP mosaic of another CFA (BGGR, GRBG, GBRG) is given to it as
+    RGGB (:meth:`Capture.dofp_as_rggb`, exact) and the result flipped back onto the capture's grid.
+    CAPS methods read the CFA themselves (the channel each Bayer site observes)."""
+    flipped = capture.dofp_as_rggb() if spec.input_kind == "dofp" else capture
+    out = spec.function(flipped, context=context)
+    if flipped is not capture:
+        out.image = flip_to_rggb(np.asarray(out.image), capture.cfa)
+        if callable(out.unobserved):
+            out.unobserved = out.unobserved()
+        if out.unobserved is not None:
+            out.unobserved = flip_to_rggb(np.asarray(out.unobserved), capture.cfa)
+    return out
+
+
 def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
                 registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None,
                 physical_projection: bool = True, reuse_registration: bool = True, calibration=None,
@@ -212,7 +228,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
                      calibration=model)
     t0 = time.perf_counter()
     with torch.no_grad():
-        out = spec.function(capture, context=ctx)
+        out = run_on_rggb(spec, capture, ctx)
     total = time.perf_counter() - t0
     hh, ww = capture.hr_shape
     image = np.asarray(out.image, dtype=np.float32)

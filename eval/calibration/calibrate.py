@@ -19,6 +19,7 @@ fit residuals.
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import time
 from dataclasses import replace
@@ -54,8 +55,17 @@ def load_calibration_set(paths) -> dict[str, list[Capture]]:
             raise InputError("CAPTURES", str(p), "capture folders (with meta.json) or a folder of them",
                              "Make a set with `capssim calibration-captures -o OUT`.")
     groups: dict[str, list[Capture]] = {t: [] for t in TARGETS}
+    seen: dict[str, Path] = {}
     for f in folders:
         cap = read_capture(f, load_gt=True)
+        digest = hashlib.sha256(np.ascontiguousarray(cap.caps_raw).tobytes()).hexdigest()
+        if digest in seen:  # the same folder twice (or a copy): counting it twice would understate the uncertainty
+            log.warning("CAPTURES: %s is the same capture as %s (identical raw frames); counted once", f, seen[digest])
+            continue
+        seen[digest] = f
+        if cap.cfa != "RGGB":
+            raise InputError("CAPTURES", f"{f}: cfa {cap.cfa}", "RGGB calibration captures (the estimators "
+                             "read the RGGB sites)", "Calibrate with an RGGB camera array.")
         entry = cap.meta.get("calibration")
         if not isinstance(entry, dict) or entry.get("target") not in TARGETS:
             raise InputError("CAPTURES", f"{f}: meta.json calibration = {entry!r}",

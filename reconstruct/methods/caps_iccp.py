@@ -54,12 +54,12 @@ DEFAULT_BAYER_METHOD = "ri"
 
 
 def demosaic_apertures(raw: np.ndarray, saturated: np.ndarray, *, bayer_method: str = DEFAULT_BAYER_METHOD,
-                       clip_max: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+                       clip_max: float = 1.0, cfa: str = "RGGB") -> tuple[np.ndarray, np.ndarray]:
     """``(4, H, W)`` RGGB frames -> ``(4, 3, H, W)`` RGB (clipped to [0, ``clip_max``]) and ``(4, H, W)``
     data weights."""
     from scipy.ndimage import maximum_filter
 
-    rgb = demosaic(raw, bayer_method=bayer_method, clip_max=clip_max)
+    rgb = demosaic(raw, bayer_method=bayer_method, clip_max=clip_max, cfa=cfa)
     near_saturated = np.stack([maximum_filter(saturated[n].astype(np.uint8), size=3) > 0 for n in range(raw.shape[0])])
     return rgb, (~near_saturated).astype(np.float32)
 
@@ -108,7 +108,7 @@ def cascade_observations(capture, context: RunContext, options, *, bayer_method:
     with timer.stage("demosaic"):
         raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
         rgb, weights = demosaic_apertures(raw, capture.caps_saturated(), bayer_method=bayer_method,
-                                          clip_max=clip_max)
+                                          clip_max=clip_max, cfa=capture.cfa)
         lr_images, lr_saturated = capture.lr_images()
     with timer.stage("registration"):
         geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)

@@ -49,6 +49,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from capssim.conventions import flip_to_rggb
 from capssim.errors import InputError, UnknownNameError
 
 from ..dofp.residual_interpolation import ri_bayer_demosaic_frames
@@ -122,9 +123,13 @@ class NaiveOptions:
 BAYER_PAD = 6
 
 
-def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007", clip_max: float = 1.0) -> np.ndarray:
-    """``(4, H, W)`` RGGB raw frames on [0, 1] -> ``(4, 3, H, W)`` float32 RGB, clipped to [0, ``clip_max``]
+def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007", clip_max: float = 1.0,
+                       cfa: str = "RGGB") -> np.ndarray:
+    """``(4, H, W)`` Bayer raw frames on [0, 1] -> ``(4, 3, H, W)`` float32 RGB, clipped to [0, ``clip_max``]
     (above 1 for flat-field-corrected frames, :func:`flat_corrected_raw`).
+
+    A ``cfa`` other than RGGB is read by reversing rows and/or columns (:func:`capssim.conventions.flip_to_rggb`,
+    exact for even H, W), demosaicking as RGGB and reversing the result back.
 
     Each frame is mirror-padded by :data:`BAYER_PAD` pixels (``np.pad`` ``reflect``, an even
     width, so every padded pixel keeps its Bayer colour) and cropped back after demosaicking:
@@ -135,12 +140,13 @@ def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007", clip
     raw = np.asarray(raw)
     if raw.ndim != 3 or raw.shape[1] < 2 or raw.shape[2] < 2:
         raise InputError("raw", f"shape {raw.shape}", "(N, H, W) RGGB frames with H, W >= 2")
+    raw = flip_to_rggb(raw, cfa)  # the identity for RGGB
     # even: keeps the RGGB phase; ``ri`` mirror-pads by itself (any frame size)
     pad = 0 if key == "ri" else min(BAYER_PAD, raw.shape[1] - 1, raw.shape[2] - 1) // 2 * 2
     padded = np.pad(raw.astype(np.float64), ((0, 0), (pad, pad), (pad, pad)), mode="reflect")
     rgb = np.stack([np.moveaxis(np.asarray(fn(padded[n], "RGGB")), -1, 0) for n in range(raw.shape[0])])
     rgb = rgb[..., pad:pad + raw.shape[1], pad:pad + raw.shape[2]]
-    return np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, clip_max).astype(np.float32)
+    return flip_to_rggb(np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, clip_max).astype(np.float32), cfa)
 
 
 def flat_corrected_raw(capture, context: RunContext) -> tuple[np.ndarray, float]:
@@ -187,7 +193,7 @@ def demosaic_and_register(capture, context: RunContext, opts: NaiveOptions):
     timer = context.timer
     with timer.stage("demosaic"):
         raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
-        rgb = demosaic_apertures(raw, bayer_method=opts.bayer_method, clip_max=clip_max)
+        rgb = demosaic_apertures(raw, bayer_method=opts.bayer_method, clip_max=clip_max, cfa=capture.cfa)
         rgb = torch.from_numpy(rgb).to(context.device)
     with timer.stage("registration"):
         lr_images, lr_saturated = capture.lr_images()

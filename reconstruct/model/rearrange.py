@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from capssim.conventions import LR_IMAGE_CHANNELS, N_CHANNELS, split_bayer
+from capssim.conventions import N_CHANNELS, lr_image_channels, split_bayer
 from capssim.errors import InputError
 
 
@@ -47,8 +47,11 @@ class Observations:
         return torch.bincount(self.channel_of, minlength=self.n_channels)
 
 
-def rearrange_raw(raw, saturated=None, *, device="cpu") -> Observations:
-    """Rearrange four float RGGB frames ``(4, H, W)`` into the 16 observations (section 3.1).
+def rearrange_raw(raw, saturated=None, *, device="cpu", cfa: str = "RGGB") -> Observations:
+    """Rearrange four float Bayer frames ``(4, H, W)`` into the 16 observations (section 3.1).
+
+    ``cfa`` (RGGB, BGGR, GRBG or GBRG) sets the channel each site observes; the sites keep their
+    positions (their homographies), so any pattern is modelled exactly.
 
     ``saturated`` is an optional boolean ``(4, H, W)`` mask; saturated pixels get weight 0.
     """
@@ -68,14 +71,14 @@ def rearrange_raw(raw, saturated=None, *, device="cpu") -> Observations:
     return Observations(
         images=torch.as_tensor(images, dtype=torch.float32, device=device),
         weights=torch.as_tensor(weights, dtype=torch.float32, device=device),
-        channel_of=torch.as_tensor(LR_IMAGE_CHANNELS, dtype=torch.int64, device=device),
+        channel_of=torch.as_tensor(lr_image_channels(cfa), dtype=torch.int64, device=device),
         n_channels=N_CHANNELS,
     )
 
 
 def observations_from_capture(capture, *, device="cpu") -> Observations:
     """The 16 observations of a :class:`~capssim.capture.Capture` (raw converted to [0, 1])."""
-    return rearrange_raw(capture.caps_float(), capture.caps_saturated(), device=device)
+    return rearrange_raw(capture.caps_float(), capture.caps_saturated(), device=device, cfa=capture.cfa)
 
 
 __all__ = ["Observations", "observations_from_capture", "rearrange_raw"]

@@ -17,7 +17,9 @@ A changed raw file, other sensor levels, another mode or option, or new registra
 another key and registers again. The file holds that identity, the four aperture homographies
 ``(4, 3, 3)`` (HR reference -> aperture-HR, as in ``meta.json``) and the registration's record;
 it is written atomically. A file that cannot be read, or whose identity differs from the one
-asked for, is ignored (and replaced). A capture folder that cannot be written (read-only) is
+asked for, is ignored (and replaced); so are warps that cannot be this capture's
+(:func:`warps_problem`: singular, not normalised, a horizon across the image, or an aperture that
+sees less than half the reference grid), with a warning naming the file: they are recomputed. A capture folder that cannot be written (read-only) is
 registered without storing, with one warning per folder.
 """
 
@@ -35,8 +37,9 @@ from typing import Callable
 import numpy as np
 
 from capssim import array_geometry, homography
-from capssim.errors import CapssimError
+from capssim.errors import CapssimError, InputError
 from capssim.imageio import atomic_write_json
+from capssim.rig_checks import check_homographies
 
 from .parameters import RegistrationParameters
 
@@ -48,6 +51,10 @@ STORE_FOLDER = "registration"
 FORMAT_VERSION = 1
 #: hex digits of the key in the file name (the full key is inside the file)
 NAME_KEY_DIGITS = 16
+#: least fraction of the HR reference grid stored warps must map inside each aperture's frame
+MIN_OVERLAP = 0.5
+#: largest area scale (and smallest, its inverse) stored warps may have
+MAX_SCALE = 4.0
 
 _warned_read_only: set[str] = set()
 _repeated_warnings: set[str] = set()  # keys whose stored warnings this process has logged again
@@ -111,10 +118,43 @@ def load_registration(path: Path, identity: dict) -> tuple[np.ndarray, dict] | N
     if not same:
         log.warning("registration store: %s was stored for another input, mode or code; registering again", path)
         return None
-    if aperture.shape != (4, 3, 3) or not np.all(np.isfinite(aperture)):
-        log.warning("registration store: %s holds invalid homographies; registering again", path)
+    problem = warps_problem(aperture, identity["hr_shape"])
+    if problem is not None:
+        log.warning("registration store: %s holds invalid warps (%s); recomputed", path, problem)
         return None
     return aperture, record
+
+
+def warps_problem(aperture: np.ndarray, hr_shape) -> str | None:
+    """Why stored aperture homographies ``(4, 3, 3)`` cannot be the warps of this capture, or None.
+
+    They must be finite, normalised (``h33 = 1``, as the registration writes them), invertible, with
+    their horizon outside the ``hr_shape`` grid, and map at least :data:`MIN_OVERLAP` of the grid
+    inside the aperture's frame at a local scale within ``[1/MAX_SCALE, MAX_SCALE]``.
+    """
+    if aperture.shape != (4, 3, 3) or not np.all(np.isfinite(aperture)):
+        return f"shape {aperture.shape} or non-finite values, not 4 finite 3x3 matrices"
+    if not np.allclose(aperture[:, 2, 2], 1.0, rtol=0.0, atol=1e-6):
+        return f"h33 = {aperture[:, 2, 2].tolist()}, not 1"
+    try:
+        check_homographies(aperture, hr_shape, where="aperture_homographies")
+    except InputError as exc:
+        return str(exc).split(";")[0]
+    hh, ww = (int(v) for v in hr_shape)
+    ys, xs = np.meshgrid(np.linspace(0, hh - 1, 17), np.linspace(0, ww - 1, 17), indexing="ij")
+    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    for n, mat in enumerate(aperture):
+        q = mat @ pts
+        x, y = q[0] / q[2], q[1] / q[2]
+        inside = float(np.mean((x >= -0.5) & (x <= ww - 0.5) & (y >= -0.5) & (y <= hh - 0.5)))
+        cx, cy = (ww - 1) / 2, (hh - 1) / 2  # the local area scale at the centre (a unit square's image)
+        sq = mat @ np.array([[cx, cx + 1, cx, cx + 1], [cy, cy, cy + 1, cy + 1], [1, 1, 1, 1]])
+        sx, sy = sq[0] / sq[2], sq[1] / sq[2]
+        scale = abs((sx[1] - sx[0]) * (sy[2] - sy[0]) - (sx[2] - sx[0]) * (sy[1] - sy[0]))
+        if inside < MIN_OVERLAP or not (1 / MAX_SCALE <= scale <= MAX_SCALE):
+            return (f"aperture {n} sees {inside:.0%} of the reference grid at scale {scale:.3g}; a camera array's "
+                    f"apertures overlap by >= {MIN_OVERLAP:.0%} at scale 1/{MAX_SCALE:g}..{MAX_SCALE:g}")
+    return None
 
 
 def save_registration(path: Path, identity: dict, aperture: np.ndarray, record: dict) -> bool:

@@ -148,22 +148,22 @@ def _set(key, value, *, under=None):
 
 @pytest.mark.parametrize("change, fragments", [
     (lambda meta: [meta], ("meta.json: got a list", "a JSON object")),
-    (_set("files", None), ("meta.json files: got null", "file names")),
-    (_set("files", {"caps_raw": 3}), ("meta.json files: got an object", "file names")),
+    (_set("files", None), ("key 'files': got None", "file names")),
+    (_set("files", {"caps_raw": 3}), ("key 'files.caps_raw': got 3", "a non-empty string")),
     (_set("aperture_homographies", "abc"), ("aperture_homographies: got a string \"abc\"", "4 x 3 x 3")),
     (_set("aperture_homographies", [[1, 0, 0]]), ("aperture_homographies", "4 x 3 x 3 finite numbers")),
-    (_set("hr_height", "32", under="geometry"), ("geometry.hr_height: got a string", "a positive integer")),
-    (_set("raw_width", 7.5, under="geometry"), ("geometry.raw_width: got a number 7.5", "a positive integer")),
-    (_set("geometry", [1, 2]), ("meta.json geometry: got a list", "hr_height")),
-    (_set("lr_images", "x"), ("meta.json lr_images: got a string", "16 objects")),
-    (_set("sensor", "gaussian"), ("meta.json sensor: got a string", "'model'")),
+    (_set("hr_height", "32", under="geometry"), ("key 'geometry.hr_height': got '32'", "an integer")),
+    (_set("raw_width", 7.5, under="geometry"), ("key 'geometry.raw_width': got 7.5", "an integer")),
+    (_set("geometry", [1, 2]), ("key 'geometry': got [1, 2]", "hr_height")),
+    (_set("lr_images", "x"), ("key 'lr_images': got 'x'", "16 lr_images entries")),
+    (_set("sensor", "gaussian"), ("key 'sensor': got 'gaussian'", "'model'")),
     (_set("bit_depth", "twelve", under="sensor"), ("meta.json sensor", "twelve")),
     (_set("sigma", [1], under="sensor"), ("meta.json sensor", "sigma")),
     (_set("flavour", 1, under="sensor"), ("meta.json sensor", "flavour")),
     (_set("model", "fancy", under="sensor"), ("meta.json sensor", "fancy")),
     (_set("psf", {"type": "gaussian", "sigma_hr_px": "wide"}), ("meta.json psf", "wide")),
-    (_set("seed", -3), ("meta.json seed: got a number -3", "an integer >= 0")),
-    (_set("extinction_ratio", "high"), ("meta.json extinction_ratio", "a number >= 1")),
+    (_set("seed", -3), ("key 'seed': got -3", "an integer >= 0")),
+    (_set("extinction_ratio", "high"), ("key 'extinction_ratio'", "a finite number > 1")),
 ])
 def test_meta_json_fields_of_the_wrong_type_are_capture_format_errors(capture_dir, change, fragments):
     read_meta(capture_dir)  # valid before the change
@@ -177,7 +177,7 @@ def test_meta_json_fields_of_the_wrong_type_are_capture_format_errors(capture_di
 def test_meta_json_type_errors_reach_the_cli_as_one_line(capture_dir, capsys, monkeypatch):
     _rewrite(capture_dir, _set("files", None))
     status, err = run_cli(["reconstruct", capture_dir, "-m", "dofp-bilinear"], capsys, monkeypatch)
-    assert_user_error(status, err, "meta.json files")
+    assert_user_error(status, err, "meta.json", "'files'")
 
 
 def test_homographies_that_disagree_are_still_refused(capture_dir):
