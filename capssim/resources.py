@@ -77,6 +77,16 @@ def check_memory(option: str, estimate_bytes: float, *, what: str, fix: str) -> 
                             f"{format_bytes(limit)} ({source}). {fix}")
 
 
+#: bytes per HR pixel a benchmark's scene holds at least (12 float64 channels, several copies)
+SCENE_BYTES_PER_HR_PIXEL = 768
+
+
+def check_scene_size(option: str, size: int, *, fix: str) -> None:
+    """Refuse (:class:`~capssim.errors.ResourceError`) a ``size x size`` HR scene whose data alone would pass
+    the memory limit (``bench reconstruct --size``, suite scenes): :data:`SCENE_BYTES_PER_HR_PIXEL` per pixel."""
+    check_memory(option, float(size) ** 2 * SCENE_BYTES_PER_HR_PIXEL, what=f"a {size}x{size} scene", fix=fix)
+
+
 def check_range(option: str, value: float, *, high: float, what: str, reason: str, fix: str) -> None:
     """Refuse an ``option`` past its documented sane range ``value <= high`` (time or memory would explode).
 
@@ -108,5 +118,5 @@ def check_disk(option: str, estimate_bytes: float, path: str | os.PathLike, *, w
                             f"{format_bytes(free)} free at {path}. {fix}")
 
 
-__all__ = ["MEMORY_FRACTION", "MEMORY_LIMIT_ENV", "available_memory_bytes", "check_disk", "check_memory",
-           "check_range", "format_bytes", "free_disk_bytes", "memory_limit"]
+__all__ = ["MEMORY_FRACTION", "MEMORY_LIMIT_ENV", "SCENE_BYTES_PER_HR_PIXEL", "available_memory_bytes", "check_disk",
+           "check_memory", "check_range", "check_scene_size", "format_bytes", "free_disk_bytes", "memory_limit"]

@@ -137,6 +137,7 @@ RECONSTRUCT_ROOMS = (
     ("networks",),
     ("methods",),
     ("training",),
+    ("tiles",),  # full frames in tiles: runs any registered method per tile
     ("",),  # the package's face, capssim.reconstruct itself
 )
 

@@ -9,7 +9,7 @@ from typing import Callable, Optional
 import typer
 
 from capssim.errors import InputError
-from capssim.resources import check_memory
+from capssim.resources import check_scene_size
 
 #: largest ``--seed`` (numpy's ``SeedSequence`` takes any integer >= 0; 63 bits keep it an int64 everywhere)
 MAX_SEED = 2**63 - 1
@@ -42,16 +42,12 @@ def each(check: Callable) -> Callable:
     return lambda values: values if values is None else [check(v) for v in values]
 
 
-#: bytes per HR pixel a benchmark's scene holds at least (12 float64 channels, several copies)
-SCENE_BYTES_PER_HR_PIXEL = 768
-
-
 def check_hr_size(option: str) -> Callable:
-    """A callback refusing an HR ``size`` whose scene alone would pass the memory limit (the resource guard)."""
+    """A callback refusing an HR ``size`` whose scene alone would pass the memory limit (the resource guard,
+    :func:`capssim.resources.check_scene_size`, as suite scenes)."""
     def check(size):
         if size is not None:
-            check_memory(option, float(size) ** 2 * SCENE_BYTES_PER_HR_PIXEL, what=f"a {size}x{size} scene",
-                         fix=f"Use a smaller {option}.")
+            check_scene_size(option, size, fix=f"Use a smaller {option}.")
         return size
 
     return check

@@ -37,7 +37,7 @@ from capssim.cli._options import (
 )
 from capssim.cli._setup_options import DofpLayoutOption
 from capssim.cli.bench_budget import add_budget_command
-from capssim.cli.evaluate import format_table, format_value
+from capssim.cli.bench_suite import add_suite_command
 
 bench_app = typer.Typer(name="bench", no_args_is_help=True, rich_markup_mode=None,
                         help="Benchmarks: capssim bench SUBJECT [options] with SUBJECT in suite, reconstruct, "
@@ -63,121 +63,8 @@ def _say(as_json: bool):
     return partial(typer.echo, err=as_json)
 
 
-# -- suite ---------------------------------------------------------------------------------------
-def _progress_events(progress, task):
-    """The suite runner's ``events`` callback drawing on a rich progress bar."""
-
-    def on_event(kind: str, **info):
-        if kind == "start":
-            progress.update(task, total=info["total"])
-        elif kind == "case":
-            progress.update(task, case=info["label"])
-        elif kind == "done":
-            progress.advance(task)
-        elif kind in ("skip", "note"):
-            progress.console.print(f"[yellow]{info['message']}")
-        elif kind == "error":
-            progress.console.print(f"[red]{info['message']}")
-
-    return on_event
-
-
-@bench_app.command("suite")
-def suite(
-    name: str = typer.Argument(..., help="Suite name (eval/suites/NAME.yaml: quick, ablation, paper, full) "
-                                         "or a YAML path."),
-    output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
-    check: Optional[Path] = typer.Option(None, "--check", help="Baseline JSON: exit 1 if a metric fell beyond tolerance."),
-    update_baseline: Optional[Path] = typer.Option(None, "--update-baseline", help="Write this run's metrics as the baseline."),
-    results_page: Optional[Path] = typer.Option(None, "--results-page",
-                                                help="(Re)write this Markdown results page, e.g. docs/results/quick.md."),
-    methods: Optional[List[str]] = typer.Option(None, "--method", "-m", metavar="METHOD",
-                                                help="Run only this method of the suite (repeatable)."),
-    scenes: Optional[List[str]] = typer.Option(None, "--scene", metavar="SCENE",
-                                               help="Run only this scene of the suite (repeatable)."),
-    device: str = DeviceOption,
-    threads: Optional[int] = ThreadsOption,
-    cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/cache)."),
-    fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
-    no_plots: bool = typer.Option(False, "--no-plots", help="Skip the plots (report and results only)."),
-    workers: Optional[int] = typer.Option(None, "--workers", "-w", min=0, metavar="N",
-                                          help="Run the cases on a local Dask cluster of N worker processes (1 task "
-                                               "and --threads compute threads each; default: in this process)."),
-    scheduler: Optional[str] = typer.Option(None, "--scheduler", metavar="ADDRESS",
-                                            help="Run the cases on the Dask cluster at this address, "
-                                                 "e.g. tcp://host:8786 (workers must see OUTPUT and the data)."),
-) -> None:
-    """Run a benchmark suite: scenes x methods x noise levels (x seeds); results.jsonl, report.md, plots.
-
-    Each case's line is appended to results.jsonl as it finishes; run the same command again to
-    finish an interrupted run (only the missing cases run). --workers N / --scheduler ADDRESS
-    run the cases in parallel on Dask, with the same results as a run in this process.
-    """
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    # start-up time: the runner pulls torch, the renderer and every method
-    from capssim.eval.benchmarks.baseline import check_against_baseline, write_baseline
-    from capssim.eval.benchmarks.suite import load_suite, run_suite
-    from capssim.eval.suite_report import write_report, write_results_page
-
-    spec = load_suite(name)
-    _set_threads(threads, device)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  TextColumn("{task.fields[case]}"), console=Console(stderr=True), transient=False) as progress:
-        task = progress.add_task(f"bench {spec['name']}", total=None, case="")
-        run = run_suite(spec, output, methods=methods or None, scenes=scenes or None, device=device, cache_dir=cache,
-                        fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
-                        events=_progress_events(progress, task))
-    verdict = check_against_baseline(run, check) if check is not None else None
-    report = write_report(run, output, verdict=verdict, plots=not no_plots)
-    typer.echo(render_bench_summary(run))
-    if run.execution.get("kind") == "dask":
-        typer.echo(f"ran on {run.execution['workers']} Dask worker(s), {run.execution['compute_threads']} compute "
-                   f"thread(s) each, in {run.wall_time_s:.1f} s")
-    typer.echo(f"results: {run.results_path}")
-    typer.echo(f"report:  {report}")
-    if results_page is not None:
-        typer.echo(f"results page: {write_results_page(run, results_page, verdict=verdict)}")
-    if update_baseline is not None:
-        n = write_baseline(run, update_baseline)
-        typer.echo(f"wrote baseline {update_baseline} ({n} cases)")
-    if verdict is not None:
-        typer.echo(verdict.text())
-        if not verdict.passed:
-            raise typer.Exit(1)
-    if run.n_errors:
-        typer.echo(f"{run.n_errors} case(s) failed; see {run.results_path}", err=True)
-        raise typer.Exit(1)
-
-
-def _mean_metric(records: list[dict], key: str) -> float | None:
-    values = [r["metrics"][key] for r in records if r["metrics"].get(key) is not None]
-    return sum(values) / len(values) if values else None
-
-
-def render_bench_summary(run) -> str:
-    """One compact table per scene / noise level (the full tables are in report.md)."""
-    from capssim.eval.suite_report import group_records
-
-    lines = []
-    methods = [m["label"] for m in run.spec["methods"]]
-    for (scene, noise), recs in sorted(group_records(run.records).items()):
-        rows = []
-        for m in methods:
-            rs = [r for r in recs if r["method"] == m]
-            if not rs:
-                continue
-            t = sum(r["wall_time_s"] for r in rs) / len(rs)
-            rows.append([m, format_value(_mean_metric(rs, "psnr_mean")), format_value(_mean_metric(rs, "ssim_mean"), 4),
-                         format_value(_mean_metric(rs, "dolp_psnr")), format_value(_mean_metric(rs, "aop_rmse_deg")),
-                         format_value(_mean_metric(rs, "mtf_magnification_hv")), format_value(t, 2)])
-        lines += ["", f"{scene} / {noise}:",
-                  format_table(["method", "PSNR", "SSIM", "DoLP", "AoP-RMSE", "SR-mag", "time-s"], rows)]
-    skipped = [r for r in run.records if r["status"] == "skipped"]
-    if skipped:
-        lines.append(f"\n{len(skipped)} case(s) skipped (reasons in report.md)")
-    return "\n".join(lines)
+# -- suite (capssim.cli.bench_suite) -------------------------------------------------------------
+add_suite_command(bench_app)
 
 
 # -- reconstruct ---------------------------------------------------------------------------------

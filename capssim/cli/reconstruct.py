@@ -8,6 +8,17 @@ from typing import List, Optional
 import typer
 
 from capssim.cli._options import DeviceOption, ThreadsOption, apply_compute, check_iterations
+from capssim.cli.reconstruct_frames import (
+    MemoryOption,
+    SchedulerOption,
+    TileOption,
+    WorkersOption,
+    check_full_frame_options,
+    first_capture,
+    frame_runner,
+    run_full_frames,
+    uses_full_frames,
+)
 from capssim.errors import InputError
 
 #: keywords of ``run_method`` that come from the command's flags, never from ``-p/--param``
@@ -89,6 +100,10 @@ def reconstruct(
         True, "--physical-projection/--no-physical-projection",
         help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1) "
              "where all four angles are observed."),
+    tile: Optional[int] = TileOption,
+    memory_gb: Optional[float] = MemoryOption,
+    workers: Optional[int] = WorkersOption,
+    scheduler: Optional[str] = SchedulerOption,
     device: str = DeviceOption,
 ) -> None:
     """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
@@ -103,12 +118,19 @@ def reconstruct(
         raise typer.BadParameter("missing the CAPTURE folder (e.g. 'capssim reconstruct runs/cap -m caps'); "
                                  "only --list runs without one", param_hint="CAPTURE")
     options = parse_options(param)
+    check_full_frame_options(tile, workers, scheduler)
+    flags = dict(device=device, true_warps=true_warps, registration=registration,
+                 physical_projection=physical_projection, reuse_registration=reuse_registration, calibration=calibration)
+    if uses_full_frames(capture, workers, scheduler):  # a folder of captures, or tiles/frames on Dask
+        names = expand_methods(method, first_capture(capture))
+        run_full_frames(capture, names, tile=tile, memory_gb=memory_gb, workers=workers, scheduler=scheduler,
+                        echo=lambda folder, name, record: _echo_record(folder, name, record),
+                        options_of=lambda name: _method_options(name, options, iterations), **flags)
+        return
     rows = []
     for name in expand_methods(method, capture):
         record = _run_one(capture, name, iterations=iterations, progress=progress, options=options,
-                          device=device, true_warps=true_warps, registration=registration,
-                          physical_projection=physical_projection, reuse_registration=reuse_registration,
-                          calibration=calibration)
+                          run=frame_runner(tile, memory_gb), **flags)
         rows.append((name, record["wall_time_s"]))
         _echo_record(capture, name, record)
     if len(rows) > 1:
@@ -117,20 +139,29 @@ def reconstruct(
             typer.echo(f"{name:24s}  {wall:10.2f}")
 
 
-def _run_one(capture: Path, name: str, *, iterations: Optional[int], progress: bool, options: dict,
-             **flags) -> dict:
-    """``run_method`` of one method under a progress bar (stderr); ``--iterations`` to the CAPS-input methods only."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from capssim.reconstruct import get_method, run_method  # start-up time
+def _method_options(name: str, options: dict, iterations: Optional[int]) -> dict:
+    """The method's ``-p`` options, with ``--iterations`` for the CAPS-input methods (DoFP methods take none)."""
+    from capssim.reconstruct import get_method  # start-up time
 
     method_options = dict(options)
-    if iterations is not None:  # ADMM iterations: the CAPS-input methods' option; DoFP methods take none
+    if iterations is not None:
         if get_method(name).input_kind == "caps":
             method_options["iterations"] = iterations
         else:
             typer.echo(f"note: --iterations does not apply to the DoFP method {name}; not passed", err=True)
+    return method_options
+
+
+def _run_one(capture: Path, name: str, *, iterations: Optional[int], progress: bool, options: dict,
+             run=None, **flags) -> dict:
+    """``run_method`` of one method under a progress bar (stderr); ``--iterations`` to the CAPS-input methods only."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from capssim.reconstruct import run_method  # start-up time
+
+    method_options = _method_options(name, options, iterations)
+    run = run or run_method
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[message]}"), TimeElapsedColumn(), console=Console(stderr=True),
                   disable=not progress, transient=False) as bar:
@@ -139,7 +170,7 @@ def _run_one(capture: Path, name: str, *, iterations: Optional[int], progress: b
         def report(done: int, total: int, message: str = "") -> None:
             bar.update(task, completed=done, total=total, message=message)
 
-        return run_method(capture, name, progress=report, **flags, **method_options)
+        return run(capture, name, progress=report, **flags, **method_options)
 
 
 def _echo_record(capture: Path, name: str, record: dict) -> None:

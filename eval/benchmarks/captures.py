@@ -105,7 +105,8 @@ def _resolve_gt_path(scene: dict) -> Path:
     return path
 
 
-def _rendered_scene_names() -> list[str]:
+def rendered_scene_names() -> list[str]:
+    """The renderer's scene names; :class:`Unavailable` when it cannot list them."""
     try:
         return list(list_scenes())
     except Exception as exc:  # a renderer that cannot even list its scenes is unavailable
@@ -213,7 +214,7 @@ class CaptureFactory:
     def _render(self, scene: dict, seed: int):
         """Noise-free render, cached by content hash (scene spec, seed, render code)."""
         name = scene.get("scene", scene["name"])
-        known = _rendered_scene_names()
+        known = rendered_scene_names()
         if known and name not in known:
             raise Unavailable(f"scene {name!r} is not one of the renderer's scenes ({', '.join(map(str, known))})")
         params = {"scene": name, "size": int(scene.get("size", 256)), "spp": scene.get("spp"), "seed": seed,
@@ -254,7 +255,7 @@ def expand_render_scenes(scenes: list[dict], emit: Callable[..., None]) -> list[
             out.append(sc)
             continue
         try:
-            names = _rendered_scene_names()
+            names = rendered_scene_names()
         except Unavailable as exc:
             emit("note", message=f"{sc['name']}: {exc}")
             names = []

@@ -19,7 +19,6 @@ runs the method, named by ``worker`` (``host:pid``).
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import logging
 import time
 import traceback
@@ -28,112 +27,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-import yaml
-
-from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.registration.parameters import registration_parameters
+from capssim.errors import UnknownNameError
 from capssim.reconstruct.registry import available_methods, resolve_device
 
 from ..metrics import get_convention
-from .captures import expand_render_scenes, suite_noise
+from .captures import expand_render_scenes
 from .cases import capture_task, forget_captures, method_task
 from .executors import check_execution, open_executor
+from .output_claim import claim_output
 from .provenance import code_fingerprint, content_hash, environment
 from .results import ResultsLog
-from .rigs import METHOD_CALIBRATIONS, check_rig_spec
+from .suite_schema import SCENE_SOURCES, SUITES_DIR, available_suites, check_scene_memory, load_suite
 
 log = logging.getLogger(__name__)
 
-SUITES_DIR = Path(__file__).resolve().parents[1] / "suites"
-SCENE_SOURCES = ("render", "shared-gt", "gt", "synthetic")
+__all__ = ["SCENE_SOURCES", "SUITES_DIR", "BenchRun", "available_suites", "case_key", "load_suite", "plan",
+           "run_suite"]
+
 #: the source files whose change re-runs a case (cached captures are kept)
 RECONSTRUCTION_CODE = ("reconstruct",)
 SCORING_CODE = ("eval/metrics.py", "eval/mtf.py", "eval/star.py", "eval/evaluate.py", "eval/benchmarks/suite.py",
                 "eval/benchmarks/cases.py")
-
-
-# -- suites --------------------------------------------------------------------------------------
-def available_suites() -> list[str]:
-    return sorted(p.stem for p in SUITES_DIR.glob("*.yaml"))
-
-
-def _method_entries(methods: list) -> list[dict]:
-    entries = []
-    for m in methods:
-        entry = {"name": m} if isinstance(m, str) else dict(m)
-        if "name" not in entry:
-            raise InputError("suite methods", repr(m),
-                             "a method name or {name, label, options, true_warps, registration}")
-        entry.setdefault("label", entry["name"])
-        entry.setdefault("options", {})
-        entry.setdefault("true_warps", False)
-        entry.setdefault("registration", "local-correlation")
-        if entry.get("calibration", "ideal") not in METHOD_CALIBRATIONS:
-            raise InputError(f"suite method {entry['label']!r} calibration", repr(entry["calibration"]),
-                             f"one of {METHOD_CALIBRATIONS}")
-        registration_parameters(entry["registration"])  # UnknownNameError lists the modes
-        entries.append(entry)
-    if len({m["label"] for m in entries}) != len(entries):
-        raise InputError("suite methods", [m["label"] for m in entries], "unique labels (give variants a 'label')")
-    return entries
-
-
-def _check_scenes(scenes: list) -> None:
-    names = set()
-    for sc in scenes:
-        if not isinstance(sc, dict) or "name" not in sc or sc.get("source") not in SCENE_SOURCES:
-            raise InputError("suite scenes", repr(sc)[:120], f"{{name, source}} with source in {SCENE_SOURCES}")
-        if sc["name"] in names:
-            raise InputError("suite scenes", sc["name"], "unique scene names")
-        names.add(sc["name"])
-        if "psf_sigma" in sc:
-            raise InputError(f"suite scene {sc['name']!r}: psf_sigma", sc["psf_sigma"],
-                             "psf_sigma_hr_px (the camera set-up's spelling: Gaussian PSF std, HR px)",
-                             "Rename the key to psf_sigma_hr_px.")
-        if sc.get("rig") is not None:
-            check_rig_spec(sc["rig"], sc["name"])
-    for sc in scenes:
-        if sc.get("fallback") and sc["fallback"] not in names:
-            raise InputError("suite scenes", f"fallback {sc['fallback']!r} of {sc['name']!r}", "a scene of this suite")
-
-
-def load_suite(name_or_path: str | Path) -> dict:
-    """Read and validate a suite (module docstring; unknown methods, scenes or keys are one-line errors).
-
-    Parameters
-    ----------
-    name_or_path : str or pathlib.Path
-        A name in ``eval/suites`` or a path to a YAML file.
-
-    Returns
-    -------
-    dict
-    """
-    path = Path(name_or_path)
-    if not (path.suffix in (".yaml", ".yml") and path.is_file()):
-        if str(name_or_path) not in available_suites():
-            raise UnknownNameError("suite", str(name_or_path), available_suites())
-        path = SUITES_DIR / f"{name_or_path}.yaml"
-    try:
-        spec = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise InputError("suite", f"invalid YAML in {path} ({exc})", "a suite file (docs: scoring guide)") from exc
-    if not isinstance(spec, dict):
-        raise InputError("suite", str(path), "a YAML mapping with scenes, noise, seeds and methods")
-    spec = dict(spec)
-    spec.setdefault("name", path.stem)
-    spec["path"] = str(path)
-    spec["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
-    spec.setdefault("convention", "capssim")
-    spec.setdefault("seeds", [0])
-    spec.setdefault("noise", [{"name": "clean", "noise": "none"}])
-    for key in ("scenes", "methods"):
-        if not spec.get(key):
-            raise InputError("suite", f"{path} without '{key}'", f"a non-empty '{key}' list")
-    _check_scenes(spec["scenes"])
-    spec["methods"] = _method_entries(spec["methods"])
-    spec["noise"] = [suite_noise(nz) for nz in spec["noise"]]
-    return spec
 
 
 # -- results -------------------------------------------------------------------------------------
@@ -168,7 +82,8 @@ def _now() -> str:
 
 # -- the run -------------------------------------------------------------------------------------
 def plan(spec: dict, *, methods: list[str] | None, scenes: list[str] | None, emit: Callable[..., None]):
-    """``(scenes to run, every scene by name, method entries)`` of a suite, restricted to a subset."""
+    """``(scenes to run, every scene by name, method entries)`` of a suite, restricted to a subset; a scene
+    too large for the memory limit is refused here (:func:`~.suite_schema.check_scene_memory`)."""
     method_entries = spec["methods"]
     if methods:
         known = {m["label"] for m in method_entries} | {m["name"] for m in method_entries}
@@ -185,6 +100,7 @@ def plan(spec: dict, *, methods: list[str] | None, scenes: list[str] | None, emi
         if unknown:
             raise UnknownNameError("suite scene", unknown[0], sorted(scene_by_name))
         plan_scenes = [scene_by_name[n] for n in scenes]
+    check_scene_memory(spec, plan_scenes)  # the resource guard, before any work
     return plan_scenes, scene_by_name, method_entries
 
 
@@ -346,7 +262,7 @@ class _SuiteRun:
 def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = None, scenes: list[str] | None = None,
               device: str = "cpu", cache_dir: str | Path | None = None, fresh: bool = False,
               workers: int | None = None, scheduler: str | None = None, threads: int | None = None,
-              events: Callable[..., None] | None = None) -> BenchRun:
+              events: Callable[..., None] | None = None, allow_other_suite: bool = False) -> BenchRun:
     """Run (or resume) a suite into ``output`` (module docstring).
 
     Parameters
@@ -366,6 +282,9 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
         Compute threads of each worker (default: :func:`capssim.threads.resolve_threads`'s).
     events : callable, optional
         ``events(kind, **info)``: ``start`` (``total``), ``case`` (``label``), ``done``, ``skip``, ``note``, ``error``.
+    allow_other_suite : bool
+        Hand over an ``output`` that another suite owns (:mod:`~.output_claim`; else an :class:`InputError`).
+        The run holds the folder's lock throughout (a second run on it is refused).
 
     Returns
     -------
@@ -377,9 +296,24 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
     plan_scenes, scene_by_name, plan_methods = plan(spec, methods=methods, scenes=scenes, emit=emit)
     check_execution(workers=workers, scheduler=scheduler)  # before results.jsonl is touched
     output = Path(output)
-    output.mkdir(parents=True, exist_ok=True)
-    run = _SuiteRun(spec, output, device=device, cache=Path(cache_dir) if cache_dir else output / "cache",
-                    fresh=fresh, emit=emit)
+    with claim_output(output, spec, allow_other_suite=allow_other_suite) as claim_notes:
+        run = _SuiteRun(spec, output, device=device, cache=Path(cache_dir) if cache_dir else output / "cache",
+                        fresh=fresh, emit=emit)
+        for message in claim_notes:
+            run.note(message)
+        execution = _execute(run, spec, plan_scenes, plan_methods, scene_by_name, workers=workers,
+                             scheduler=scheduler, threads=threads)
+    records = [run.records[i] for i in sorted(run.records)]
+    return BenchRun(spec=spec, output=output, results_path=run.results.path, records=records,
+                    environment=run.env, notes=run.notes, wall_time_s=time.perf_counter() - t_start,
+                    execution=execution)
+
+
+def _execute(run: _SuiteRun, spec: dict, plan_scenes: list[dict], plan_methods: list[dict], scene_by_name: dict,
+             *, workers, scheduler, threads) -> dict:
+    """Run the plan's groups x methods on the executor; ``results.jsonl`` rewritten in plan order. Returns
+    where the cases ran."""
+    emit = run.emit
     run.methods = plan_methods
     run.groups = [(scene, noise, int(seed)) for scene in plan_scenes for noise in spec["noise"]
                   for seed in spec["seeds"]]
@@ -392,8 +326,5 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
             run.execute(executor, scene_by_name)
     finally:
         forget_captures()
-    records = [run.records[i] for i in sorted(run.records)]
-    run.results.finish(records)
-    return BenchRun(spec=spec, output=output, results_path=run.results.path, records=records,
-                    environment=run.env, notes=run.notes, wall_time_s=time.perf_counter() - t_start,
-                    execution=execution)
+    run.results.finish([run.records[i] for i in sorted(run.records)])
+    return execution

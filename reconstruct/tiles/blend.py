@@ -44,22 +44,24 @@ def tile_weight(tile: Tile, hr_shape, overlap: int) -> np.ndarray:
 class TileBlender:
     """Accumulates tiles ``(C, rows, cols)`` into one ``(C, H, W)`` float32 frame (call :meth:`add` per tile).
 
+    Memory: about ``4 C + 12`` bytes per HR pixel of the frame (plus ``C`` with ``unobserved`` masks).
+
     The weights sum to 1 everywhere (partition of unity); :meth:`result` divides by the accumulated weight
     anyway, so rounding never shows. ``unobserved`` masks are taken from the tile of largest weight.
     """
 
     def __init__(self, layout: TileLayout, channels: int):
         self.layout = layout
-        self.sum = np.zeros((channels, *layout.hr_shape), dtype=np.float64)
-        self.weight = np.zeros(layout.hr_shape, dtype=np.float64)
-        self.best = np.zeros(layout.hr_shape, dtype=np.float64)
+        self.sum = np.zeros((channels, *layout.hr_shape), dtype=np.float32)  # float32: the frame is the big part
+        self.weight = np.zeros(layout.hr_shape, dtype=np.float32)
+        self.best = np.zeros(layout.hr_shape, dtype=np.float32)
         self.unobserved: np.ndarray | None = None
 
     def add(self, tile: Tile, image: np.ndarray, unobserved: np.ndarray | None = None) -> None:
         """Add ``image`` ``(C, rows, cols)`` of ``tile``'s window (and its bool mask of the same shape)."""
         top, left, bottom, right = tile.window
-        w = tile_weight(tile, self.layout.hr_shape, self.layout.overlap)
-        self.sum[:, top:bottom, left:right] += w[None] * np.asarray(image, dtype=np.float64)
+        w = tile_weight(tile, self.layout.hr_shape, self.layout.overlap).astype(np.float32)
+        self.sum[:, top:bottom, left:right] += w[None] * np.asarray(image, dtype=np.float32)
         self.weight[top:bottom, left:right] += w
         if unobserved is not None:
             if self.unobserved is None:
@@ -70,7 +72,8 @@ class TileBlender:
         self.best[top:bottom, left:right] = np.maximum(self.best[top:bottom, left:right], w)
 
     def result(self) -> np.ndarray:
-        """The blended ``(C, H, W)`` float32 frame; every pixel must have been covered."""
+        """The blended ``(C, H, W)`` float32 frame (in place: call once); every pixel must have been covered."""
         if np.any(self.weight <= 0):
             raise RuntimeError(f"{int(np.sum(self.weight <= 0))} pixels are covered by no tile")
-        return (self.sum / self.weight[None]).astype(np.float32)
+        self.sum /= self.weight[None]
+        return self.sum

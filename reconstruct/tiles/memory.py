@@ -4,7 +4,8 @@ The model is affine in the HR pixel count, fitted to ``capssim bench reconstruct
 (issue 35: 0.93 GB at 512², 2.7 GB at 1024², 10.0 GB at 2048²): :data:`BASE_BYTES` for the
 process (torch, the method's modules) and :data:`BYTES_PER_HR_PIXEL` for the observations, the
 ADMM state and NLSTR's working set (:meth:`NonlocalSparseTensor.working_set_bytes` holds its own
-share, a few hundred bytes per pixel). Tiles that run side by side (``--workers``) share the budget.
+share, a few hundred bytes per pixel). A tiled run also holds the whole frame once
+(:data:`FRAME_BYTES_PER_HR_PIXEL`); tiles that run side by side (``--workers``) share the rest.
 """
 
 from __future__ import annotations
@@ -16,12 +17,15 @@ from capssim.resources import format_bytes, memory_limit
 
 from .geometry import MIN_TILE, TILE_ALIGN
 
-__all__ = ["BASE_BYTES", "BYTES_PER_HR_PIXEL", "estimate_bytes", "fits", "memory_budget", "tile_for_budget"]
+__all__ = ["BASE_BYTES", "BYTES_PER_HR_PIXEL", "FRAME_BYTES_PER_HR_PIXEL", "estimate_bytes", "fits", "memory_budget", "tile_for_budget"]
 
 #: memory of the process before the frame (interpreter, torch, the method's modules), bytes
 BASE_BYTES = 0.35 * 2**30
 #: memory per HR pixel of one CAPS reconstruction (observations, ADMM state, NLSTR working set), bytes
 BYTES_PER_HR_PIXEL = 2450.0
+#: memory per HR pixel of the whole frame that a tiled run holds besides its tiles (the raw frames, the blended
+#: frame and its weights, the masks, the physical projection's temporaries), bytes
+FRAME_BYTES_PER_HR_PIXEL = 200.0
 
 
 def estimate_bytes(hr_shape) -> float:
@@ -54,7 +58,7 @@ def tile_for_budget(hr_shape, budget_bytes: float, *, margin: int, workers: int 
     hr_shape : tuple of int
         The frame, HR pixels.
     budget_bytes : float
-        Memory for all ``workers`` tiles together, bytes.
+        Memory for the run: the frame (:data:`FRAME_BYTES_PER_HR_PIXEL`) and ``workers`` tiles, bytes.
     margin : int
         The tile margin, HR pixels (the window is the core plus ``2 margin`` per side at most).
     workers : int
@@ -72,13 +76,15 @@ def tile_for_budget(hr_shape, budget_bytes: float, *, margin: int, workers: int 
     ResourceError
         When even a :data:`MIN_TILE` tile does not fit.
     """
-    per_tile = budget_bytes / max(1, int(workers))
+    frame = FRAME_BYTES_PER_HR_PIXEL * int(hr_shape[0]) * int(hr_shape[1])
+    per_tile = (budget_bytes - frame) / max(1, int(workers))
     side = math.sqrt(max(0.0, (per_tile - BASE_BYTES) / BYTES_PER_HR_PIXEL)) - 2 * margin
     side = int(side // TILE_ALIGN) * TILE_ALIGN
     if side < MIN_TILE:
-        need = workers * estimate_bytes((MIN_TILE + 2 * margin, MIN_TILE + 2 * margin))
+        need = frame + workers * estimate_bytes((MIN_TILE + 2 * margin, MIN_TILE + 2 * margin))
         raise ResourceError("--memory-gb", budget_bytes,
-                            f"{workers} tile(s) of the smallest size ({MIN_TILE} px + {margin} px margins) need "
+                            f"the {hr_shape[0]}x{hr_shape[1]} frame and {workers} tile(s) of the smallest size "
+                            f"({MIN_TILE} px + {margin} px margins) need "
                             f"about {format_bytes(need)}, more than the budget {format_bytes(budget_bytes)} "
                             f"({source}). Give at least --memory-gb {math.ceil(need / 2**30 * 10) / 10:g}, "
                             "or fewer --workers.")

@@ -47,7 +47,7 @@ OPTIONS = {
     "render": ["--size", "--spp", "--target-noise", "--max-spp", "--seed", "--sigma", "--psf-sigma-hr-px", "--f-number",
                "--wavelength-nm", "--pixel-um", "--oversample", "--extinction-ratio", "--preview-white",
                "--preview-dolp-max", "--threads"],
-    "reconstruct": ["--iterations", "--threads", *CAPS_OPTIONS, *DOFP_OPTIONS],
+    "reconstruct": ["--iterations", "--threads", "--tile", "--memory-gb", *CAPS_OPTIONS, *DOFP_OPTIONS],
     "evaluate": ["--min-s0", "--min-dolp", "--border"],
     "mtf": ["--cycles", "--radius", "--reference-pitch", "--modulation", "--threshold", "--residual-limit"],
     "demosaic": ["--white-level", "--black-level", "--dolp-max", "--threads"],

@@ -91,7 +91,8 @@ def test_two_workers_give_the_serial_metrics_and_pass_its_check(suite, tmp_path)
         assert stores == ["computed", "reused"], (scene, stores)
 
 
-def test_captures_that_write_the_same_cache_folder_wait_for_each_other(tmp_path):
+def test_captures_that_write_the_same_cache_folder_wait_for_each_other(tmp_path, monkeypatch):
+    monkeypatch.setenv("CAPSSIM_SHARED_DATA", str(tmp_path / "no-shared-data"))  # real-a, real-b fall back
     path = tmp_path / "cache-sharing.yaml"
     path.write_text(SUITE.replace("noise:\n", "noise:\n  - {name: clean, model: none}\n") + """\
   - {name: rendered, source: render, scene: siemens-star, size: 64}
