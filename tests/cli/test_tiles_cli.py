@@ -11,11 +11,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.fuzz import invoke
 
 from capssim.capture import write_capture
 from capssim.imageio import read_tiff
 from capssim.simulate import simulate_capture
-from support.fuzz import invoke
 
 FAST = ["--iterations", "2", "--true-warps", "--no-progress"]
 
