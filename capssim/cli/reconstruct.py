@@ -67,7 +67,9 @@ def expand_methods(names: List[str], capture_path: Path) -> list[str]:
 
 def reconstruct(
     capture: Optional[Path] = typer.Argument(None, help="Capture folder (from 'capssim simulate' or "
-                                                        "'capssim render'); not needed with --list."),
+                                                        "'capssim render'), or a folder of capture folders (each "
+                                                        "written as it finishes; finished ones are skipped); not "
+                                                        "needed with --list."),
     method: List[str] = typer.Option(["caps"], "--method", "-m", metavar="METHOD",
                                      help="Method name; repeat for several, or 'all'. "
                                           "'capssim reconstruct --list' shows them."),

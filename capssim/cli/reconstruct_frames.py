@@ -18,7 +18,7 @@ TileOption = typer.Option(None, "--tile", metavar="PIXELS",
 MemoryOption = typer.Option(None, "--memory-gb", metavar="GB",
                             callback=number_in("--memory-gb", 0, low_open=True, what="GiB of memory for the run"),
                             help="Memory budget (GiB) that picks the tile size (all --workers together). Default: "
-                                 "80 %% of the free memory, or $CAPSSIM_MEMORY_LIMIT_GB.")
+                                 "80 % of the free memory, or $CAPSSIM_MEMORY_LIMIT_GB.")
 WorkersOption = typer.Option(None, "--workers", "-w", metavar="N",
                              help="Local Dask workers (processes of 1 thread): the tiles of one capture, or the "
                                   "captures of a folder, run side by side.")
@@ -97,7 +97,9 @@ def run_full_frames(capture: Path, methods: list[str], *, tile: Optional[int], m
                                "had nothing to share; give --tile PIXELS to split it", err=True)
                 continue
             client = None if session is None else session.client
-            for folder, record in reconstruct_frames(folders, name, client=client, tile=tile, memory_gb=memory_gb,
+            side_by_side = workers or 1  # local frames share --memory-gb (a cluster's workers have their own)
+            frame_gb = None if memory_gb is None else memory_gb / side_by_side
+            for folder, record in reconstruct_frames(folders, name, client=client, tile=tile, memory_gb=frame_gb,
                                                      **kwargs):
                 if record is None:
                     typer.echo(f"{folder.name}: {name} already finished (same settings); skipped")

@@ -57,12 +57,12 @@ from capssim.dataset.config_specs import (  # noqa: F401  (re-exported: the conf
     TOP_SPEC,
 )
 from capssim.dataset.distributions import Choice, Const, Dist, draw_tree, key_rng
-from capssim.schema import ConfigError, join, show
 from capssim.errors import InputError
 from capssim.imageio import GT_IMAGE_SUFFIXES
 from capssim.psf import DEFAULT_SIGMA_HR_PX
 from capssim.render import list_scenes
 from capssim.rig import RigModel
+from capssim.schema import ConfigError, join, show
 from capssim.simulate import PoseRanges
 
 log = logging.getLogger(__name__)

@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
-import torch
 
 from capssim.capture import Capture
 from capssim.errors import InputError
@@ -274,7 +273,7 @@ def _record(method, options, device, true_warps, first, stages, wall, reg_record
         entry.update({"wall_time_s": rec.get("wall_time_s"), "resumed": bool(rec.get("resumed", False)),
                       "rematched_at": [h.get("iteration") for h in rec.get("history", []) if h.get("rematched")]})
     return {"method": method, "description": spec.description, "reference": spec.reference, "input": spec.input_kind,
-            "device": str(torch.device(device) if device != "auto" else device), "true_warps": true_warps,
+            "device": str(resolve_device(device)), "true_warps": true_warps,
             "options": dict(options), "params": first.get("params", {}), "wall_time_s": wall, "stages_s": stages,
             "history": first.get("history", []),
             "physical_projection": None if projection is None else projection.to_dict(),
