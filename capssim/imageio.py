@@ -21,6 +21,13 @@ import numpy as np
 
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
+from capssim.output_paths import (  # check_writable_location moved there; still imported from here
+    check_writable_location,  # noqa: F401
+    follow_links,
+    resolve_output,
+    write_error,
+    writing,
+)
 
 log = logging.getLogger(__name__)
 
@@ -91,74 +98,42 @@ def _tmp_sibling(path: Path) -> Path:
     try:
         fd, name = tempfile.mkstemp(prefix=_tmp_prefix(path), dir=path.parent)
     except OSError as exc:
-        raise InputError("output file", f"{str(path)!r} ({exc.strerror or exc})", "a path in a folder you can write to",
-                         "Choose another path.") from None
+        raise write_error(path, exc, argument="output file") from None
     os.close(fd)
     os.chmod(name, 0o666 & ~_umask())
     return Path(name)
 
 
-def check_writable_location(path: str | os.PathLike, *, argument: str = "-o/--output") -> Path:
-    """Fail early (before any work) if ``path`` cannot be created: a parent is a file, or the
-    nearest existing folder refuses a new entry (read-only, a system folder such as ``/sys``).
-
-    Creates nothing that stays: the nearest existing folder is probed with a temporary folder.
-    """
-    path = Path(path)
-    probe_dir = None
-    for folder in (path.absolute(), *path.absolute().parents):
-        if folder.exists():
-            if not folder.is_dir():
-                raise InputError(argument, f"{str(path)!r}, under the existing file {str(folder)!r}",
-                                 "a path whose parents are folders", "Choose another path.")
-            probe_dir = folder
-            break
-    try:
-        os.rmdir(tempfile.mkdtemp(prefix=".capssim-probe-", dir=probe_dir))
-    except OSError as exc:
-        raise InputError(argument, f"{str(path)!r}, where {str(probe_dir)!r} refuses new files "
-                         f"({exc.strerror or exc})", "a path in a folder you can write to",
-                         "Choose another path.") from None
-    return path
-
-
 def check_output_free(path: str | os.PathLike, *, overwrite: bool = False, argument: str = "-o/--output") -> Path:
-    """Fail early (before any work) if ``path`` exists and ``overwrite`` is not set, or cannot be written."""
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise InputError(argument, f"existing path {str(path)!r}", "a path that does not exist yet",
-                         "Choose another -o/--output, or pass --overwrite to replace it.")
-    if path.exists() and not path.is_dir():
-        raise InputError(argument, f"existing file {str(path)!r}", "a folder path")
-    return check_writable_location(path, argument=argument)
+    """Fail early (before any work) if the folder ``path`` exists and ``overwrite`` is not set, or cannot be
+    written; returns where it will be written (:func:`capssim.output_paths.resolve_output`: links followed)."""
+    return resolve_output(path, kind="folder", overwrite=overwrite, argument=argument)
 
 
 def check_output_file(path: str | os.PathLike, *, argument: str) -> Path:
-    """Fail early (before any work) if the file ``path`` cannot be written (a folder, or an unwritable place)."""
-    path = Path(path)
-    if path.is_dir():
-        raise InputError(argument, f"existing folder {str(path)!r}", "a file path", "Choose a file name.")
-    return check_writable_location(path.parent, argument=argument)
+    """Fail early (before any work) if the file ``path`` cannot be written (a folder, or an unwritable place);
+    an existing file is replaced. Returns where it will be written (links followed)."""
+    return resolve_output(path, kind="file", overwrite=True, argument=argument)
 
 
 def _make_parent(path: Path, argument: str) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InputError(argument, f"{str(path)!r} ({exc.strerror or exc})", "a path in a folder you can write to",
-                         "Choose another path.") from None
+        raise write_error(path, exc, argument=argument) from None
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    path = Path(path)
+    path = follow_links(path, argument="output file")  # a link to a file is written through, not replaced
     _make_parent(path, "output file")
     tmp = _tmp_sibling(path)
     try:
-        with open(tmp, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        with writing(path):
+            with open(tmp, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -168,14 +143,15 @@ def append_line_durably(path: str | os.PathLike, line: bytes) -> None:
     """Append ``line`` (one JSON line, say, newline included) to ``path``: one ``write`` on an
     ``O_APPEND`` descriptor, then ``fsync``. A kill leaves every earlier line whole and at most
     this one cut short."""
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
-    try:
-        view = memoryview(line)
-        while view:
-            view = view[os.write(fd, view):]
-        os.fsync(fd)
-    finally:
-        os.close(fd)
+    with writing(path):
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+        try:
+            view = memoryview(line)
+            while view:
+                view = view[os.write(fd, view):]
+            os.fsync(fd)
+        finally:
+            os.close(fd)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
@@ -204,13 +180,14 @@ def write_tiff(path: str | os.PathLike, array: np.ndarray) -> None:
     """Write a TIFF atomically (zlib-compressed, deterministic bytes)."""
     import tifffile
 
-    path = Path(path)
+    path = follow_links(path, argument="output file")  # a link to a file is written through, not replaced
     _make_parent(path, "output file")
     tmp = _tmp_sibling(path)
     try:
-        tifffile.imwrite(tmp, np.ascontiguousarray(array), compression="zlib", photometric="minisblack",
-                         metadata=None, software=None)
-        os.replace(tmp, path)
+        with writing(path):
+            tifffile.imwrite(tmp, np.ascontiguousarray(array), compression="zlib", photometric="minisblack",
+                             metadata=None, software=None)
+            os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -242,18 +219,46 @@ def atomic_directory(path: str | os.PathLike, *, overwrite: bool = False) -> Ite
     path = check_output_free(path, overwrite=overwrite)
     _make_parent(path, "-o/--output")
     remove_stale_temporaries(path)
-    tmp = Path(tempfile.mkdtemp(prefix=_tmp_prefix(path), dir=path.parent))
-    os.chmod(tmp, 0o777 & ~_umask())
+    with writing(path, argument="-o/--output"):
+        tmp = Path(tempfile.mkdtemp(prefix=_tmp_prefix(path), dir=path.parent))
+        os.chmod(tmp, 0o777 & ~_umask())
     try:
         yield tmp
+    except (OSError, InputError) as exc:  # a file could not be written: name the output, not the temporary
+        shutil.rmtree(tmp, ignore_errors=True)
+        os_error = exc if isinstance(exc, OSError) else getattr(exc, "os_error", None)
+        inside = _inside(getattr(exc, "path", None) or getattr(os_error, "filename", None), tmp)
+        if os_error is None or inside is None:
+            raise
+        raise write_error(path / inside, os_error, argument="-o/--output") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    old = None
-    if path.exists():
-        old = path.parent / f".{path.name}.old-{os.getpid()}"
-        os.replace(path, old)
-    os.replace(tmp, path)
+    _rename_into_place(tmp, path)
+
+
+def _inside(name, folder: Path) -> str | None:
+    """``name`` relative to ``folder`` (None when it is not inside it)."""
+    try:
+        return str(Path(os.fsdecode(name)).relative_to(folder)) if name else None
+    except (ValueError, TypeError):
+        return None
+
+
+def _rename_into_place(tmp: Path, path: Path) -> None:
+    """The complete folder ``tmp`` renamed to ``path`` (an old ``path`` replaced); on an error nothing is left behind
+    and an old ``path`` is put back."""
+    old = path.parent / f".{path.name}.old-{os.getpid()}" if path.exists() else None
+    try:
+        with writing(path, argument="-o/--output"):
+            if old is not None:
+                os.replace(path, old)
+            os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not path.exists():
+            os.replace(old, path)
+        raise
     if old is not None:
         shutil.rmtree(old, ignore_errors=True)
 

@@ -118,5 +118,56 @@ def check_disk(option: str, estimate_bytes: float, path: str | os.PathLike, *, w
                             f"{format_bytes(free)} free at {path}. {fix}")
 
 
+def image_header_shape(path: str | os.PathLike) -> tuple[int, ...] | None:
+    """The stored shape of a PNG or TIFF read from its header only (no pixel is decoded).
+
+    PNG: ``(H, W)`` or ``(H, W, C)`` from the IHDR chunk; TIFF: the first series' shape (tifffile);
+    other formats: PIL's lazy ``size``. ``None`` when the header cannot be read (the reader then
+    reports the file itself).
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(26)
+        if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR":
+            w, h = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+            channels = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}.get(head[25], 4)
+            return (h, w) if channels == 1 else (h, w, channels)
+        if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+            import logging
+
+            import tifffile
+
+            quiet = logging.getLogger("tifffile")
+            level, quiet.level = quiet.level, logging.CRITICAL  # a probe: the reader reports a damaged file
+            try:
+                with tifffile.TiffFile(path) as tif:
+                    return tuple(int(n) for n in tif.series[0].shape)
+            finally:
+                quiet.setLevel(level)
+        from PIL import Image
+
+        with Image.open(path) as img:
+            w, h = img.size
+            return (h, w, len(img.getbands()))
+    except Exception:  # an unreadable header: the image reader gives the one-line error
+        return None
+
+
+def check_image_memory(option: str, path: str | os.PathLike, bytes_per_element: float, *, what: str,
+                       fix: str) -> tuple[int, ...] | None:
+    """Refuse (:class:`~capssim.errors.ResourceError`) an image whose header shape times ``bytes_per_element``
+    (the working set a command builds per stored sample) passes the memory limit, before decoding it.
+
+    Returns the header shape (``None`` if unknown)."""
+    shape = image_header_shape(path)
+    if shape is not None:
+        shown = "x".join(map(str, shape))
+        check_memory(option, float(math.prod(shape)) * bytes_per_element, what=f"{what} of {Path(path).name} ({shown})",
+                     fix=fix)
+    return shape
+
+
 __all__ = ["MEMORY_FRACTION", "MEMORY_LIMIT_ENV", "SCENE_BYTES_PER_HR_PIXEL", "available_memory_bytes", "check_disk",
-           "check_memory", "check_range", "check_scene_size", "format_bytes", "free_disk_bytes", "memory_limit"]
+           "check_image_memory", "check_memory", "check_range", "check_scene_size", "format_bytes", "free_disk_bytes",
+           "image_header_shape", "memory_limit"]

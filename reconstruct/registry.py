@@ -30,6 +30,7 @@ from capssim.errors import CapssimError, CaptureFormatError, InputError, Unknown
 from capssim.physical_validity import project_to_physical
 
 from .calibration_model import resolve_calibration
+from .pipeline.options import wants_ground_truth
 from .registration.parameters import registration_parameters
 from .run_context import MethodOutput, RunContext, StageTimer
 
@@ -290,7 +291,7 @@ def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:
     dict
         The record written to ``recon/METHOD.json``.
     """
-    capture = read_capture(capture_path, load_gt=False)
+    capture = read_capture(capture_path, load_gt=wants_ground_truth(kwargs))  # track_psnr: PSNR per iteration
     out, record = reconstruct(capture, method, **kwargs)
     write_reconstruction(capture_path, method, out.image, record)
     return record

@@ -76,7 +76,9 @@ def check_seed(seed: int) -> int:
 
 SeedOption = typer.Option(0, "--seed", callback=check_seed, help="Random seed (poses and noise), 0 .. 2**63-1.")
 OverwriteOption = typer.Option(False, "--overwrite", help="Replace an existing output folder.")
-ThreadsOption = typer.Option(None, "--threads", min=1,
+#: ``--threads``: at least 1 (a one-line error naming the option, as every numeric option; no click usage block)
+ThreadsOption = typer.Option(None, "--threads", callback=number_in("--threads", 1, what="CPU threads",
+                                                                  fix="Leave --threads out for the default."),
                              help="CPU threads for torch/OpenMP/OpenCV (default: $CAPSSIM_THREADS, else 'auto': one "
                                   "thread, and a reconstruction takes every core while no other process is busy).")
 

@@ -249,6 +249,10 @@ def dataset(
     from capssim.eval.benchmarks.dataset import run_dataset_benchmark
 
     _set_threads(threads, device)
+    if keep is not None:  # before any work: a file, a link loop or an unwritable place in the way
+        from capssim.output_paths import resolve_output
+
+        keep = resolve_output(keep, kind="folder", overwrite=True, argument="--keep")
     rows = run_dataset_benchmark(config, list(workers), keep=keep)
     say = _say(as_json)
     say(f"cores: {os.cpu_count()}, config: {config}")

@@ -48,9 +48,13 @@ def budget(
     from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
     from capssim.eval.error_budget.budget_report import write_report, write_results_page
     from capssim.eval.error_budget.runner import load_budget, run_budget
+    from capssim.output_paths import resolve_output
     from capssim.threads import resolve_threads
 
     specs = [load_suite(name) for name in suites]  # every suite checked before any work
+    target = resolve_output(output, kind="folder", overwrite=True)  # resumed if it exists; links followed
+    if results_page is not None:
+        resolve_output(results_page, kind="file", overwrite=True, argument="--results-page")
     apply_compute(threads if threads is not None else resolve_threads(None), device)
     say = (lambda text: typer.echo(text, err=True)) if as_json else typer.echo
 
@@ -60,7 +64,7 @@ def budget(
 
     runs = []
     for spec in specs:
-        out = Path(output) / spec["name"] if len(specs) > 1 else Path(output)
+        out = target / spec["name"] if len(specs) > 1 else target
         if report_only:
             run = load_budget(spec, out, methods=methods or None, scenes=scenes or None)
         else:

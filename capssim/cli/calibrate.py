@@ -28,9 +28,13 @@ def calibrate(
     The measurement computes on the CPU; --device is checked like every command's.
     """
     apply_compute(threads, device)
-    check_output_file(output, argument="-o/--output")
     if output.exists() and not overwrite:
         raise InputError("-o/--output", str(output), "a file that does not exist yet", "Pass --overwrite to replace it.")
+    output = check_output_file(output, argument="-o/--output")  # links followed; a folder in the way refused
+    if report is not None:
+        from capssim.output_paths import resolve_output
+
+        report = resolve_output(report, kind="folder", overwrite=True, argument="--report")
     from capssim.eval.calibration import calibrate_captures  # pulls torch
     from capssim.eval.calibration.report import summary_lines, write_report
 

@@ -13,7 +13,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from capssim.cli._options import DeviceOption, apply_compute
 from capssim.errors import InputError
-from capssim.imageio import check_writable_location
+from capssim.output_paths import resolve_output
 
 
 def _fmt_duration(seconds: float | None) -> str:
@@ -72,8 +72,8 @@ def dataset(
     if workers is not None and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
 
-    if output is not None:
-        check_writable_location(output, argument="-o/--output")
+    if output is not None:  # created, or finished if it exists; links followed
+        output = resolve_output(output, kind="folder", overwrite=True)
     from capssim.dataset.config import load_config  # pulls torch, Dask and the scene library (start-up time)
 
     cfg = load_config(config)

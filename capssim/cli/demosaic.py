@@ -12,11 +12,16 @@ import typer
 
 from capssim.cli._options import DeviceOption, OverwriteOption, ThreadsOption, apply_compute
 from capssim.conventions import DEFAULT_DOFP_LAYOUT, dofp_layout, dofp_layout_name
+from capssim.data_range import warn_out_of_range
 from capssim.errors import InputError, UnknownNameError
 from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
 from capssim.physical_validity import project_to_physical
+from capssim.resources import MEMORY_LIMIT_ENV, check_image_memory
 
 DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2", "dofp-jcpd", "cpdnet")
+#: peak bytes per raw mosaic pixel of ``capssim demosaic`` (the float copies of the mosaic, the (12, H, W)
+#: output, the method's working arrays and the previews; measured 1.05-1.15 KiB with dofp-eari and dofp-igri2)
+DEMOSAIC_BYTES_PER_PIXEL = 1280
 
 
 def read_raw_mosaic(path: Path, *, white_level: Optional[float] = None, black_level: float = 0.0,
@@ -59,6 +64,8 @@ def read_raw_mosaic(path: Path, *, white_level: Optional[float] = None, black_le
         if not np.all(np.isfinite(mosaic)):
             raise InputError("RAW", f"{int(np.sum(~np.isfinite(mosaic)))} NaN/inf values in {path}", "finite values")
         saturated = mosaic >= 1.0
+        warn_out_of_range(f"RAW {path.name}", mosaic, low=0.0, high=1.0,
+                          consequence="negative values are used as they are, values >= 1 count as saturated")
         info.update(white_level=1.0, black_level=0.0)
     else:
         top = float(2 ** bits - 1)
@@ -66,12 +73,26 @@ def read_raw_mosaic(path: Path, *, white_level: Optional[float] = None, black_le
         if not (0 <= black_level < white <= top):
             raise InputError("--white-level/--black-level", f"black {black_level}, white {white}",
                              f"0 <= black < white <= {int(top)} for {bits}-bit data")
+        check_black_level(raw, black_level, path)
         saturated = raw.astype(np.float64) >= white
         mosaic = ((raw.astype(np.float64) - black_level) / (white - black_level)).astype(np.float32)
         info.update(white_level=white, black_level=float(black_level))
     info["shape"] = list(mosaic.shape)
     info["saturated_pixels"] = int(saturated.sum())
     return mosaic, saturated, info
+
+
+def check_black_level(raw: np.ndarray, black_level: float, path: Path) -> None:
+    """Refuse a ``--black-level`` at or above every pixel of ``raw`` (an all-black result); warn, with the
+    count, when some pixels lie below it (they map to negative values)."""
+    if not black_level:
+        return
+    top = int(raw.max()) if raw.size else 0
+    if black_level >= top:
+        raise InputError("--black-level", black_level, f"a DN below the brightest pixel of {path.name} ({top})",
+                         "Use the sensor's black level (its datasheet, or a dark frame's mean), e.g. --black-level 0.")
+    warn_out_of_range(f"RAW {path.name}", raw, low=black_level, high=None, below_means="below --black-level",
+                      consequence="they map to negative values")
 
 
 def demosaic(
@@ -110,6 +131,8 @@ def demosaic(
                          "Try --dolp-max 0.5.")
     cell = dofp_layout(layout)
     check_output_free(output, overwrite=overwrite)
+    check_image_memory("RAW", raw, DEMOSAIC_BYTES_PER_PIXEL, what="demosaicking",
+                       fix=f"Crop the mosaic, or raise {MEMORY_LIMIT_ENV} if the machine has the memory.")
     t0 = time.perf_counter()
     mosaic, saturated, info = read_raw_mosaic(raw, white_level=white_level, black_level=black_level, trim_odd=trim_odd)
     timer = StageTimer(dev)

@@ -14,6 +14,25 @@ from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, apply_
 from capssim.conventions import CHANNEL_NAMES
 from capssim.errors import InputError
 from capssim.imageio import read_image
+from capssim.resources import MEMORY_LIMIT_ENV, check_image_memory
+
+#: peak bytes per stored value of a capture's largest image while ``capssim evaluate`` scores it (the ground
+#: truth, one estimate, the metric and MTF working arrays; measured about 50)
+EVALUATE_BYTES_PER_VALUE = 80
+#: peak bytes per stored value of the image ``capssim mtf`` measures (the float64 copy and the star fit;
+#: measured about 18)
+MTF_BYTES_PER_VALUE = 32
+
+
+def check_capture_memory(capture: Path, methods: Optional[List[str]]) -> None:
+    """Refuse a capture whose images (``*.tiff``, ``recon/*.tiff`` of ``methods``), read from their headers,
+    would pass the memory limit while scored, before any is decoded."""
+    capture = Path(capture)
+    recon = sorted((capture / "recon").glob("*.tiff")) if (capture / "recon").is_dir() else []
+    files = sorted(capture.glob("*.tiff")) + [f for f in recon if not methods or f.stem in methods]
+    for path in files:
+        check_image_memory("CAPTURE", path, EVALUATE_BYTES_PER_VALUE, what="scoring",
+                           fix=f"Score a crop of the capture, or raise {MEMORY_LIMIT_ENV} if the machine has the memory.")
 
 
 def format_value(value, digits: int = 2) -> str:
@@ -69,6 +88,10 @@ def evaluate(
     from capssim.eval.metrics import check_thresholds
 
     check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
+    check_capture_memory(capture, methods)
+    from capssim.output_paths import check_files_in
+
+    check_files_in(capture, ["metrics.json"], argument="CAPTURE")  # before scoring: a folder in the way refused
     lpips = None
     if lpips_weights is not None:
         from capssim.eval.lpips import LPIPS
@@ -267,6 +290,8 @@ def mtf(
     from capssim.eval.mtf import measure_star
 
     apply_compute(threads, device)
+    check_image_memory("IMAGE", image, MTF_BYTES_PER_VALUE, what="the MTF measurement",
+                       fix=f"Crop the star image, or raise {MEMORY_LIMIT_ENV} if the machine has the memory.")
     imgs, names = _read_star_image(image)
     is_twelve = len(names) == 12
     centre = _parse_center(center)

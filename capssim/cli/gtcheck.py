@@ -31,11 +31,12 @@ def gt_check(
     from capssim.eval.gt_check import aligned_ground_truth, check_ground_truth
     from capssim.simulate import prepare_ground_truth
 
-    if write_aligned is not None and write_aligned.exists() and not overwrite:
-        raise InputError("--write-aligned", str(write_aligned), "a path that does not exist yet",
-                         "Pass --overwrite to replace it.")
     if write_aligned is not None and write_aligned.suffix.lower() not in (".tif", ".tiff"):
         raise InputError("--write-aligned", str(write_aligned), "a .tif or .tiff path")
+    if write_aligned is not None:  # before any work: an existing file, a folder in the way, a link loop
+        from capssim.output_paths import resolve_output
+
+        write_aligned = resolve_output(write_aligned, kind="file", overwrite=overwrite, argument="--write-aligned")
     dev = apply_compute(threads, device)
     image, source = read_gt_scene(gt)
     if crop is not None:

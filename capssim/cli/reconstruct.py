@@ -121,16 +121,22 @@ def reconstruct(
                                  "only --list runs without one", param_hint="CAPTURE")
     options = parse_options(param)
     check_full_frame_options(tile, workers, scheduler)
+    check_iterations_agree(options, iterations)
     flags = dict(device=device, true_warps=true_warps, registration=registration,
                  physical_projection=physical_projection, reuse_registration=reuse_registration, calibration=calibration)
     if uses_full_frames(capture, workers, scheduler):  # a folder of captures, or tiles/frames on Dask
         names = expand_methods(method, first_capture(capture))
+        check_recon_outputs(capture, names)
+        check_before_work(capture, names, options, iterations, tiled=True)
         run_full_frames(capture, names, tile=tile, memory_gb=memory_gb, workers=workers, scheduler=scheduler,
                         echo=lambda folder, name, record: _echo_record(folder, name, record),
                         options_of=lambda name: _method_options(name, options, iterations), **flags)
         return
     rows = []
-    for name in expand_methods(method, capture):
+    names = expand_methods(method, capture)
+    check_recon_outputs(capture, names)
+    check_before_work(capture, names, options, iterations, tiled=tile is not None)
+    for name in names:
         record = _run_one(capture, name, iterations=iterations, progress=progress, options=options,
                           run=frame_runner(tile, memory_gb), **flags)
         rows.append((name, record["wall_time_s"]))
@@ -141,7 +147,47 @@ def reconstruct(
             typer.echo(f"{name:24s}  {wall:10.2f}")
 
 
-def _method_options(name: str, options: dict, iterations: Optional[int]) -> dict:
+def check_recon_outputs(capture: Path, names: list[str]) -> None:
+    """Before any work: refuse a file or folder in the way of ``recon/NAME.tiff`` / ``recon/NAME.json`` of every
+    method, in the capture (or in each capture of a folder of captures)."""
+    from capssim.output_paths import check_files_in
+    from capssim.reconstruct.tiles.frames import capture_folders  # start-up time
+
+    for folder in capture_folders(capture) or [capture]:
+        check_files_in(folder, [f"recon/{name}{ext}" for name in names for ext in (".tiff", ".json")],
+                       argument="CAPTURE")
+
+
+def check_iterations_agree(options: dict, iterations: Optional[int]) -> None:
+    """Refuse ``--iterations`` and ``-p iterations=`` together unless they are equal (one would be dropped)."""
+    if iterations is None or "iterations" not in options:
+        return
+    from capssim.reconstruct.pipeline.options import coerce_option  # start-up time
+
+    if coerce_option("iterations", options["iterations"], int) != iterations:
+        raise InputError("--iterations", f"{iterations} and -p iterations={options['iterations']}",
+                         "one of the two (or both equal)", "Drop -p iterations=..., or --iterations.")
+
+
+def check_before_work(capture: Path, names: list[str], options: dict, iterations: Optional[int], *,
+                      tiled: bool) -> None:
+    """Every check that can fail before the first method runs: each method's options
+    (:func:`check_method_options`), ``-p track_psnr`` (:func:`check_track_psnr`), then the raw frames' range
+    (:func:`capssim.cli.reconstruct_checks.warn_raw_range`, a warning)."""
+    from capssim.cli.reconstruct_checks import check_method_options, check_track_psnr, warn_raw_range
+    from capssim.reconstruct import get_method  # start-up time
+    from capssim.reconstruct.tiles.frames import capture_folders
+
+    for name in names:
+        check_method_options(name, _method_options(name, options, iterations, quiet=True))
+    folders = capture_folders(capture) or [capture]
+    check_track_psnr(options, folders, tiled=tiled)
+    kinds = {get_method(name).input_kind for name in names}
+    for folder in folders:
+        warn_raw_range(folder, kinds)
+
+
+def _method_options(name: str, options: dict, iterations: Optional[int], *, quiet: bool = False) -> dict:
     """The method's ``-p`` options, with ``--iterations`` for the CAPS-input methods (DoFP methods take none)."""
     from capssim.reconstruct import get_method  # start-up time
 
@@ -149,7 +195,7 @@ def _method_options(name: str, options: dict, iterations: Optional[int]) -> dict
     if iterations is not None:
         if get_method(name).input_kind == "caps":
             method_options["iterations"] = iterations
-        else:
+        elif not quiet:
             typer.echo(f"note: --iterations does not apply to the DoFP method {name}; not passed", err=True)
     return method_options
 
@@ -184,6 +230,10 @@ def _echo_record(capture: Path, name: str, record: dict) -> None:
     if err is not None:
         typer.echo(f"  registration ({reg.get('source')}): median error {err:.4f} HR px, "
                    f"max {reg.get('error_hr_px_max', float('nan')):.4f}")
+    psnr = [h["psnr_db"] for h in record.get("history") or [] if isinstance(h, dict) and h.get("psnr_db") is not None]
+    if psnr:
+        typer.echo(f"  PSNR against gt.tiff (track_psnr): {psnr[0]:.2f} dB at iteration 1, {psnr[-1]:.2f} dB at "
+                   f"iteration {len(psnr)}")
     if record.get("calibration"):
         typer.echo(f"  array model: calibration {record['calibration'].get('source')}")
 

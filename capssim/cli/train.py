@@ -8,7 +8,6 @@ from typing import Optional
 import typer
 
 from capssim.cli._options import DeviceOption, ThreadsOption, apply_compute
-from capssim.errors import InputError
 
 
 def train(
@@ -29,12 +28,13 @@ def train(
     dev = apply_compute(threads, device)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from capssim.reconstruct.training.config import load_train_config
+    from capssim.output_paths import resolve_output
+    from capssim.reconstruct.training.config import check_model_memory, load_train_config
     from capssim.reconstruct.training.trainer import train as run_training
 
+    output = resolve_output(output, kind="folder", overwrite=True)  # resumed if it exists; links followed
     cfg = load_train_config(config)
-    if output.exists() and not output.is_dir():
-        raise InputError("-o/--output", str(output), "a folder for the training run")
+    check_model_memory(cfg, activations=dev.type == "cpu")  # on a GPU the batch's maps are the GPU's
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[status]}"), TimeRemainingColumn()) as bar:
         task = bar.add_task(f"train {cfg.name}", total=cfg.schedule["steps"], status="loading the dataset...")

@@ -27,8 +27,12 @@ def _as_homographies(homographies) -> np.ndarray:
     if not np.all(np.isfinite(h)):
         raise InputError("homographies", "non-finite values", "finite 3x3 matrices")
     det = np.linalg.det(h)
-    if np.any(np.abs(det) < 1e-12):
-        raise InputError("homographies", f"determinants {det}", "invertible matrices")
+    singular = np.flatnonzero(np.abs(det) < 1e-12)
+    if singular.size:  # one line: the indices and determinants of the singular ones, never the whole array
+        listed = ", ".join(f"[{i}] (determinant {det[i]:.3g})" for i in singular[:4])
+        more = f" and {singular.size - 4} more" if singular.size > 4 else ""
+        raise InputError("homographies", f"{singular.size} singular of {len(det)}: {listed}{more}",
+                         "invertible 3x3 matrices (|determinant| >= 1e-12)")
     return h
 
 

@@ -11,10 +11,10 @@ that explains the loss.
 
 from __future__ import annotations
 
-import shutil
+import io
 from pathlib import Path
 
-from capssim.imageio import atomic_write_text
+from capssim.imageio import atomic_write_bytes, atomic_write_text
 
 from .findings import findings_section
 from .ladder import STEP_CAUSE
@@ -145,10 +145,10 @@ def waterfall_plot(record: dict, path: Path, key: str = "psnr_mean") -> Path:
     ax.set_title(f"{record['scene']} / {record['noise']}: {record['method']}", fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp)
+    buffer = io.BytesIO()  # written whole or not at all: a full disk leaves no half-written plot nor temporary
+    fig.savefig(buffer, format="png")
     plt.close(fig)
-    tmp.replace(path)
+    atomic_write_bytes(path, buffer.getvalue())
     return path
 
 
@@ -206,7 +206,7 @@ def write_results_page(runs, page: Path, *, command: str, plots: bool = True, no
                 source = run.output / plot_name(r)
                 if not source.is_file():
                     waterfall_plot(r, source)
-                shutil.copyfile(source, folder / name)
+                atomic_write_bytes(folder / name, source.read_bytes())  # a full disk leaves no half a copy
                 made[r["key"]] = f"{folder.name}/{name}"
         parts += [f"## Suite `{run.spec['name']}`", "", suite_section(run, plots=made, level="###")]
     atomic_write_text(page, "\n".join(parts) + "\n")

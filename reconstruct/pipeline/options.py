@@ -32,7 +32,7 @@ from .slots import (
     reserve_option_names,
 )
 
-__all__ = ["PRESETS", "CapsOptions", "caps_option_names", "coerce_option", "explain_divergence"]
+__all__ = ["PRESETS", "CapsOptions", "caps_option_names", "coerce_option", "explain_divergence", "wants_ground_truth"]
 
 
 def coerce_option(name: str, raw, kind: type):
@@ -81,6 +81,16 @@ def coerce_option(name: str, raw, kind: type):
         return text
     except ValueError:
         raise InputError(f"option {name}", repr(raw), f"a value of type {kind.__name__}") from None
+
+
+def wants_ground_truth(options: dict) -> bool:
+    """True when ``options`` (``-p`` strings or typed values) set ``track_psnr``: the capture's ``gt.tiff``
+    must then be read with it, or no PSNR is tracked. A value that is no bool is left to the method's parser."""
+    raw = dict(options or {}).get("track_psnr", False)
+    try:
+        return bool(coerce_option("track_psnr", raw, bool))
+    except InputError:
+        return False
 
 
 @dataclass

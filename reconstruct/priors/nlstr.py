@@ -48,7 +48,6 @@ import logging
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 
 from capssim.errors import InputError
 from capssim.resources import check_memory, check_range
@@ -58,15 +57,13 @@ from .nlstr_blocks import (
     gram_maps,
     group_matrix,
     mode_products,
-    offset_differences,
     orthonormal_bases,
-    principal_channels,
     row_segments,
     shrink_core,
     unpack_grams,
     weighted_block_sums,
-    window_sums_at,
 )
+from .nlstr_matching import match_blocks, plan_match_tiles
 from .nlstr_parameters import NLSTRParameters
 
 log = logging.getLogger(__name__)
@@ -138,6 +135,9 @@ class NonlocalSparseTensor:
         self.ref_x = reference_positions(w, b, params.stride).to(self.device)
         self.n_ref = int(self.ref_y.numel() * self.ref_x.numel())
         self.strips = self._plan_strips()
+        self.match_tiles = plan_match_tiles(self.strips, self.ref_y, self.ref_x, block=b, stride=params.stride,
+                                            search_radius=params.search_radius, budget_bytes=params.strip_bytes,
+                                            item_bytes=torch.tensor([], dtype=dtype).element_size())
         self.check_resources(n_similar=1)
         # in-block pixel offsets (b*b,) in the flattened H*W image
         ii, jj = torch.meshgrid(torch.arange(b, device=self.device), torch.arange(b, device=self.device), indexing="ij")
@@ -218,42 +218,13 @@ class NonlocalSparseTensor:
 
     # -- step: block matching ------------------------------------------------------------
     def match(self, z: torch.Tensor, n_similar: int) -> BlockMatches:
-        """The ``n_similar`` most similar blocks of every reference block (reference first)."""
+        """The ``n_similar`` most similar blocks of every reference block (reference first), matched in the
+        fixed-size tiles of :func:`~capssim.reconstruct.priors.nlstr_matching.plan_match_tiles`."""
         self._check(z)
         self.check_resources(n_similar=n_similar)
-        c, h, w = self.shape
-        b, r = self.params.block, self.params.search_radius
-        n_off = (2 * r + 1) ** 2
-        p = max(1, min(int(n_similar), n_off))
-        zpad = F.pad(principal_channels(z, self.params.match_components), (2 * r, 2 * r, 2 * r, 2 * r))
-        dy_all = torch.arange(-r, r + 1, device=z.device)
-        dys = dy_all[:, None].expand(-1, 2 * r + 1).reshape(-1)
-        dxs = dy_all[None, :].expand(2 * r + 1, -1).reshape(-1)
-        out_y = torch.empty(self.n_ref, p, dtype=torch.int64, device=z.device)
-        out_x = torch.empty_like(out_y)
-        out_d = torch.empty(self.n_ref, p, dtype=z.dtype, device=z.device)
-        for strip in self.strips:
-            ry, rx, groups = self._strip_refs(strip)
-            ya = int(self.ref_y[strip.ref_rows[0]])
-            yb = int(self.ref_y[strip.ref_rows[-1]])
-            rows = yb + b - ya
-            ref_rows_rel = self.ref_y[strip.ref_rows] - ya
-            sq = offset_differences(zpad, ya, rows, w, r)                            # (n_off, rows, W)
-            box = window_sums_at(sq, b, self.ref_x, dim=2)                            # (n_off, rows, nx)
-            box = window_sums_at(box, b, ref_rows_rel, dim=1)                         # (n_off, nrows, nx)
-            dist = box.permute(1, 2, 0)                                                # (nrows, nx, n_off)
-            dist = dist.reshape(-1, n_off) / float(b * b * c)
-            cy = ry[:, None] + dys[None, :]
-            cx = rx[:, None] + dxs[None, :]
-            valid = (cy >= 0) & (cy <= h - b) & (cx >= 0) & (cx <= w - b)
-            dist = torch.where(valid, dist.clamp(min=0), torch.full_like(dist, float("inf")))
-            dist[:, n_off // 2] = -1.0  # the reference itself always comes first
-            best_d, best = torch.topk(dist, p, dim=1, largest=False, sorted=True)
-            best_d[:, 0] = 0.0
-            ok = torch.isfinite(best_d)
-            out_y[groups] = torch.where(ok, ry[:, None] + dys[best], ry[:, None].expand(-1, p))
-            out_x[groups] = torch.where(ok, rx[:, None] + dxs[best], rx[:, None].expand(-1, p))
-            out_d[groups] = best_d
+        out_y, out_x, out_d = match_blocks(z, n_similar, self.match_tiles, self.ref_y, self.ref_x,
+                                           block=self.params.block, radius=self.params.search_radius,
+                                           components=self.params.match_components)
         return BlockMatches(out_y, out_x, out_d, self._weights(out_d))
 
     def _weights(self, d: torch.Tensor) -> torch.Tensor:

@@ -57,18 +57,30 @@ def offset_differences(zpad: torch.Tensor, top: int, rows: int, width: int, radi
     return sq
 
 
-def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int) -> torch.Tensor:
+def chunked_windows(size: int, starts: torch.Tensor, length: int) -> bool:
+    """Whether :func:`window_sums_at` sums windows ``[start, start + size)`` of a length-``length`` axis as
+    consecutive chunks: the starts are ``0, s, 2s, ...`` with ``s`` dividing ``size`` (chunks of ``s``; one start:
+    one chunk of ``size``). Else it takes every window sum and selects the starts. The two round differently in
+    float32, so a caller that splits an axis keeps the choice of the whole (:mod:`.nlstr_matching`)."""
+    n = starts.numel()
+    step = int(starts[1] - starts[0]) if n > 1 else size
+    return (step > 0 and size % step == 0 and step * (n - 1) + size <= length and int(starts[0]) == 0
+            and bool((starts == torch.arange(n, device=starts.device) * step).all()))
+
+
+def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int, chunked: bool | None = None
+                   ) -> torch.Tensor:
     """Sums of ``x`` over ``[start, start + size)`` along ``dim`` for each of ``starts`` (ascending).
 
     When the starts are ``0, s, 2s, ...`` with ``s`` dividing ``size`` (the reference grid of an
     image whose sides are multiples of the stride), the windows are sums of ``size / s``
     consecutive ``s``-chunks: one pass over ``x`` instead of window sums at every position.
+    ``chunked`` (default: :func:`chunked_windows`) forces the choice; ``True`` needs such starts.
     """
     n = starts.numel()
     step = int(starts[1] - starts[0]) if n > 1 else size
     span = step * (n - 1) + size
-    aligned = (size % step == 0 and span <= x.shape[dim] and int(starts[0]) == 0
-               and bool((starts == torch.arange(n, device=starts.device) * step).all()))
+    aligned = chunked_windows(size, starts, x.shape[dim]) if chunked is None else chunked
     if not aligned:
         return sliding_window_sum(x, size, dim=dim).index_select(dim, starts)
     chunks = x.narrow(dim, 0, span).unflatten(dim, (span // step, step)).sum(dim + 1)
@@ -237,5 +249,5 @@ def shrink_core(alpha: torch.Tensor, beta: torch.Tensor, c1: float, c2: float, *
     return core, parts
 
 
-__all__ = ["gather_blocks", "gram_maps", "group_matrix", "mode_products", "offset_differences", "orthonormal_bases",
+__all__ = ["chunked_windows", "gather_blocks", "gram_maps", "group_matrix", "mode_products", "offset_differences", "orthonormal_bases",
            "principal_channels", "row_segments", "shrink_core", "unpack_grams", "weighted_block_sums", "window_sums_at"]

@@ -16,6 +16,10 @@ from capssim.errors import InputError
 __all__ = ["NLSTRParameters"]
 
 
+#: the largest shrinkage constants ``c1`` and ``c2`` (eq. 23) accepted: 1000x the paper's (section 5.1)
+SHRINKAGE_MAX = {"c1": 2.0, "c2": 20.0}
+
+
 @dataclass(frozen=True)
 class NLSTRParameters:
     """Parameters of the nonlocal sparse tensor step (paper 5.1 defaults)."""
@@ -54,5 +58,10 @@ class NLSTRParameters:
             v = getattr(self, name)
             if not (v > 0 and math.isfinite(v)):
                 raise InputError(name, v, "a finite positive number")
+        for name, high in SHRINKAGE_MAX.items():  # beyond: NLSTR zeroes (nearly) every coefficient, the output darkens
+            if getattr(self, name) > high:
+                raise InputError(name, getattr(self, name), f"a number in (0, {high:g}] (1000x the paper's "
+                                 f"{getattr(NLSTRParameters, name):g}; more zeroes the sparse estimate)",
+                                 f"Try -p {name}={getattr(NLSTRParameters, name):g}.")
         if self.adaptive not in ("element", "block"):
             raise InputError("adaptive", self.adaptive, "'element' or 'block'")

@@ -57,6 +57,10 @@ class MatchSchedule:
         if self.n_similar < 1 or self.n_similar_min < 1 or self.n_similar_step < 0:
             raise InputError("n_similar", (self.n_similar, self.n_similar_step, self.n_similar_min),
                              "n_similar >= 1, n_similar_step >= 0, n_similar_min >= 1")
+        if self.n_similar_min > self.n_similar:  # the count only goes down, from n_similar to n_similar_min
+            raise InputError("n_similar_min", self.n_similar_min, f"at most n_similar ({self.n_similar}): each "
+                             "matching lowers the block count from n_similar down to n_similar_min",
+                             f"Set -p n_similar_min={self.n_similar} or less, or raise n_similar.")
         if not 1 <= self.rematch_min_gap <= self.rematch_max_gap:
             raise InputError("rematch_min_gap", (self.rematch_min_gap, self.rematch_max_gap),
                              "1 <= rematch_min_gap <= rematch_max_gap")

@@ -20,6 +20,7 @@ from pathlib import Path
 from capssim.capture import read_capture, write_reconstruction
 from capssim.errors import InputError
 
+from ..pipeline.options import wants_ground_truth
 from ..registry import get_method, reconstruct
 from .run import Runner, reconstruct_tiled, serial_runner
 
@@ -92,7 +93,7 @@ def reconstruct_frame(path: str | Path, method: str, *, tile: int | None = None,
     """
     path = Path(path)
     key = frame_job_key(path, method, {**kwargs, "tile": tile, "memory_gb": memory_gb})
-    capture = read_capture(path, load_gt=False)
+    capture = read_capture(path, load_gt=wants_ground_truth(kwargs))  # -p track_psnr=true: PSNR per iteration
     result = None
     parts = path / "recon" / f".parts-{method}"
     if get_method(method).input_kind != "caps" and (tile is not None or memory_gb is not None):

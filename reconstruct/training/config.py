@@ -19,7 +19,11 @@
     validate_every: 250
     checkpoint_every: 50
 
-Every key has a default except ``model.network``, ``input`` and ``data.dataset``.
+Every key has a default except ``model.network``, ``input`` and ``data.dataset``. The file is checked
+on load against :data:`TOP_SPEC` and the model's :data:`MODEL_SPECS` (``capssim.schema``: unknown keys
+with a "Did you mean" hint, types, ranges), then the memory of the model's weights; ``capssim train``
+adds the batch's activations when it trains on the CPU (:func:`check_model_memory`). A mistake is a
+one-line :class:`~capssim.schema.ConfigError` naming the file and the key.
 """
 
 from __future__ import annotations
@@ -30,9 +34,22 @@ import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-import yaml
-
 from capssim.errors import InputError, UnknownNameError
+from capssim.resources import MEMORY_LIMIT_ENV, check_memory
+from capssim.schema import (
+    AnyMapping,
+    Boolean,
+    ConfigError,
+    Custom,
+    Integer,
+    Mapping,
+    Nullable,
+    Number,
+    Sequence,
+    String,
+    load_yaml_file,
+    validate,
+)
 
 from ..networks import NETWORKS
 from .pairs import INPUT_KINDS
@@ -47,6 +64,70 @@ DICTIONARY_DEFAULTS = {"patch": 8, "atoms": 256, "sparsity": 8, "patches": 8000}
 MODEL_INPUTS = {**{name: cls.input_kind for name, cls in NETWORKS.items()}, DICTIONARY_MODEL: DICTIONARY_INPUT}
 TOP_KEYS = ("name", "seed", "model", "input", "data", "loss", "optimizer", "schedule", "validate_every",
             "checkpoint_every")
+KIND = "training config"
+EXAMPLE = "examples/train-cpdnet-small.yaml"
+
+
+def _name(value) -> str:
+    if isinstance(value, bool) or not isinstance(value, (str, int, float)) or not str(value):
+        raise InputError("name", value, "a non-empty name")
+    return str(value)
+
+
+_WEIGHT = Number(minimum=0, maximum=100)
+#: the schema of a training config (checked on load, before any work); ``model`` has its own per network
+TOP_SPEC = Mapping({
+    "name": Custom(_name, "a non-empty name"),
+    "seed": Integer(minimum=0, maximum=2**63 - 1),
+    "model": AnyMapping("a model description (network: NAME and its options)"),
+    "input": String(choices=[*INPUT_KINDS, DICTIONARY_INPUT]),
+    "data": Mapping({"dataset": String(), "root": Nullable(String()), "validation": Integer(minimum=1, maximum=10**9),
+                     "crop": Integer(minimum=8, maximum=1024), "batch": Integer(minimum=1, maximum=4096)},
+                    required=("dataset",), what="the training data (dataset, root, validation, crop, batch)"),
+    "loss": Mapping({"intermediate_weight": _WEIGHT, "stokes_weight": _WEIGHT},
+                    what="loss weights (intermediate_weight, stokes_weight)"),
+    "optimizer": Mapping({"name": String(choices=list(OPTIMIZERS)),
+                          "lr": Number(minimum=0, exclusive_minimum=True, maximum=10),
+                          "weight_decay": Number(minimum=0, maximum=10), "momentum": Number(minimum=0, maximum=10)},
+                         what="an optimizer (name, lr, weight_decay, momentum)"),
+    "schedule": Mapping({"steps": Integer(minimum=1, maximum=10**8), "warmup": Integer(minimum=0, maximum=10**8),
+                         "decay": String(choices=list(DECAYS)), "final_lr_fraction": Number(minimum=0, maximum=1),
+                         "milestones": Sequence(Integer(minimum=1, maximum=10**8), what="step numbers"),
+                         "gamma": Number(minimum=0, exclusive_minimum=True, maximum=1)},
+                        what="a schedule (steps, warmup, decay, final_lr_fraction, milestones, gamma)"),
+    "validate_every": Integer(minimum=1, maximum=10**8),
+    "checkpoint_every": Integer(minimum=1, maximum=10**8),
+}, required=("model", "input", "data"), what="a training config (model, input, data, ...)")
+
+_NETWORK = String(choices=list(MODEL_INPUTS))
+#: per model: the keys of ``model`` (sizes have no upper bound here: the memory estimate refuses what cannot fit)
+MODEL_SPECS = {
+    "cpdnet": Mapping({"network": _NETWORK, "features": Integer(minimum=1), "colour_blocks": Integer(minimum=0),
+                       "polarization_blocks": Integer(minimum=0)},
+                      what="a cpdnet model (network, features, colour_blocks, polarization_blocks)"),
+    "edsr": Mapping({"network": _NETWORK, "channels": Integer(minimum=1, maximum=64), "features": Integer(minimum=1),
+                     "blocks": Integer(minimum=0), "residual_scale": Number(minimum=0, maximum=10),
+                     "bicubic_skip": Boolean()},
+                    what="an edsr model (network, channels, features, blocks, residual_scale, bicubic_skip)"),
+    DICTIONARY_MODEL: Mapping({"network": _NETWORK, "patch": Integer(minimum=4, maximum=16, multiple_of=2),
+                               "atoms": Integer(minimum=1, maximum=4096), "sparsity": Integer(minimum=1, maximum=64),
+                               "patches": Integer(minimum=1, maximum=10**6)},
+                              what="a jcpd-dictionary model (network, patch, atoms, sparsity, patches)"),
+}
+#: the constructor defaults of each network, for the memory estimate (the config keeps only what it sets)
+NETWORK_DEFAULTS = {"cpdnet": {"features": 24, "colour_blocks": 2, "polarization_blocks": 2},
+                    "edsr": {"channels": 3, "features": 32, "blocks": 4}}
+
+
+class UnknownConfigName(ConfigError, UnknownNameError):
+    """An unknown key or name in a training config: a :class:`ConfigError` (file, key, Did you mean) that is
+    also an :class:`UnknownNameError`."""
+
+    def __init__(self, exc: ConfigError):
+        self.key_path, self.config_file, self.kind = exc.key_path, exc.config_file, exc.kind
+        self.argument, self.received, self.valid, self.fix = exc.argument, exc.received, exc.valid, exc.fix
+        self.name, self.known = exc.key_path, []
+        Exception.__init__(self, str(exc))
 
 
 @dataclass
@@ -83,125 +164,111 @@ class TrainConfig:
         return hashlib.sha256(json.dumps(d, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def _mapping(raw, key: str) -> dict:
-    if raw is None:
-        return {}
-    if not isinstance(raw, dict):
-        raise InputError(key, raw, "a mapping (key: value)")
-    return dict(raw)
-
-
-def _integer(raw, key: str, low: int, high: int = 10**9) -> int:
-    if isinstance(raw, bool) or not isinstance(raw, int) or not low <= raw <= high:
-        raise InputError(key, raw, f"an integer in [{low}, {high}]")
-    return raw
-
-
-def _number(raw, key: str, low: float, high: float = math.inf, *, low_open: bool = False) -> float:
-    ok = isinstance(raw, (int, float)) and not isinstance(raw, bool) and math.isfinite(raw)
-    if not ok or raw < low or (low_open and raw == low) or raw > high:
-        raise InputError(key, raw, f"a finite number in {'(' if low_open else '['}{low:g}, {high:g}]")
-    return float(raw)
-
-
-def _reject_unknown(d: dict, known, where: str) -> None:
-    for key in d:
-        if key not in known:
-            raise UnknownNameError(f"key of {where}", str(key), list(known))
-
-
 def load_train_config(path) -> TrainConfig:
-    """Parse and check the training config at ``path`` (an InputError names the first bad key)."""
+    """Parse and check the training config at ``path`` (a ConfigError names the file and the first bad key)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError("CONFIG", str(path), "a training config YAML file",
-                         "See examples/train-cpdnet-small.yaml.")
-    try:
-        raw = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise InputError("CONFIG", str(path), "valid YAML", str(exc).splitlines()[0]) from None
+    raw = load_yaml_file(path, kind=KIND, example=EXAMPLE)
     return parse_train_config(raw, base_dir=path.parent, source=str(path))
 
 
-def _parse_model(raw: dict) -> tuple[str, dict, str]:
-    model = _mapping(raw.get("model"), "model")
-    network = model.pop("network", None)
-    if network not in MODEL_INPUTS:
-        raise UnknownNameError("model.network", str(network), list(MODEL_INPUTS))
-    kind = raw.get("input")
-    if kind not in (*INPUT_KINDS, DICTIONARY_INPUT):
-        raise InputError("input", kind, " or ".join((*INPUT_KINDS, DICTIONARY_INPUT)))
+def _fail(key: str, received, valid: str, fix: str | None = None):
+    raise ConfigError(key, received, valid, fix)
+
+
+def _model(raw: dict) -> tuple[str, dict, str]:
+    """``(network, its options, input kind)`` of the checked ``model`` and ``input``."""
+    model = dict(raw["model"])
+    network = _NETWORK.check(model.get("network"), "model.network")
+    model = MODEL_SPECS[network].check(model, "model")
+    model.pop("network")
+    kind = raw["input"]
     if MODEL_INPUTS[network] != kind:
-        raise InputError("input", kind, f"{MODEL_INPUTS[network]} for the {network} model")
+        _fail("input", repr(kind), f"{MODEL_INPUTS[network]} for the {network} model")
     if network == DICTIONARY_MODEL:
-        _reject_unknown(model, DICTIONARY_DEFAULTS, "model (jcpd-dictionary)")
         model = {**DICTIONARY_DEFAULTS, **model}
-        for key, (low, high) in {"patch": (4, 16), "atoms": (1, 4096), "sparsity": (1, 64),
-                                 "patches": (1, 10**6)}.items():
-            _integer(model[key], f"model.{key}", low, high)
-        if model["patch"] % 2 or model["patches"] < model["atoms"]:
-            raise InputError("model", model, "an even patch and at least as many patches as atoms")
-    for key, value in model.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InputError(f"model.{key}", value, "a number or true/false")
+        if model["patches"] < model["atoms"]:
+            _fail("model.patches", model["patches"], f"at least as many patches as atoms ({model['atoms']})")
     return network, model, kind
 
 
-def _parse_data(raw: dict, base_dir: Path, kind: str) -> dict:
-    data = _mapping(raw.get("data"), "data")
-    _reject_unknown(data, ("dataset", "root", "validation", "crop", "batch"), "data")
-    if not data.get("dataset"):
-        raise InputError("data.dataset", None, "a capssim dataset config (YAML), relative to the training config")
-    dataset = (base_dir / str(data["dataset"])).resolve()
+def _data(raw: dict, base_dir: Path, kind: str) -> dict:
+    data = raw["data"]
+    dataset = (base_dir / data["dataset"]).resolve()
     if not dataset.is_file():
-        raise InputError("data.dataset", str(data["dataset"]), f"an existing dataset config (looked at {dataset})")
-    crop = _integer(data.get("crop", 64), "data.crop", 8, 1024)
+        _fail("data.dataset", repr(data["dataset"]), f"an existing dataset config (looked at {dataset})",
+              "Give the path relative to the training config.")
+    crop = data.get("crop", 64)
     if kind == "dofp" and crop % 4:
-        raise InputError("data.crop", crop, "a multiple of 4 for DoFP input (the mosaic period)",
-                         f"Try crop: {crop - crop % 4}.")
-    return {"dataset_config": dataset, "dataset_root": Path(str(data.get("root") or f"runs/datasets/{dataset.stem}")),
-            "validation": _integer(data.get("validation", 8), "data.validation", 1),
-            "crop": crop, "batch": _integer(data.get("batch", 8), "data.batch", 1, 4096)}
+        _fail("data.crop", crop, "a multiple of 4 for DoFP input (the mosaic period)", f"Try crop: {crop - crop % 4}.")
+    return {"dataset_config": dataset, "dataset_root": Path(data.get("root") or f"runs/datasets/{dataset.stem}"),
+            "validation": data.get("validation", 8), "crop": crop, "batch": data.get("batch", 8)}
 
 
-def _parse_optimization(raw: dict, kind: str) -> dict:
-    loss = _mapping(raw.get("loss"), "loss")
-    _reject_unknown(loss, LOSS_KEYS[kind], f"loss (input {kind})")
-    loss = {k: _number(v, f"loss.{k}", 0.0, 100.0) for k, v in loss.items()}
-    opt = {"name": "adam", "lr": 1e-3, "weight_decay": 0.0, **_mapping(raw.get("optimizer"), "optimizer")}
-    _reject_unknown(opt, ("name", "lr", "weight_decay", "momentum"), "optimizer")
-    if opt["name"] not in OPTIMIZERS:
-        raise UnknownNameError("optimizer.name", str(opt["name"]), list(OPTIMIZERS))
-    for key in ("lr", "weight_decay", "momentum"):
-        if key in opt:
-            opt[key] = _number(opt[key], f"optimizer.{key}", 0.0, 10.0, low_open=key == "lr")
-    sched = {"steps": 2000, "decay": "cosine", "final_lr_fraction": 0.05, "milestones": [],
-             **_mapping(raw.get("schedule"), "schedule")}
-    _reject_unknown(sched, ("steps", "warmup", "decay", "final_lr_fraction", "milestones", "gamma"), "schedule")
-    sched["steps"] = _integer(sched["steps"], "schedule.steps", 1, 10**8)
-    sched["warmup"] = _integer(sched.get("warmup", min(50, sched["steps"])), "schedule.warmup", 0, sched["steps"])
-    if sched["decay"] not in DECAYS:
-        raise UnknownNameError("schedule.decay", str(sched["decay"]), list(DECAYS))
-    sched["final_lr_fraction"] = _number(sched["final_lr_fraction"], "schedule.final_lr_fraction", 0.0, 1.0)
-    sched["gamma"] = _number(sched.get("gamma", 0.5), "schedule.gamma", 0.0, 1.0, low_open=True)
-    if not isinstance(sched["milestones"], list):
-        raise InputError("schedule.milestones", sched["milestones"], "a list of step numbers")
-    sched["milestones"] = [_integer(m, "schedule.milestones", 1, sched["steps"]) for m in sched["milestones"]]
+def _optimization(raw: dict, kind: str) -> dict:
+    loss = raw.get("loss") or {}
+    for key in loss:
+        if key not in LOSS_KEYS[kind]:
+            valid = ", ".join(LOSS_KEYS[kind]) or "no loss keys"
+            raise UnknownConfigName(ConfigError(f"loss.{key}", "an unknown key", f"{valid} for input {kind}"))
+    opt = {"name": "adam", "lr": 1e-3, "weight_decay": 0.0, **(raw.get("optimizer") or {})}
+    sched = {"steps": 2000, "decay": "cosine", "final_lr_fraction": 0.05, "milestones": [], "gamma": 0.5,
+             **(raw.get("schedule") or {})}
+    sched.setdefault("warmup", min(50, sched["steps"]))
+    if sched["warmup"] > sched["steps"]:
+        _fail("schedule.warmup", sched["warmup"], f"at most schedule.steps ({sched['steps']})")
+    late = [m for m in sched["milestones"] if m > sched["steps"]]
+    if late:
+        _fail("schedule.milestones", late[0], f"step numbers in [1, {sched['steps']}] (schedule.steps)")
     return {"loss": loss, "optimizer": opt, "schedule": sched}
 
 
+def model_memory_bytes(network: str, params: dict, *, batch: int, crop: int, activations: bool = True) -> float:
+    """Training working set of ``network`` in bytes: float32 weights x 4 (weights, gradients, two Adam moments)
+    plus, with ``activations``, the maps a batch of ``crop`` crops keeps for the backward pass (4 per block)."""
+    p = {**NETWORK_DEFAULTS.get(network, {}), **params}
+    if network == DICTIONARY_MODEL:
+        return 8.0 * 4 * p["patches"] * (12 * p["patch"] ** 2 + p["atoms"])
+    f = p["features"]
+    if network == "cpdnet":
+        weights = 9 * f * (9 + 3 + 8 + 4) + 18 * f * f * (p["colour_blocks"] + p["polarization_blocks"])
+        maps = batch * crop ** 2 * f * (4 * (4 * p["colour_blocks"] + 3) + 3 * (4 * p["polarization_blocks"] + 3))
+    else:
+        weights = 18 * f * p["channels"] + 9 * f * f * (2 * p["blocks"] + 1 + 4)
+        maps = batch * crop ** 2 * f * (4 * p["blocks"] + 3 + 4 * 4 + 4)
+    return 4.0 * (4 * weights + (maps if activations else 0))
+
+
+def check_model_memory(config: TrainConfig, *, activations: bool = True) -> None:
+    """Refuse (:class:`~capssim.errors.ResourceError`, naming the file and ``model``) a model whose training
+    working set (:func:`model_memory_bytes`) passes the memory limit, before building it. The network is built
+    on the host; ``activations=False`` (training on a GPU) leaves the batch's maps out of the host estimate."""
+    estimate = model_memory_bytes(config.network, config.network_params, batch=config.batch, crop=config.crop,
+                                  activations=activations)
+    sizes = ", ".join(f"{k}: {v}" for k, v in config.network_params.items())
+    check_memory(f"{KIND} {config.source}, key 'model'" if config.source else f"{KIND}, key 'model'", estimate,
+                 what=f"training {config.network} ({sizes}{', ' if sizes else ''}batch {config.batch}, crop "
+                      f"{config.crop}{'' if activations else ', weights only'})",
+                 fix=f"Lower the model's sizes, data.batch or data.crop, or raise {MEMORY_LIMIT_ENV}.")
+
+
 def parse_train_config(raw, *, base_dir: Path = Path("."), source: str = "") -> TrainConfig:
-    if not isinstance(raw, dict):
-        raise InputError("CONFIG", type(raw).__name__, "a YAML mapping with model, input and data")
-    _reject_unknown(raw, TOP_KEYS, "the training config")
-    network, params, kind = _parse_model(raw)
-    name = str(raw.get("name") or network)
-    seed = _integer(raw.get("seed", 0), "seed", 0, 2**63 - 1)
-    every = {key: _integer(raw.get(key, default), key, 1, 10**8)
-             for key, default in (("validate_every", 250), ("checkpoint_every", 50))}
-    return TrainConfig(name=name, seed=seed, network=network, network_params=params, input=kind,
-                       **_parse_data(raw, Path(base_dir), kind), **_parse_optimization(raw, kind), **every,
-                       source=source)
+    """Check ``raw`` (a parsed YAML file) against :data:`TOP_SPEC` and the model's spec, then the memory of the
+    model's weights (:func:`check_model_memory`); a ConfigError names ``source`` and the key."""
+    where = source or None
+    try:
+        raw = validate(TOP_SPEC, raw, config_file=where, kind=KIND)
+        network, params, kind = _model(raw)
+        parsed = {**_data(raw, Path(base_dir), kind), **_optimization(raw, kind)}
+    except ConfigError as exc:
+        error = ConfigError(exc.key_path, exc.received, exc.valid, exc.fix, config_file=where, kind=KIND)
+        if exc.received == "an unknown key" or str(exc.valid).startswith("one of "):
+            raise UnknownConfigName(error) from None
+        raise error from None
+    config = TrainConfig(name=str(raw.get("name") or network), seed=raw.get("seed", 0), network=network,
+                         network_params=params, input=kind, **parsed, source=source,
+                         validate_every=raw.get("validate_every", 250), checkpoint_every=raw.get("checkpoint_every", 50))
+    check_model_memory(config, activations=False)  # the weights, whatever the device; the CLI adds the rest
+    return config
 
 
 def learning_rate(config: TrainConfig, step: int) -> float:

@@ -132,8 +132,9 @@ def test_an_all_saturated_capture_warns_on_the_command_line(noisy_capture, tmp_p
 
 
 # -- divergence and overflow (defect 4) -----------------------------------------------------------
-@pytest.mark.parametrize("method, option, value", [("caps", "dt", 100.0), ("caps-no-nlstr", "dt", 100.0),
-                                                   ("caps", "c2", 1e30)])
+# c2=1e30 no longer reaches the solver: c1 and c2 above 1000x the paper's are refused (issue 34, class 11;
+# tests/cli/test_hardening2_commands.py)
+@pytest.mark.parametrize("method, option, value", [("caps", "dt", 100.0), ("caps-no-nlstr", "dt", 100.0)])
 def test_divergence_is_an_error_naming_the_option(method, option, value, noisy_capture):
     with pytest.raises(DivergenceError, match=re.escape(f"option {option}: got {option}={value}")) as info:
         reconstruct(noisy_capture, method, iterations=3, true_warps=True, **{option: value})

@@ -1,0 +1,105 @@
+"""``capssim reconstruct``'s checks before the first method runs (issue 34, classes 9, 11 and 12).
+
+* :func:`check_method_options`: every method of the command line parses its ``-p`` options before any
+  method runs, so ``-m caps -m dofp-eari -p c1=0.003`` is refused before ``recon/caps.tiff`` is written.
+* :func:`check_track_psnr`: ``-p track_psnr=true`` needs a ground truth (``gt.tiff``) and an untiled run.
+* :func:`warn_raw_range`: float raw frames outside ``[black, white]``: one warning with the count.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from capssim.errors import CapssimError, InputError
+
+log = logging.getLogger("capssim.reconstruct")
+
+
+class _OptionsParsed(BaseException):
+    """Raised by :class:`_ProbeCapture` at the method's first look at the capture: its options are parsed.
+    A BaseException, so that no ``except Exception`` of a method swallows it."""
+
+
+class _ProbeCapture:
+    """A capture with no data: any attribute stops the method (:class:`_OptionsParsed`)."""
+
+    def __getattr__(self, name):
+        raise _OptionsParsed(name)
+
+
+def check_method_options(name: str, options: dict) -> None:
+    """Run method ``name`` with ``options`` up to its first look at the capture (where every method has
+    parsed and checked its options), on a capture with no data; an option it refuses is raised here, before
+    any method runs. A method that looks at the capture first is checked when it runs, as before.
+
+    Raises
+    ------
+    CapssimError
+        The method's own one-line error (an unknown option, a value out of range), naming ``-m NAME``
+        when several methods share the ``-p`` options.
+    """
+    import torch
+
+    from capssim.reconstruct import get_method  # start-up time
+    from capssim.reconstruct.run_context import RunContext, StageTimer
+
+    cpu = torch.device("cpu")
+    context = RunContext(device=cpu, timer=StageTimer(cpu), options=dict(options))
+    try:
+        with torch.no_grad():
+            get_method(name).function(_ProbeCapture(), context=context)
+    except _OptionsParsed:
+        return
+    except CapssimError as exc:
+        if "option" in str(exc).split(":", 1)[0] or "unknown option" in str(exc):
+            raise InputError(f"-p/--param (method {name})", str(exc), "options every -m method takes",
+                             "The -p options go to every method: run the methods in separate commands.") from None
+        raise
+    except Exception:  # noqa: BLE001 - not an option error: the method reports it when it runs
+        log.debug("options of %s not checked ahead", name, exc_info=True)
+
+
+def check_track_psnr(options: dict, folders: list[Path], *, tiled: bool) -> None:
+    """``-p track_psnr=true`` takes effect or is refused: every capture needs its ``gt.tiff`` (read with the
+    frames, PSNR per iteration in the record), and the run must be untiled (tiles carry no ground truth)."""
+    if "track_psnr" not in options:
+        return
+    from capssim.capture import read_meta  # start-up time
+    from capssim.reconstruct.pipeline.options import coerce_option
+
+    if not coerce_option("track_psnr", options["track_psnr"], bool):
+        return
+    if tiled:
+        raise InputError("-p track_psnr", "true with --tile, --workers or a folder of captures",
+                         "an untiled run of one capture (tiles carry no ground truth)",
+                         "Leave -p track_psnr out, or reconstruct one capture without --tile.")
+    for folder in folders:
+        gt = read_meta(folder).get("files", {}).get("gt")
+        if not gt or not (Path(folder) / gt).is_file():
+            raise InputError("-p track_psnr", f"true for {str(folder)!r}, which has no gt.tiff",
+                             "a capture with its ground truth (from capssim simulate or render)",
+                             "Leave -p track_psnr out: a real camera's capture cannot be scored.")
+
+
+def warn_raw_range(folder: Path, kinds: set[str]) -> None:
+    """One warning per float raw frame file of ``folder`` with values outside the sensor's
+    ``[black_level, white_level]`` (meta.json): its count. Integer frames are clipped by their ADC and
+    marked saturated at the white level; float frames carry no saturation mask, so such values are used
+    as they are."""
+    import numpy as np
+
+    from capssim.capture import read_capture  # start-up time
+    from capssim.data_range import warn_out_of_range
+
+    capture = read_capture(folder, load_gt=False)
+    sensor = capture.meta.get("sensor", {})
+    low, high = float(sensor.get("black_level", 0.0)), float(sensor.get("white_level", 1.0))
+    frames = {"caps": ("caps_raw", capture.caps_raw), "dofp": ("dofp_raw", capture.dofp_raw)}
+    for kind in sorted(kinds):
+        name, raw = frames.get(kind, (None, None))
+        if raw is not None and np.issubdtype(np.asarray(raw).dtype, np.floating):
+            warn_out_of_range(f"{Path(folder).name}/{name}", raw, low=low, high=high, unit="the white level",
+                              below_means="below the black level", above_means="above the white level",
+                              consequence="float frames carry no saturation mask: these values are used as they "
+                                          "are (check the sensor's black_level/white_level in meta.json)")
