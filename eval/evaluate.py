@@ -27,6 +27,7 @@ import numpy as np
 
 from capssim.capture import list_reconstructions, read_capture
 from capssim.conventions import CHANNEL_NAMES, N_CHANNELS
+from capssim.data_range import warn_out_of_range
 from capssim.errors import CapssimError, CaptureFormatError, InputError
 from capssim.imageio import atomic_write_json, read_tiff
 
@@ -209,6 +210,8 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
     """
     path = Path(capture_path)
     capture = read_capture(path, require_gt=True)
+    warn_out_of_range(f"{path.name}/gt.tiff", capture.gt, low=0.0, high=None, below_means="negative",
+                      consequence="scored as they are (a ground truth is an intensity >= 0: check how it was made)")
     names = list_reconstructions(path)
     if methods:
         unknown = sorted(set(methods) - set(names))

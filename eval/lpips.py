@@ -57,7 +57,9 @@ class LPIPS(nn.Module):
             try:
                 loaded = torch.load(f, map_location="cpu", weights_only=True)
             except Exception as exc:  # corrupt or not a torch file
-                raise InputError("lpips-weights", f"unreadable {f} ({exc})", "a torch state dict") from exc
+                why = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not a torch weights file"
+                raise InputError("--lpips-weights", f"unreadable {f} ({why})", "a torch state dict (.pth) of LPIPS",
+                                 "Copy the weights file again; see docs: guides/scoring.md, 'Metrics' (LPIPS).") from None
             if isinstance(loaded, dict) and "state_dict" in loaded:
                 loaded = loaded["state_dict"]
             if not isinstance(loaded, dict):

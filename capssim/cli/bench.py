@@ -29,9 +29,7 @@ from capssim.cli._options import (
     ThreadsOption,
     apply_compute,
     check_device,
-    check_hr_size,
     check_iterations,
-    each,
     echo_json,
     number_in,
 )
@@ -68,18 +66,47 @@ add_suite_command(bench_app)
 
 
 # -- reconstruct ---------------------------------------------------------------------------------
+def parse_hr_size(text) -> "int | tuple[int, int]":
+    """``--size`` of ``bench reconstruct``: ``N`` (``N x N``) or ``WxH`` (width x height, HR pixels), multiples of 4
+    of at least 16 whose scene fits the memory limit; ``N`` stays an int, ``WxH`` becomes ``(W, H)``."""
+    from capssim.errors import InputError
+    from capssim.resources import SCENE_BYTES_PER_HR_PIXEL, check_memory
+
+    parts = str(text).strip().lower().replace("×", "x").split("x")
+    if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
+        raise InputError("--size", repr(text), "N or WxH in HR pixels (e.g. --size 512, --size 2560x2048)",
+                         "Write the width, an x and the height, with no spaces.")
+    width, height = int(parts[0]), int(parts[-1])
+    if any(side < 16 or side % 4 for side in (width, height)):
+        w4, h4 = (max(16, side - side % 4) for side in (width, height))
+        raise InputError("--size", text, "sides that are multiples of 4 and at least 16 (the camera model's HR grid)",
+                         f"Try --size {w4}" + ("." if len(parts) == 1 else f"x{h4}."))
+    check_memory("--size", float(width) * height * SCENE_BYTES_PER_HR_PIXEL, what=f"a {width}x{height} scene",
+                 fix="Use a smaller --size.")
+    return width if len(parts) == 1 else (width, height)
+
+
+def _parse_sizes(values):
+    return None if values is None else [parse_hr_size(v) for v in values]
+
+
 @bench_app.command("reconstruct")
 def reconstruct(
     gt: Optional[Path] = typer.Argument(None, metavar="[GT]", help="Ground-truth scene (default: ../shared/data/gt/qiu-kettle if "
                                                    "present, else a synthetic scene)."),
-    sizes: List[int] = typer.Option([256, 512, 1024], "--size", metavar="PIXELS", help="HR output size (repeatable).",
-                                    callback=each(check_hr_size("--size"))),
+    sizes: List[str] = typer.Option(["256", "512", "1024"], "--size", metavar="N|WxH",
+                                    help="HR output size, N for NxN or width x height, e.g. 2560x2048 (the prototype's "
+                                         "full frame); repeatable.", callback=_parse_sizes),
     devices: List[str] = typer.Option([DEFAULT_DEVICE], "--device", metavar="|".join(DEVICES), callback=check_device,
                                       help=DEVICE_HELP + " Repeatable: one timing per device."),
     iterations: int = typer.Option(25, "--iterations", help="ADMM iterations (paper: 25).", callback=check_iterations),
     repeats: int = RepeatsOption,
     threads: Optional[int] = ThreadsOption,
     estimated_warps: bool = typer.Option(False, "--estimated-warps", help="Time the registration too."),
+    tile: Optional[int] = typer.Option(None, "--tile", metavar="PIXELS",
+                                       help="Also reconstruct in tiles of this HR core side; untiled only where the "
+                                            "memory estimate fits the machine.",
+                                       callback=number_in("--tile", 64, 65536, what="HR pixels")),
     as_json: bool = JsonOption,
 ) -> None:
     """Wall time and peak memory per stage of 'caps' at the paper's defaults, each run in a fresh process."""
@@ -87,7 +114,8 @@ def reconstruct(
     from capssim.eval.benchmarks.reconstruct import format_tables, run_benchmark
 
     results = run_benchmark(sizes=sizes, devices=resolved, iterations=iterations, repeats=repeats, gt=gt,
-                            true_warps=not estimated_warps, threads=threads, log=lambda msg: typer.echo(msg, err=True))
+                            true_warps=not estimated_warps, threads=threads, tile=tile,
+                            log=lambda msg: typer.echo(msg, err=True))
     _say(as_json)(format_tables(results))
     if as_json:
         echo_json(results)

@@ -179,7 +179,7 @@ def check_before_work(capture: Path, names: list[str], options: dict, iterations
     from capssim.reconstruct.tiles.frames import capture_folders
 
     for name in names:
-        check_method_options(name, _method_options(name, options, iterations, quiet=True))
+        check_method_options(name, _method_options(name, options, iterations, quiet=True), shared=len(names) > 1)
     folders = capture_folders(capture) or [capture]
     check_track_psnr(options, folders, tiled=tiled)
     kinds = {get_method(name).input_kind for name in names}

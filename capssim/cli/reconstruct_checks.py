@@ -28,7 +28,7 @@ class _ProbeCapture:
         raise _OptionsParsed(name)
 
 
-def check_method_options(name: str, options: dict) -> None:
+def check_method_options(name: str, options: dict, *, shared: bool = False) -> None:
     """Run method ``name`` with ``options`` up to its first look at the capture (where every method has
     parsed and checked its options), on a capture with no data; an option it refuses is raised here, before
     any method runs. A method that looks at the capture first is checked when it runs, as before.
@@ -36,8 +36,8 @@ def check_method_options(name: str, options: dict) -> None:
     Raises
     ------
     CapssimError
-        The method's own one-line error (an unknown option, a value out of range), naming ``-m NAME``
-        when several methods share the ``-p`` options.
+        The method's own one-line error (an unknown option, a value out of range); an unknown option names
+        ``-m NAME`` when several methods share the ``-p`` options (``shared``).
     """
     import torch
 
@@ -52,8 +52,8 @@ def check_method_options(name: str, options: dict) -> None:
     except _OptionsParsed:
         return
     except CapssimError as exc:
-        if "option" in str(exc).split(":", 1)[0] or "unknown option" in str(exc):
-            raise InputError(f"-p/--param (method {name})", str(exc), "options every -m method takes",
+        if shared and "unknown option" in str(exc):
+            raise InputError(f"-m {name}", str(exc).rstrip("."), "-p options that every -m method takes",
                              "The -p options go to every method: run the methods in separate commands.") from None
         raise
     except Exception:  # noqa: BLE001 - not an option error: the method reports it when it runs

@@ -30,11 +30,13 @@ def train(
 
     from capssim.output_paths import resolve_output
     from capssim.reconstruct.training.config import check_model_memory, load_train_config
+    from capssim.reconstruct.training.trainer import check_run_folder
     from capssim.reconstruct.training.trainer import train as run_training
 
     output = resolve_output(output, kind="folder", overwrite=True)  # resumed if it exists; links followed
     cfg = load_train_config(config)
     check_model_memory(cfg, activations=dev.type == "cpu")  # on a GPU the batch's maps are the GPU's
+    check_run_folder(cfg, output, overwrite=overwrite)  # before the progress bar: an unusable run folder, one line
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TextColumn("{task.fields[status]}"), TimeRemainingColumn()) as bar:
         task = bar.add_task(f"train {cfg.name}", total=cfg.schedule["steps"], status="loading the dataset...")

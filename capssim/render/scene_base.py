@@ -70,6 +70,11 @@ def _coerce_param(argument: str, value, default):
 
 
 
+#: the ranges of the parameters several scenes share (``--param depth_m=0`` names ``depth_m``, not the camera)
+SHARED_PARAM_RANGES = {"depth_m": (0.1, 1000.0, "metres from the array to the target, in front of it"),
+                       "fov_deg": (0.5, 120.0, "horizontal field of view in degrees")}
+
+
 @dataclass(frozen=True)
 class SceneInfo:
     """Description of a scene (``capssim scenes`` lists these)."""
@@ -117,6 +122,10 @@ class Scene:
                 raise InputError("scene_params", key,
                                  f"a parameter of scene {self.info.name!r}: {sorted(params) or 'none'}")
             params[key] = _coerce_param(f"scene_params.{key}", value, params[key])
+        for key, (low, high, what) in SHARED_PARAM_RANGES.items():  # before the scene's own checks and the camera's
+            if key in params and not low <= params[key] <= high:
+                raise InputError(f"scene_params.{key}", params[key], f"a number in [{low:g}, {high:g}] ({what})",
+                                 f"For example {key}={self.info.defaults[key]}.")
         self.check_params(params)
         return params
 

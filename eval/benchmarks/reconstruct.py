@@ -1,9 +1,12 @@
 """Speed benchmark of ``caps``: wall time and peak memory per stage, per HR size and device.
 
-Run ``capssim bench reconstruct``. For each HR size a capture is simulated (the paper's protocol, Gaussian noise 0.01) from
+Run ``capssim bench reconstruct``. For each HR size (``N`` for ``N x N``, or ``W x H``: the prototype's full frame is
+2560x2048) a capture is simulated (the paper's protocol, Gaussian noise 0.01) from
 ``../shared/data/gt/qiu-kettle`` when present, else from a synthetic scene; then ``caps``
 runs at the paper's defaults in a fresh subprocess per (size, device, repeat), so the peak
-memory of one run is not inflated by another. Peak memory is the process RSS (CPU,
+memory of one run is not inflated by another. With a ``tile`` the frame is also reconstructed in
+tiles (:func:`capssim.reconstruct.tiles.run.reconstruct_tiled`), and untiled only where its memory estimate
+(:func:`capssim.reconstruct.tiles.memory.estimate_bytes`) fits the machine's limit. Peak memory is the process RSS (CPU,
 sampled every 5 ms and attributed to the stage running) or ``torch.cuda.max_memory_allocated``
 (CUDA). The machine's load average is recorded with each run: other processes sharing
 the cores make timings noisy, so use ``--repeats`` and read the fastest.
@@ -29,7 +32,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from capssim.capture import read_capture, write_capture
-from capssim.imageio import read_gt_scene
+from capssim.imageio import centre_crop, read_gt_scene
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registry import RunContext, StageTimer, get_method, resolve_device
 from capssim.sensor import make_sensor
@@ -101,33 +104,53 @@ class MemoryStageTimer(StageTimer):
             self._thread.join(timeout=1)
 
 
-def make_capture(size: int, directory: Path, gt: Path | None = None, *, sigma: float = 0.01, seed: int = 0) -> Path:
-    """Simulate a ``size x size`` HR capture into ``directory`` and return its path."""
+def hr_dims(size) -> tuple[int, int]:
+    """``(width, height)`` of an HR size: an int ``N`` (``N x N``) or a ``(width, height)`` pair."""
+    if isinstance(size, (tuple, list)):
+        return int(size[0]), int(size[1])
+    return int(size), int(size)
+
+
+def size_label(size) -> str:
+    """``'WxH'`` of an HR size (:func:`hr_dims`)."""
+    w, h = hr_dims(size)
+    return f"{w}x{h}"
+
+
+def make_capture(size, directory: Path, gt: Path | None = None, *, sigma: float = 0.01, seed: int = 0) -> Path:
+    """Simulate an HR capture of ``size`` (``N`` or ``(width, height)``) into ``directory`` and return its path:
+    a centred crop of the ground truth when it is large enough, else a synthetic scene."""
+    width, height = hr_dims(size)
     if gt is None:
         shared = shared_data_dir() / "gt" / "qiu-kettle"
         gt = shared if shared.is_dir() else None
     if gt is not None:
         image, source = read_gt_scene(gt)
-        if min(image.shape[1:]) >= size:
-            image, info = prepare_ground_truth(image, crop=size)
+        if image.shape[1] >= height and image.shape[2] >= width:
+            if width == height:
+                image, info = prepare_ground_truth(image, crop=width)
+            else:  # a centred crop of the sides asked for
+                image, info = prepare_ground_truth(centre_crop(image, (height, width)))
+                info["crop"] = [height, width]
             source.update(info)
         else:
             image, source = None, None
     else:
         image = None
     if image is None:
-        image, source = _synthetic_scene(size, seed), {"type": "synthetic"}
+        image, source = _synthetic_scene(height, width, seed), {"type": "synthetic"}
     capture = simulate_capture(image, make_sensor("gaussian", sigma=sigma), seed=seed, source=source)
-    path = directory / f"capture-{size}"
+    path = directory / f"capture-{width}x{height}"
     write_capture(path, capture, overwrite=True)
     return path
 
 
-def _synthetic_scene(size: int, seed: int) -> np.ndarray:
+def _synthetic_scene(height: int, width: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    s0 = np.stack([0.2 + 0.6 * gaussian_filter(rng.random((size, size)), 3) / 0.6 for _ in range(3)]).clip(0, 1)
-    d = 0.5 * gaussian_filter(rng.random((size, size)), 8) / 0.5
-    a = np.pi * gaussian_filter(rng.random((size, size)), 8) * 2
+    shape = (height, width)
+    s0 = np.stack([0.2 + 0.6 * gaussian_filter(rng.random(shape), 3) / 0.6 for _ in range(3)]).clip(0, 1)
+    d = 0.5 * gaussian_filter(rng.random(shape), 8) / 0.5
+    a = np.pi * gaussian_filter(rng.random(shape), 8) * 2
     return twelve_from_stokes(np.stack([s0, s0 * d * np.cos(2 * a), s0 * d * np.sin(2 * a)])).astype(np.float32)
 
 
@@ -138,9 +161,21 @@ def _thread_range(decisions: list[tuple[float, int]]) -> str:
     return f"{counts[0]} thread{'s' if counts[0] > 1 else ''}" if len(counts) == 1 else f"{counts[0]}-{counts[-1]} threads"
 
 
+def _run_method(method: str, capture, ctx: RunContext, tile: int | None):
+    """The method's output, untiled, or in tiles of ``tile`` HR pixels (one worker, the run's device)."""
+    if tile is None:
+        return get_method(method).function(capture, context=ctx)
+    from capssim.reconstruct.tiles.run import reconstruct_tiled  # only for tiled runs
+
+    out = reconstruct_tiled(capture, method, tile=tile, device=str(ctx.device), true_warps=ctx.true_warps,
+                            reuse_registration=False, **ctx.options)
+    return out[0]
+
+
 def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, method: str = "caps",
-           threads: int | None = None) -> dict:
-    """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`).
+           threads: int | None = None, tile: int | None = None) -> dict:
+    """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`); ``tile``: the
+    HR core side of a tiled run (its stages are not timed one by one: only the wall time and the peak).
 
     ``threads``: a fixed count, or None for the inherited setting (``$CAPSSIM_THREADS``; ``auto``: the
     count adapts to the machine's load at each stage, :func:`capssim.threads.adapt_threads`)."""
@@ -155,13 +190,14 @@ def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, m
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
     with torch.no_grad():
-        out = get_method(method).function(capture, context=ctx)
+        out = _run_method(method, capture, ctx, tile)
     wall = time.perf_counter() - t0
     timer.close()
     if not np.all(np.isfinite(out.image)):
         raise RuntimeError("benchmark run produced non-finite values")
     return {
-        "method": method, "hr_size": capture.hr_shape[0], "device": str(dev),
+        "method": method, "hr_size": capture.hr_shape[0], "hr_shape": list(capture.hr_shape), "tile": tile,
+        "device": str(dev),
         "threads": f"auto, {_thread_range(adaptive_decisions())}" if adaptive else torch.get_num_threads(),
         "iterations": iterations, "true_warps": true_warps, "wall_s": wall,
         "stages_s": dict(timer.stages), "stage_peak_mb": {k: v / 2**20 for k, v in timer.peaks.items()},
@@ -171,25 +207,38 @@ def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, m
     }
 
 
-def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations: int = 25, repeats: int = 1,
-                  gt: Path | None = None, true_warps: bool = True, threads: int | None = None,
-                  log: Callable[[str], None] = lambda msg: None) -> list[dict]:
-    """Time ``caps`` for each size and device; returns the fastest run of each.
+def _variants(size, tile: int | None) -> list[int | None]:
+    """``None`` (untiled) where the untiled run's memory estimate fits the machine, and ``tile`` when given."""
+    if tile is None:
+        return [None]
+    from capssim.reconstruct.tiles.memory import fits, memory_budget  # only for tiled runs
 
-    ``threads``: torch CPU threads of each run (None: torch's choice).
+    width, height = hr_dims(size)
+    return ([None] if fits((height, width), memory_budget(None)[0]) else []) + [tile]
+
+
+def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations: int = 25, repeats: int = 1,
+                  gt: Path | None = None, true_warps: bool = True, threads: int | None = None, tile: int | None = None,
+                  log: Callable[[str], None] = lambda msg: None) -> list[dict]:
+    """Time ``caps`` for each size (``N`` or ``(width, height)``) and device; returns the fastest run of each.
+
+    ``threads``: torch CPU threads of each run (None: torch's choice). ``tile``: also run in tiles of this HR
+    side, and untiled only where the memory estimate fits (:func:`_variants`).
     """
     results = []
     devs = [d for d in devices if d != "cuda" or torch.cuda.is_available()]
     with tempfile.TemporaryDirectory(prefix="capssim-bench-") as tmp:
         for size in sizes:
-            path = make_capture(int(size), Path(tmp), gt)
-            for dev in devs:
+            path = make_capture(hr_dims(size), Path(tmp), gt)
+            for dev, tiled in ((d, t) for d in devs for t in _variants(size, tile)):
                 runs = []
                 for r in range(repeats):
-                    log(f"caps {size}x{size} on {dev}, run {r + 1}/{repeats} ...")
+                    what = "untiled" if tiled is None else f"tiles of {tiled}"
+                    log(f"caps {size_label(size)} ({what}) on {dev}, run {r + 1}/{repeats} ...")
                     cmd = [sys.executable, "-m", WORKER_MODULE, "--worker", str(path), "--device", dev,
                            "--iterations", str(iterations)] + ([] if true_warps else ["--estimated-warps"])
                     cmd += [] if threads is None else ["--threads", str(threads)]
+                    cmd += [] if tiled is None else ["--tile", str(tiled)]
                     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
                     if proc.returncode != 0:
                         raise RuntimeError(f"benchmark worker failed:\n{proc.stderr[-2000:]}")
@@ -201,12 +250,18 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
     return results
 
 
+def _column_label(run: dict) -> str:
+    """``'WxH'`` of a run, with ``' t<side>'`` for a tiled one."""
+    h, w = run.get("hr_shape") or (run["hr_size"], run["hr_size"])
+    return f"{w}x{h}" + (f" t{run['tile']}" if run.get("tile") else "")
+
+
 def format_tables(results: list[dict]) -> str:
     """One table per device: rows are stages, columns HR sizes, cells 'seconds (peak MB)'."""
     lines = []
     for dev in dict.fromkeys(r["device"] for r in results):
         rows = [r for r in results if r["device"] == dev]
-        sizes = [r["hr_size"] for r in rows]
+        labels = [_column_label(r) for r in rows]
         stages = [s for s in STAGE_ORDER if any(s in r["stages_s"] for r in rows)]
         stages += sorted({s for r in rows for s in r["stages_s"]} - set(stages))
         mem_unit = "peak RSS MB" if dev == "cpu" else "peak allocated MB"
@@ -214,7 +269,7 @@ def format_tables(results: list[dict]) -> str:
             f" ({rows[0]['threads']}{'' if isinstance(rows[0]['threads'], str) else ' threads'})" if dev == "cpu" else "")
         lines.append(head + f"; cells: seconds ({mem_unit}); fastest of {rows[0]['repeats']} run(s)")
         width = 26
-        lines.append(f"{'stage':{width}s}" + "".join(f"{f'{s}x{s}':>22s}" for s in sizes))
+        lines.append(f"{'stage':{width}s}" + "".join(f"{label:>22s}" for label in labels))
         for st in stages:
             cells = []
             for r in rows:
@@ -241,9 +296,10 @@ def _worker_main(argv=None) -> None:
     parser.add_argument("--iterations", type=int, default=25)
     parser.add_argument("--estimated-warps", action="store_true")
     parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--tile", type=int, default=None)
     args = parser.parse_args(argv)
     print(json.dumps(worker(args.worker, args.device, args.iterations, not args.estimated_warps,
-                            threads=args.threads)))
+                            threads=args.threads, tile=args.tile)))
 
 
 if __name__ == "__main__":

@@ -41,7 +41,7 @@ import torch.nn.functional as F
 
 from capssim.errors import CapssimError, InputError
 
-from ..networks import is_model_file, load_model, shipped_weights
+from ..networks import is_model_file, load_model, shipped_weights, unreadable_reason
 from ..pipeline import coerce_option
 from ..registry import MethodOutput, RunContext, register_method
 from .caps_naive import NaiveOptions, bicubic_warp, demosaic_and_register, finish
@@ -70,7 +70,11 @@ def load_upsampler(path: str | None, device: torch.device, *, scale: float = 1.0
         except ImportError:
             raise CapssimError(f"model {p} is ONNX, which needs the optional package onnxruntime "
                                "(pip install onnxruntime), or export the model to TorchScript (.pt).") from None
-        session = ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
+        try:
+            session = ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
+        except Exception as exc:  # a corrupt or truncated file: onnxruntime's message runs over lines
+            raise InputError("model", str(path), "an ONNX model file",
+                             f"onnxruntime cannot read it: {unreadable_reason(exc)}.") from None
         input_name = session.get_inputs()[0].name
 
         def run_onnx(x):
@@ -82,7 +86,7 @@ def load_upsampler(path: str | None, device: torch.device, *, scale: float = 1.0
         module = torch.jit.load(str(p), map_location=device)
     except Exception as exc:  # corrupt file, not TorchScript
         raise InputError("model", str(path), "a TorchScript module saved with torch.jit.save, or an .onnx file",
-                         f"torch.jit.load failed: {exc}") from None
+                         f"torch.jit.load failed: {unreadable_reason(exc)}.") from None
     module.eval()
     return (lambda x: module(x * scale) / scale), f"torchscript:{p.name}", None
 

@@ -56,6 +56,21 @@ def save_model(path, network: str, params: dict, model: nn.Module, training: dic
     return path
 
 
+def unreadable_reason(exc: BaseException, *, limit: int = 120) -> str:
+    """The first line of ``exc``'s message, at most ``limit`` characters (torch's load errors run to 8
+    lines of advice), with the exception's class name when the message is empty."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    text = lines[0] if lines else ""
+    if len(text) < 12:  # an empty or bare message (EOFError, a KeyError of a pickle opcode): name the class
+        text = f"{type(exc).__name__}{': ' + text if text else ''}"
+    elif "weights_only" in text or "Weights only load failed" in text:
+        text = "not a torch weights file"
+    elif "central directory" in text or "zip archive" in text:
+        text = "not a torch archive (truncated or another format)"
+    text = text.rstrip(":. ")
+    return text if len(text) <= limit else text[:limit - 3].rstrip() + "..."
+
+
 def is_model_file(path) -> bool:
     """True when ``path`` is a capssim model file (not TorchScript, not ONNX)."""
     try:
@@ -78,7 +93,8 @@ def load_model(path, *, device: torch.device | str = "cpu", expect: str | None =
     try:
         record = torch.load(p, map_location="cpu", weights_only=True)
     except Exception as exc:
-        raise InputError(option, str(path), "a model file written by 'capssim train'", f"It cannot be read: {exc}") from None
+        raise InputError(option, str(path), "a model file written by 'capssim train'",
+                         f"It cannot be read ({unreadable_reason(exc)}): train it again, or copy it again.") from None
     if not isinstance(record, dict) or record.get("format") != MODEL_FORMAT:
         raise InputError(option, str(path), "a model file written by 'capssim train' (format capssim-model)")
     if record.get("version") != MODEL_VERSION:
@@ -86,8 +102,12 @@ def load_model(path, *, device: torch.device | str = "cpu", expect: str | None =
                          "Retrain it with this capssim.")
     if expect is not None and record.get("network") != expect:
         raise InputError(option, f"{p} (a {record.get('network')} model)", f"a {expect} model file")
-    model = build_network(record["network"], record.get("params"))
-    model.load_state_dict(record["state_dict"])
+    try:  # a tampered or truncated record: torch's errors list every key, over many lines
+        model = build_network(record["network"], record.get("params"))
+        model.load_state_dict(record["state_dict"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise InputError(option, str(path), "a model file written by 'capssim train' (network, params, state_dict)",
+                         f"Its weights do not fit its network ({unreadable_reason(exc)}): train it again.") from None
     model.eval().to(device)
     return model, {k: v for k, v in record.items() if k != "state_dict"}
 

@@ -180,21 +180,32 @@ class NonlocalSparseTensor:
 
     def working_set_bytes(self, n_similar: int) -> int:
         """Peak bytes of one NLSTR step with ``n_similar`` blocks per group, about: the padded image,
-        the matches ``(K, P)``, and per strip of ``n`` reference rows (``m`` image rows) the larger of
-        the offset maps ``(m, (2R+1)^2, W)`` (x4) with the candidate tables ``(n Nx, (2R+1)^2)``, and
-        the Gram maps ``(m-b+1, W-b+1, planes)`` (x3) with the groups' blocks ``(n Nx, b, b, C)`` (x10)."""
+        the matches ``(K, P)``, and the larger of: per matching tile (``m x v`` image pixels, ``n x u`` reference
+        blocks) the offset maps ``((2R+1)^2, m, v)`` (x4) with the candidate tables ``(n u, (2R+1)^2)``, and the
+        whole-width box sums ``((2R+1)^2, m, Nx)`` of a band of one-row strips; per strip of ``n`` reference rows
+        (``m`` image rows) the Gram maps ``(m-b+1, W-b+1, planes)`` (x3) with the groups' blocks ``(n Nx, b, b, C)``
+        (x10)."""
         c, h, w = self.shape
         b, s, r = self.params.block, self.params.stride, self.params.search_radius
         item, n_off = torch.tensor([], dtype=self.dtype).element_size(), (2 * r + 1) ** 2
         p, nx = max(1, min(int(n_similar), n_off)), int(self.ref_x.numel())
         rows = max(int(st.ref_rows.numel()) for st in self.strips)
-        match_rows = (rows - 1) * s + b
-        match = match_rows * n_off * w * item * 4 + rows * nx * n_off * (2 * item + 17)
-        gram_rows = min(h, match_rows + 2 * r) - b + 1
+        match = max(self._match_tile_bytes(tile, item) for tile in self.match_tiles)
+        gram_rows = min(h, (rows - 1) * s + b + 2 * r) - b + 1
         gram = gram_rows * (w - b + 1) * self._map_planes() * item * 3 + rows * nx * b * b * c * item * 10
         persistent = c * (h + 4 * r) * (w + 4 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
         persistent += self.n_ref * b * b * c * item  # U of every group
         return int(persistent + 4 * h * w * c * item + max(match, gram))
+
+    def _match_tile_bytes(self, tile, item: int) -> int:
+        """Peak bytes of block matching in one tile (:meth:`working_set_bytes`)."""
+        b, r = self.params.block, self.params.search_radius
+        n_off, nx = (2 * r + 1) ** 2, int(self.ref_x.numel())
+        height = int(self.ref_y[tile.row1 - 1] - self.ref_y[tile.row0]) + b
+        width = int(self.ref_x[tile.col1 - 1] - self.ref_x[tile.col0]) + b
+        refs = (tile.row1 - tile.row0) * (tile.col1 - tile.col0)
+        wide = height * nx * n_off * item if any(run[2] and run[1] - run[0] == 1 for run in tile.runs) else 0
+        return height * width * n_off * item * 4 + refs * n_off * (2 * item + 17) + wide
 
     def check_resources(self, *, n_similar: int) -> None:
         """Refuse (:class:`~capssim.errors.ResourceError`) a step whose working set is past the memory limit."""

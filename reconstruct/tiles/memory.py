@@ -17,7 +17,9 @@ from capssim.resources import format_bytes, memory_limit
 
 from .geometry import MIN_TILE, TILE_ALIGN
 
-__all__ = ["BASE_BYTES", "BYTES_PER_HR_PIXEL", "FRAME_BYTES_PER_HR_PIXEL", "estimate_bytes", "fits", "memory_budget", "tile_for_budget"]
+__all__ = ["BASE_BYTES", "BYTES_PER_HR_PIXEL", "FRAME_BYTES_PER_HR_PIXEL", "MIN_REGISTRATION_SIDE",
+           "REGISTRATION_BYTES_PER_HR_PIXEL", "estimate_bytes", "fits", "memory_budget", "registration_bytes",
+           "tile_for_budget"]
 
 #: memory of the process before the frame (interpreter, torch, the method's modules), bytes
 BASE_BYTES = 0.35 * 2**30
@@ -26,6 +28,17 @@ BYTES_PER_HR_PIXEL = 2450.0
 #: memory per HR pixel of the whole frame that a tiled run holds besides its tiles (the raw frames, the blended
 #: frame and its weights, the masks, the physical projection's temporaries), bytes
 FRAME_BYTES_PER_HR_PIXEL = 200.0
+#: peak memory of the registration per HR pixel of the frame it registers (4.53 GB for 2560x2048, measured with
+#: ``resource.getrusage`` around ``estimate_lr_homographies``; docs/notes/full-frames.md), bytes
+REGISTRATION_BYTES_PER_HR_PIXEL = 850.0
+#: the smallest window side a frame is registered on (HR pixels)
+MIN_REGISTRATION_SIDE = 256
+
+
+def registration_bytes(hr_shape) -> float:
+    """Peak bytes of registering an ``hr_shape`` ``(rows, cols)`` frame (:data:`REGISTRATION_BYTES_PER_HR_PIXEL`)."""
+    rows, cols = (int(v) for v in hr_shape)
+    return BASE_BYTES + REGISTRATION_BYTES_PER_HR_PIXEL * rows * cols
 
 
 def estimate_bytes(hr_shape) -> float:

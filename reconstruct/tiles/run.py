@@ -17,6 +17,7 @@ import hashlib
 import json
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Callable, Iterable
 
@@ -32,11 +33,11 @@ from ..model.observation_model import method_geometry
 from ..registry import finite_or_null, get_method, reconstruct, resolve_device, unobserved_record
 from ..run_context import MethodOutput, RunContext, StageTimer
 from .blend import TileBlender
-from .crop import crop_capture
-from .geometry import TileLayout, default_margin, plan_tiles
-from .memory import fits, memory_budget, tile_for_budget
+from .crop import crop_capture, translation
+from .geometry import Tile, TileLayout, default_margin, plan_tiles
+from .memory import MIN_REGISTRATION_SIDE, fits, memory_budget, registration_bytes, tile_for_budget
 
-__all__ = ["choose_layout", "frame_warps", "reconstruct_tile", "reconstruct_tiled", "tile_margin"]
+__all__ = ["choose_layout", "frame_warps", "registration_window", "reconstruct_tile", "reconstruct_tiled", "tile_margin"]
 
 #: ``runner(function, jobs) -> iterable of (index, result)`` in any order: serial by default, Dask in .distributed
 Runner = Callable[[Callable, list], Iterable[tuple[int, object]]]
@@ -96,17 +97,56 @@ def choose_layout(capture: Capture, options: dict, *, aperture_homographies, til
 
 
 def frame_warps(capture: Capture, *, device, true_warps: bool, registration: str, reuse_registration: bool,
-                calibration) -> tuple[np.ndarray, dict]:
-    """The whole frame's aperture homographies ``(4, 3, 3)`` (true, or registered once and stored) and record."""
+                calibration, budget_bytes: float | None = None) -> tuple[np.ndarray, dict]:
+    """The whole frame's aperture homographies ``(4, 3, 3)`` (true, or registered once and stored) and record.
+
+    With ``budget_bytes`` (the run's memory budget) a frame whose registration would not fit is registered on
+    the largest central window that does (:func:`registration_window`)."""
     if resolve_calibration(capture, calibration) is not None:
         raise InputError("--calibration", str(calibration or capture.meta.get("calibration_file")),
                          "the ideal array for a tiled run (its flat fields are not cropped per tile yet)",
                          "Reconstruct untiled (leave --tile and --memory-gb out), or use --calibration ideal.")
     context = RunContext(device=resolve_device(device), timer=StageTimer(), true_warps=true_warps,
                          registration=registration, reuse_registration=reuse_registration)
+    window = None if true_warps or budget_bytes is None else registration_window(capture.hr_shape, budget_bytes)
+    if window is not None:
+        return _registered_on_window(capture, context, window)
     images, saturated = capture.lr_images()
     geometry, record = method_geometry(capture, context, images=images, saturated=saturated)
     return geometry.aperture_homographies, record
+
+
+def registration_window(hr_shape, budget_bytes: float) -> tuple[int, int, int, int] | None:
+    """The centred window ``(top, left, bottom, right)`` (HR pixels, multiples of 16) to register on when the
+    whole frame's registration (:func:`~.memory.registration_bytes`) does not fit ``budget_bytes``; ``None`` when
+    it fits. Homographies are global, so a large central window gives the frame's warps."""
+    rows, cols = (int(v) for v in hr_shape)
+    if registration_bytes((rows, cols)) <= budget_bytes:
+        return None
+    scale = math.sqrt(max(0.0, budget_bytes - registration_bytes((0, 0))) / max(1.0, registration_bytes((rows, cols))
+                                                                                - registration_bytes((0, 0))))
+    h = max(MIN_REGISTRATION_SIDE, int(rows * scale) // 16 * 16)
+    w = max(MIN_REGISTRATION_SIDE, int(cols * scale) // 16 * 16)
+    h, w = min(h, rows), min(w, cols)
+    top, left = (rows - h) // 2 // 4 * 4, (cols - w) // 2 // 4 * 4
+    return top, left, top + h, left + w
+
+
+def _registered_on_window(capture: Capture, context: RunContext, window) -> tuple[np.ndarray, dict]:
+    """Register the apertures on ``window`` only (the same crop of every aperture), then express the warps on
+    the whole frame: ``H_n = T(o_n) H'_n T(-corner)``."""
+    top, left, _, _ = window
+    identity = np.stack([np.eye(3)] * 4)
+    cropped = crop_capture(capture, Tile((0, 0), tuple(window), tuple(window)), identity)
+    images, saturated = cropped.lr_images()
+    geometry, record = method_geometry(cropped, replace(context, reuse_registration=False), images=images,
+                                       saturated=saturated)
+    offsets = cropped.meta["tile"]["aperture_offsets_hr"]
+    homs = np.stack([translation(ox, oy) @ h @ translation(-left, -top)
+                     for (oy, ox), h in zip(offsets, np.asarray(geometry.aperture_homographies, dtype=np.float64))])
+    record = {**record, "window": list(window),
+              "note": "registered on a central window: the whole frame's registration exceeds the memory budget"}
+    return homs, record
 
 
 def reconstruct_tile(capture: Capture, method: str, device: str, options: dict) -> dict:
@@ -213,8 +253,10 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
             return None  # the whole frame fits: the untiled run
         tile_for_budget(capture.hr_shape, budget, margin=default_margin(), workers=workers, source=source)  # early
     t0 = time.perf_counter()
+    budget_bytes = memory_budget(memory_gb)[0]
     homographies, reg_record = frame_warps(capture, device=device, true_warps=true_warps, registration=registration,
-                                           reuse_registration=reuse_registration, calibration=calibration)
+                                           reuse_registration=reuse_registration, calibration=calibration,
+                                           budget_bytes=budget_bytes)
     t_reg = time.perf_counter() - t0
     layout = choose_layout(capture, options, aperture_homographies=homographies, tile=tile, memory_gb=memory_gb,
                            workers=workers, margin=margin)

@@ -34,7 +34,7 @@ from capssim.errors import InputError
 from capssim.imageio import atomic_write_bytes, atomic_write_json, atomic_write_text
 from capssim.resources import check_memory
 
-from ..networks import build_network, save_model
+from ..networks import build_network, save_model, unreadable_reason
 from .config import DICTIONARY_MODEL, TrainConfig, learning_rate
 from .dictionary import DICTIONARY_FILE, learn_jcpd_dictionary
 from .pairs import PairSet, build_pairs, masked_psnr
@@ -129,24 +129,40 @@ def _same_config(config: TrainConfig, run: Path) -> bool:
         return False
 
 
-def _open_run(config: TrainConfig, run: Path, *, overwrite: bool) -> dict | None:
-    """The checkpoint to resume from (None: a new run); refuses a run folder of another config."""
+def check_run_folder(config: TrainConfig, run: Path, *, overwrite: bool = False) -> dict | None:
+    """The checkpoint state to resume from (None: a new run, or ``overwrite``), or a one-line
+    :class:`InputError` for a run folder that cannot be used: a file, a folder of another config, an unreadable
+    checkpoint or one of another config. Changes nothing (the command calls it before any work)."""
+    run = Path(run)
     if run.exists() and not run.is_dir():
         raise InputError("-o/--output", str(run), "a folder for the training run")
     checkpoint = run / CHECKPOINT
     if overwrite:
-        for name in (CHECKPOINT, MODEL, HISTORY, PLOT, CONFIG_COPY):
-            (run / name).unlink(missing_ok=True)
-    elif run.is_dir() and any(run.iterdir()) and not checkpoint.is_file() and not _same_config(config, run):
+        return None
+    if run.is_dir() and any(run.iterdir()) and not checkpoint.is_file() and not _same_config(config, run):
         raise InputError("-o/--output", str(run), "a new folder, or a run folder of this config to resume",
                          "Pass --overwrite to start again there, or choose another -o.")
-    run.mkdir(parents=True, exist_ok=True)
     if not checkpoint.is_file():
         return None
-    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
-    if state.get("fingerprint") != config.fingerprint():
+    try:
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch's message runs to 8 lines of advice: one line, naming the file
+        raise InputError("-o/--output", f"{checkpoint} (unreadable: {unreadable_reason(exc)})",
+                         "a run folder whose checkpoint capssim train wrote",
+                         "Pass --overwrite to start the run again there, or choose another -o.") from None
+    if not isinstance(state, dict) or state.get("fingerprint") != config.fingerprint():
         raise InputError("-o/--output", str(run), "the run folder of this same training config",
                          "Its checkpoint comes from another config: pass --overwrite, or choose another -o.")
+    return state
+
+
+def _open_run(config: TrainConfig, run: Path, *, overwrite: bool) -> dict | None:
+    """The checkpoint to resume from (None: a new run); refuses a run folder of another config."""
+    state = check_run_folder(config, run, overwrite=overwrite)
+    if overwrite:
+        for name in (CHECKPOINT, MODEL, HISTORY, PLOT, CONFIG_COPY):
+            (run / name).unlink(missing_ok=True)
+    run.mkdir(parents=True, exist_ok=True)
     return state
 
 
@@ -175,10 +191,14 @@ def train(config: TrainConfig, run, *, device: torch.device | str = "cpu", overw
     generator = torch.Generator().manual_seed(config.seed)
     history, start = [], 0
     if state is not None:
-        model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
-        generator.set_state(state["generator"])
-        history, start = list(state["history"]), int(state["step"])
+        try:  # a checkpoint of this config whose contents were damaged: one line, not torch's key lists
+            model.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+            generator.set_state(state["generator"])
+            history, start = list(state["history"]), int(state["step"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+            raise InputError("-o/--output", f"{run / CHECKPOINT} ({unreadable_reason(exc)})",
+                             "a checkpoint capssim train wrote", "Pass --overwrite to start the run again.") from None
         say(f"resuming {run} at step {start} of {config.schedule['steps']}")
     baseline = validate(None, val_pairs)
     say(f"validation: {len(val_pairs)} held-out pairs, input baseline ({config.input}) {baseline:.2f} dB")

@@ -50,21 +50,22 @@ def _scene(shape, seed):
     return base + 0.05 * torch.rand(shape, generator=gen)
 
 
-# (shape, strip_mb, params): grid-aligned and off-grid sides, one-row strips, several column tiles, stride 8
+# (shape, strip_mb, params, dtype): one column of tiles; strips of several reference rows cut into column tiles
+# of a few lane widths; strips of one reference row (summed on whole rows); off-grid last rows and columns
+F32, F64 = torch.float32, torch.float64
 CASES = [
-    ((12, 96, 200), 64.0, {}),
-    ((12, 130, 77), 64.0, {}),
-    ((12, 96, 200), 2.0**-20, {}),            # one reference row per strip, the smallest tiles
-    ((12, 101, 183), 2.0**-20, {}),           # off-grid last row and column
-    ((12, 120, 160), 0.05, {}),               # strips of several rows, a few column tiles
-    ((12, 66, 150), 0.02, {"stride": 8, "search_radius": 3}),
-    ((12, 64, 90), 0.02, {"match_components": 3}),
-    ((4, 8, 40), 64.0, {"search_radius": 2}),  # a single reference row
+    ((12, 72, 150), 64.0, {}, F32),
+    ((12, 70, 57), 64.0, {"search_radius": 4}, F64),
+    ((12, 64, 200), 8.0, {}, F32),
+    ((12, 62, 238), 8.0, {"stride": 2}, F32),
+    ((12, 41, 63), 2.0**-20, {"search_radius": 2}, F32),
+    ((12, 45, 66), 0.02, {"stride": 8, "search_radius": 3}, F32),
+    ((12, 40, 90), 0.05, {"match_components": 3, "search_radius": 3}, F32),
+    ((4, 8, 40), 64.0, {"search_radius": 2}, F32),  # a single reference row
 ]
 
 
-@pytest.mark.parametrize("shape, strip_mb, params", CASES)
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape, strip_mb, params, dtype", CASES)
 def test_tiled_matching_equals_strip_matching(shape, strip_mb, params, dtype):
     z = _scene(shape, seed=shape[1]).to(dtype)
     nl = NonlocalSparseTensor(shape, NLSTRParameters(strip_mb=strip_mb, **params), dtype=dtype)
@@ -74,8 +75,14 @@ def test_tiled_matching_equals_strip_matching(shape, strip_mb, params, dtype):
     assert torch.equal(got.distances, want[2])  # bit for bit: the weights and so caps's output are unchanged
 
 
+def test_cases_cover_column_tiles_of_multi_row_strips():
+    nl = NonlocalSparseTensor((12, 64, 200), NLSTRParameters(strip_mb=8.0))
+    assert len({t.col0 for t in nl.match_tiles}) >= 2
+    assert any(b - a > 1 and chunked for t in nl.match_tiles for a, b, chunked in t.runs)
+
+
 def test_small_budgets_give_several_tiles_in_both_directions():
-    nl = NonlocalSparseTensor((12, 101, 183), NLSTRParameters(strip_mb=2.0**-20))
+    nl = NonlocalSparseTensor((12, 41, 63), NLSTRParameters(strip_mb=2.0**-20, search_radius=2))
     assert len({t.col0 for t in nl.match_tiles}) > 3 and len({t.row0 for t in nl.match_tiles}) > 3
     covered = torch.zeros(nl.ref_y.numel(), nl.ref_x.numel(), dtype=torch.int64)
     for t in nl.match_tiles:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from capssim.errors import InputError, ResourceError
 from capssim.reconstruct import reconstruct
@@ -167,3 +168,42 @@ def test_tiled_caps_equals_untiled_and_resumes_after_a_kill(capture128, smooth_r
     resumed, record = reconstruct_tiled(capture128, "caps", tile=64, true_warps=True, iterations=2, parts=parts)
     assert sum(t["resumed"] for t in record["tiles"]["tiles"]) == 2
     np.testing.assert_array_equal(resumed.image, tiled.image)
+
+
+# -- registration within the budget -----------------------------------------------------------------
+def test_registration_window_only_when_the_frame_does_not_fit():
+    from capssim.reconstruct.tiles.memory import registration_bytes
+    from capssim.reconstruct.tiles.run import registration_window
+
+    assert registration_window((2048, 2560), 64 * GIB) is None
+    window = registration_window((2048, 2560), 4 * GIB)
+    top, left, bottom, right = window
+    assert registration_bytes((bottom - top, right - left)) <= 4 * GIB
+    assert (bottom - top, right - left) != (2048, 2560) and all(v % 4 == 0 for v in window)
+    assert abs((top + bottom) / 2 - 1024) <= 4 and abs((left + right) / 2 - 1280) <= 4  # centred
+
+
+def test_warps_registered_on_a_window_are_the_whole_frames(smooth_random_scene):
+    from capssim.reconstruct.run_context import RunContext, StageTimer
+    from capssim.reconstruct.tiles.run import _registered_on_window, frame_warps
+
+    capture = simulate_capture(smooth_random_scene(256, seed=2), seed=5)
+    full, _ = frame_warps(capture, device="cpu", true_warps=False, registration="local-correlation",
+                          reuse_registration=False, calibration=None)
+    context = RunContext(device=torch.device("cpu"), timer=StageTimer(), registration="local-correlation",
+                         reuse_registration=False)
+    windowed, record = _registered_on_window(capture, context, (32, 32, 224, 224))
+    assert record["window"] == [32, 32, 224, 224]
+    truth = capture.aperture_homographies()
+    ys, xs = np.mgrid[16:240:32, 16:240:32]
+    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
+    assert full.shape == windowed.shape == (4, 3, 3)
+
+    def mapped(h):
+        p = h @ pts
+        return p[:2] / p[2]
+
+    for h_win, h_full, h_true in zip(windowed, full, truth):  # as good as registering the whole frame
+        err_win = np.abs(mapped(h_win) - mapped(h_true)).max()
+        err_full = np.abs(mapped(h_full) - mapped(h_true)).max()
+        assert err_win < err_full + 0.15, (err_win, err_full)  # a wrong composition is off by pixels

@@ -1,0 +1,36 @@
+"""``capssim bench reconstruct --size``: N or WxH (issue 35, item 4), refused with one line when malformed."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from support.fuzz import invoke
+from typer.testing import CliRunner
+
+from capssim.cli import app
+from capssim.cli.bench import parse_hr_size
+
+
+@pytest.mark.parametrize("text, want", [("512", 512), ("2560x2048", (2560, 2048)), ("64X96", (64, 96)),
+                                        (" 128x64 ", (128, 64))])
+def test_sizes_parse(text, want):
+    assert parse_hr_size(text) == want
+
+
+@pytest.mark.parametrize("text, hint", [("2560x2050", "2560x2048"), ("9", "--size 16"), ("9x", "N or WxH"),
+                                        ("1x2x3", "N or WxH"), ("-64", "N or WxH"), ("64.0", "N or WxH"),
+                                        ("100000x100000", "--size")])
+def test_bad_sizes_give_one_line(text, hint):
+    outcome, message = invoke(["bench", "reconstruct", "--size", text, "--iterations", "1"])
+    assert outcome == "error" and "--size" in message and hint in message
+
+
+@pytest.mark.slow
+def test_a_non_square_size_runs_untiled_and_tiled():
+    r = CliRunner().invoke(app, ["bench", "reconstruct", "--size", "64x96", "--tile", "64", "--device", "cpu",
+                                 "--iterations", "1", "--threads", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    runs = json.loads(r.stdout)
+    assert [run["tile"] for run in runs] == [None, 64]
+    assert all(run["hr_shape"] == [96, 64] and run["wall_s"] > 0 and run["peak_mb"] > 0 for run in runs)
