@@ -11,7 +11,7 @@ from typing import Optional
 import typer
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-from capssim.cli._options import DeviceOption, apply_compute
+from capssim.cli._options import DeviceOption, apply_compute, number_in
 from capssim.errors import InputError
 from capssim.output_paths import resolve_output
 
@@ -44,7 +44,9 @@ def dataset(
                                                "0 runs in this process without Dask."),
     scheduler: Optional[str] = typer.Option(None, "--scheduler",
                                             help="Address of an existing Dask scheduler, e.g. tcp://host:8786."),
-    threads: Optional[int] = typer.Option(None, "--threads", min=1,
+    threads: Optional[int] = typer.Option(None, "--threads",
+                                          callback=number_in("--threads", 1, what="CPU threads",
+                                                             fix="Leave --threads out for the default."),
                                           help="torch/OpenMP/Mitsuba threads per worker, or of this process with "
                                                "--workers 0 (default: cores // workers locally, 1 on a cluster, "
                                                "$CAPSSIM_THREADS or 1 in this process)."),

@@ -35,6 +35,8 @@ from capssim.capture import read_capture, write_capture
 from capssim.imageio import centre_crop, read_gt_scene
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registry import RunContext, StageTimer, get_method, resolve_device
+from capssim.reconstruct.tiles.memory import fits, memory_budget
+from capssim.reconstruct.tiles.run import reconstruct_tiled
 from capssim.sensor import make_sensor
 from capssim.simulate import prepare_ground_truth, simulate_capture
 from capssim.threads import adaptive_decisions, is_adaptive, set_threads
@@ -165,8 +167,6 @@ def _run_method(method: str, capture, ctx: RunContext, tile: int | None):
     """The method's output, untiled, or in tiles of ``tile`` HR pixels (one worker, the run's device)."""
     if tile is None:
         return get_method(method).function(capture, context=ctx)
-    from capssim.reconstruct.tiles.run import reconstruct_tiled  # only for tiled runs
-
     out = reconstruct_tiled(capture, method, tile=tile, device=str(ctx.device), true_warps=ctx.true_warps,
                             reuse_registration=False, **ctx.options)
     return out[0]
@@ -211,8 +211,6 @@ def _variants(size, tile: int | None) -> list[int | None]:
     """``None`` (untiled) where the untiled run's memory estimate fits the machine, and ``tile`` when given."""
     if tile is None:
         return [None]
-    from capssim.reconstruct.tiles.memory import fits, memory_budget  # only for tiled runs
-
     width, height = hr_dims(size)
     return ([None] if fits((height, width), memory_budget(None)[0]) else []) + [tile]
 
