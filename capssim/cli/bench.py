@@ -107,16 +107,20 @@ def reconstruct(
                                        help="Also reconstruct in tiles of this HR core side; untiled only where the "
                                             "memory estimate fits the machine.",
                                        callback=number_in("--tile", 64, 65536, what="HR pixels")),
+    plot: Optional[Path] = typer.Option(None, "--plot", metavar="PNG",
+                                        help="Also write a plot of time and peak memory against the pixel count."),
     as_json: bool = JsonOption,
 ) -> None:
     """Wall time and peak memory per stage of 'caps' at the paper's defaults, each run in a fresh process."""
     resolved = list(dict.fromkeys(_set_threads(threads, d, adaptive=True).type for d in devices))
-    from capssim.eval.benchmarks.reconstruct import format_tables, run_benchmark
+    from capssim.eval.benchmarks.reconstruct import format_tables, plot_scaling, run_benchmark
 
     results = run_benchmark(sizes=sizes, devices=resolved, iterations=iterations, repeats=repeats, gt=gt,
                             true_warps=not estimated_warps, threads=threads, tile=tile,
                             log=lambda msg: typer.echo(msg, err=True))
     _say(as_json)(format_tables(results))
+    if plot is not None:
+        _say(as_json)(f"plot: {plot_scaling(results, plot)}")
     if as_json:
         echo_json(results)
 

@@ -32,7 +32,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 from capssim.capture import read_capture, write_capture
-from capssim.imageio import centre_crop, read_gt_scene
+from capssim.imageio import atomic_write_bytes, centre_crop, read_gt_scene
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registry import RunContext, StageTimer, get_method, resolve_device
 from capssim.reconstruct.tiles.memory import fits, memory_budget
@@ -283,6 +283,44 @@ def format_tables(results: list[dict]) -> str:
                      + "".join(f"{r['load_before']:>15.2f}/{r['load_after']:<6.2f}" for r in rows))
         lines.append("")
     return "\n".join(lines)
+
+
+def plot_scaling(results: list[dict], path: Path) -> Path:
+    """PNG of wall time and peak memory against the HR pixel count (log-log), one line per device and
+    untiled/tiled, with the time per megapixel of each run: the plot of docs/results/full-frames.md."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10, 4))
+    for key in dict.fromkeys((r["device"], r.get("tile")) for r in results):
+        rows = sorted((r for r in results if (r["device"], r.get("tile")) == key), key=lambda r: _pixels(r))
+        mp = [_pixels(r) / 1e6 for r in rows]
+        label = f"{key[0]}, " + ("untiled" if key[1] is None else f"tiles of {key[1]}")
+        ax_t.plot(mp, [r["wall_s"] for r in rows], "o-", label=label)
+        ax_m.plot(mp, [r["peak_mb"] / 1024 for r in rows], "o-", label=label)
+        for x, r in zip(mp, rows):
+            ax_t.annotate(f"{r['wall_s'] / x:.0f} s/MP", (x, r["wall_s"]), fontsize=7, xytext=(4, -10),
+                          textcoords="offset points")
+    for ax, what in ((ax_t, "wall time (s)"), (ax_m, "peak memory (GB)")):
+        ax.set(xscale="log", yscale="log", xlabel="HR pixels (megapixels)", ylabel=what)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    ax_t.set_title(f"caps, {results[0]['iterations']} iterations: time")
+    ax_m.set_title("peak memory")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
+
+
+def _pixels(run: dict) -> int:
+    h, w = run.get("hr_shape") or (run["hr_size"], run["hr_size"])
+    return int(h) * int(w)
 
 
 def _worker_main(argv=None) -> None:
