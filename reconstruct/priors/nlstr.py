@@ -9,7 +9,8 @@ For each reference block:
    ``(2 R + 1)^2`` window around it, by the channel-summed squared difference. Per offset,
    the squared differences of the image with its shifted copy (one pass for the pair
    ``+-o``: ``sq[-o](p) = sq[o](p - o)``), box-summed over the blocks of the reference
-   grid, then ``topk``. No Python loop over blocks. With ``match_components = m > 0`` the
+   grid, then ``topk``, in tiles of fixed size (:mod:`.nlstr_matching`: time linear in the pixels).
+   With ``match_components = m > 0`` the
    differences are those of the image's ``m`` leading principal components of the channels
    (PCA-projected similarity, as in Tasdizen, "Principal neighborhood dictionaries for
    nonlocal means image denoising", IEEE TIP 18(12), 2009; here across channels): fewer
