@@ -40,6 +40,7 @@ GUIDE = REPO / "docs" / "guides" / "cli.md"
 #: (command, option) -> why that option takes a path although inputs are positional
 AUXILIARY_PATHS = {
     ("bench budget", "--results-page"): "a secondary output: the Markdown results page",
+    ("bench reconstruct", "--plot"): "a secondary output: the PNG of time and memory against the pixel count",
     ("bench budget", "--cache"): "a cache folder of captures (default: OUTPUT/cache)",
     ("bench suite", "--check"): "a baseline to compare the run with (a reference, not the input)",
     ("bench suite", "--update-baseline"): "a second output: the run's metrics as the new baseline",
