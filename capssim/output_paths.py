@@ -132,6 +132,11 @@ def resolve_output(path: str | os.PathLike, *, kind: Literal["folder", "file"] =
     argument : str
         The option or argument named in the messages.
 
+    Returns
+    -------
+    pathlib.Path
+        Where the output will be written: ``path`` with its symbolic links followed.
+
     Raises
     ------
     InputError

@@ -116,6 +116,10 @@ def frame_warps(capture: Capture, *, device, true_warps: bool, registration: str
     return geometry.aperture_homographies, record
 
 
+#: the share of the budget a registration window is sized to (its memory model is a fit, within ~10 %)
+REGISTRATION_BUDGET_SHARE = 0.8
+
+
 def registration_window(hr_shape, budget_bytes: float) -> tuple[int, int, int, int] | None:
     """The centred window ``(top, left, bottom, right)`` (HR pixels, multiples of 16) to register on when the
     whole frame's registration (:func:`~.memory.registration_bytes`) does not fit ``budget_bytes``; ``None`` when
@@ -123,6 +127,7 @@ def registration_window(hr_shape, budget_bytes: float) -> tuple[int, int, int, i
     rows, cols = (int(v) for v in hr_shape)
     if registration_bytes((rows, cols)) <= budget_bytes:
         return None
+    budget_bytes = REGISTRATION_BUDGET_SHARE * budget_bytes  # the model is a fit: keep a margin below the budget
     scale = math.sqrt(max(0.0, budget_bytes - registration_bytes((0, 0))) / max(1.0, registration_bytes((rows, cols))
                                                                                 - registration_bytes((0, 0))))
     h = max(MIN_REGISTRATION_SIDE, int(rows * scale) // 16 * 16)
