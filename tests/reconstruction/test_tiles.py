@@ -187,15 +187,15 @@ def test_warps_registered_on_a_window_are_the_whole_frames(smooth_random_scene):
     from capssim.reconstruct.run_context import RunContext, StageTimer
     from capssim.reconstruct.tiles.run import _registered_on_window, frame_warps
 
-    capture = simulate_capture(smooth_random_scene(256, seed=2), seed=5)
+    capture = simulate_capture(smooth_random_scene(192, seed=2), seed=5)
     full, _ = frame_warps(capture, device="cpu", true_warps=False, registration="local-correlation",
                           reuse_registration=False, calibration=None)
     context = RunContext(device=torch.device("cpu"), timer=StageTimer(), registration="local-correlation",
                          reuse_registration=False)
-    windowed, record = _registered_on_window(capture, context, (32, 32, 224, 224))
-    assert record["window"] == [32, 32, 224, 224]
+    windowed, record = _registered_on_window(capture, context, (24, 24, 168, 168))
+    assert record["window"] == [24, 24, 168, 168]
     truth = capture.aperture_homographies()
-    ys, xs = np.mgrid[16:240:32, 16:240:32]
+    ys, xs = np.mgrid[16:176:32, 16:176:32]
     pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
     assert full.shape == windowed.shape == (4, 3, 3)
 
