@@ -183,27 +183,24 @@ def test_registration_window_only_when_the_frame_does_not_fit():
     assert abs((top + bottom) / 2 - 1024) <= 4 and abs((left + right) / 2 - 1280) <= 4  # centred
 
 
-def test_warps_registered_on_a_window_are_the_whole_frames(smooth_random_scene):
+def test_warps_registered_on_a_window_are_the_whole_frames(capture128, monkeypatch):
+    """The window's warps, re-based to the frame, are the frame's: with a registration that returns the true
+    warps of the cropped apertures, the composition gives back the frame's true warps exactly."""
+    import capssim.reconstruct.tiles.run as tiles_run
+    from capssim.array_geometry import ArrayGeometry
     from capssim.reconstruct.run_context import RunContext, StageTimer
-    from capssim.reconstruct.tiles.run import _registered_on_window, frame_warps
 
-    capture = simulate_capture(smooth_random_scene(192, seed=2), seed=5)
-    full, _ = frame_warps(capture, device="cpu", true_warps=False, registration="local-correlation",
-                          reuse_registration=False, calibration=None)
-    context = RunContext(device=torch.device("cpu"), timer=StageTimer(), registration="local-correlation",
-                         reuse_registration=False)
-    windowed, record = _registered_on_window(capture, context, (24, 24, 168, 168))
-    assert record["window"] == [24, 24, 168, 168]
-    truth = capture.aperture_homographies()
-    ys, xs = np.mgrid[16:176:32, 16:176:32]
-    pts = np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)])
-    assert full.shape == windowed.shape == (4, 3, 3)
+    truth = capture128.aperture_homographies()
+    window = (16, 24, 112, 104)
 
-    def mapped(h):
-        p = h @ pts
-        return p[:2] / p[2]
+    def true_crop_geometry(cropped, context, *, images, saturated):
+        offsets = cropped.meta["tile"]["aperture_offsets_hr"]
+        homs = np.stack([translation(-ox, -oy) @ h @ translation(window[1], window[0])
+                         for (oy, ox), h in zip(offsets, truth)])
+        return ArrayGeometry(homs, cropped.hr_shape), {"mode": "test"}
 
-    for h_win, h_full, h_true in zip(windowed, full, truth):  # as good as registering the whole frame
-        err_win = np.abs(mapped(h_win) - mapped(h_true)).max()
-        err_full = np.abs(mapped(h_full) - mapped(h_true)).max()
-        assert err_win < err_full + 0.15, (err_win, err_full)  # a wrong composition is off by pixels
+    monkeypatch.setattr(tiles_run, "method_geometry", true_crop_geometry)
+    context = RunContext(device=torch.device("cpu"), timer=StageTimer(), reuse_registration=False)
+    homs, record = tiles_run._registered_on_window(capture128, context, window)
+    assert record["window"] == list(window)
+    np.testing.assert_allclose(homs, truth, atol=1e-9)
