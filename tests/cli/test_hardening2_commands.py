@@ -8,10 +8,8 @@ data (class 11), warns once with the count of the values affected.
 from __future__ import annotations
 
 import json
-import logging
 import shutil
 import struct
-import sys
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,8 +18,7 @@ from typing import Callable
 import numpy as np
 import pytest
 import tifffile
-
-from capssim.cli import main
+from support.fuzz import run_main
 
 
 @dataclass(frozen=True)
@@ -37,15 +34,8 @@ class Row:
 
 def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
     """``capssim ARGS`` through the console entry point, in this process: exit status and stdout + stderr."""
-    monkeypatch.setattr(sys, "argv", ["capssim", *map(str, args)])
-    handlers = logging.root.handlers[:]
-    try:
-        with pytest.raises(SystemExit) as exit_info:
-            main()
-    finally:  # the CLI points logging at this test's captured stderr; give the old handlers back
-        logging.root.handlers[:] = handlers
-    out = capsys.readouterr()
-    return exit_info.value.code or 0, out.out + out.err
+    status, out, err = run_main(args, capsys, monkeypatch)
+    return status or 0, out + err
 
 
 def one_error_line(status: int, text: str, *fragments: str) -> str:

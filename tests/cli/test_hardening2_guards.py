@@ -8,9 +8,7 @@ the model is replaced by one that fails the test.
 
 from __future__ import annotations
 
-import logging
 import struct
-import sys
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,8 +16,8 @@ from typing import Callable
 
 import numpy as np
 import pytest
+from support.fuzz import run_main
 
-from capssim.cli import main
 from capssim.resources import MEMORY_LIMIT_ENV, check_image_memory, image_header_shape
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -127,15 +125,9 @@ ROWS = [
 
 
 def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
-    """``capssim ARGS`` through the console entry point, in this process: exit status and stderr."""
-    monkeypatch.setattr(sys, "argv", ["capssim", "-q", *map(str, args)])
-    handlers = logging.root.handlers[:]
-    try:
-        with pytest.raises(SystemExit) as exit_info:
-            main()
-    finally:  # the CLI points logging at this test's captured stderr; give the old handlers back
-        logging.root.handlers[:] = handlers
-    return exit_info.value.code, capsys.readouterr().err
+    """``capssim -q ARGS`` through the console entry point, in this process: exit status and stderr."""
+    status, _, err = run_main(args, capsys, monkeypatch, quiet=True)
+    return status, err
 
 
 @pytest.mark.parametrize("row", ROWS, ids=lambda r: f"class{r.cls}-{r.name}")

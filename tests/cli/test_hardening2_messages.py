@@ -8,9 +8,7 @@ the same class that need a capture, e.g. ``--threads 0``, are in tests/cli/test_
 
 from __future__ import annotations
 
-import logging
 import shutil
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -18,8 +16,8 @@ from typing import Callable
 import numpy as np
 import pytest
 import torch
+from support.fuzz import run_main
 
-from capssim.cli import main
 from capssim.errors import InputError
 
 #: words of torch's and numpy's own multi-line texts that must never reach the user
@@ -36,15 +34,8 @@ class Row:
 
 def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
     """``capssim ARGS`` through the console entry point, in this process: exit status and stdout + stderr."""
-    monkeypatch.setattr(sys, "argv", ["capssim", *map(str, args)])
-    handlers = logging.root.handlers[:]
-    try:
-        with pytest.raises(SystemExit) as exit_info:
-            main()
-    finally:  # the CLI points logging at this test's captured stderr; give the old handlers back
-        logging.root.handlers[:] = handlers
-    out = capsys.readouterr()
-    return exit_info.value.code or 0, out.out + out.err
+    status, out, err = run_main(args, capsys, monkeypatch)
+    return status or 0, out + err
 
 
 def one_error_line(status: int, text: str, *fragments: str) -> str:

@@ -7,16 +7,14 @@ one line, exit 2, and nothing is written.
 
 from __future__ import annotations
 
-import logging
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import pytest
+from support.fuzz import run_main
 
-from capssim.cli import main
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_text, read_tiff, write_png, write_tiff
 
@@ -30,15 +28,9 @@ class Row:
 
 
 def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
-    """``capssim ARGS`` through the console entry point, in this process: exit status and stderr."""
-    monkeypatch.setattr(sys, "argv", ["capssim", "-q", *map(str, args)])
-    handlers = logging.root.handlers[:]
-    try:
-        with pytest.raises(SystemExit) as exit_info:
-            main()
-    finally:  # the CLI points logging at this test's captured stderr; give the old handlers back
-        logging.root.handlers[:] = handlers
-    return exit_info.value.code, capsys.readouterr().err
+    """``capssim -q ARGS`` through the console entry point, in this process: exit status and stderr."""
+    status, _, err = run_main(args, capsys, monkeypatch, quiet=True)
+    return status, err
 
 
 def _hidden(folder: Path) -> list[str]:

@@ -10,18 +10,16 @@ too long, ...) names the output and the error, and leaves no half-written output
 from __future__ import annotations
 
 import errno
-import logging
 import os
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import pytest
+from support.fuzz import run_main
 
-from capssim.cli import main
 from capssim.errors import InputError
 from capssim.output_paths import check_files_in, follow_links, resolve_output, write_error
 
@@ -37,15 +35,9 @@ class Row:
 
 
 def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
-    """``capssim ARGS`` through the console entry point, in this process: exit status and stderr."""
-    monkeypatch.setattr(sys, "argv", ["capssim", "-q", *map(str, args)])
-    handlers = logging.root.handlers[:]
-    try:
-        with pytest.raises(SystemExit) as exit_info:
-            main()
-    finally:  # the CLI points logging at this test's captured stderr; give the old handlers back
-        logging.root.handlers[:] = handlers
-    return exit_info.value.code, capsys.readouterr().err
+    """``capssim -q ARGS`` through the console entry point, in this process: exit status and stderr."""
+    status, _, err = run_main(args, capsys, monkeypatch, quiet=True)
+    return status, err
 
 
 def one_error_line(status: int, err: str, *fragments: str) -> str:

@@ -106,3 +106,28 @@ def one_line_error(exc: BaseException) -> str:
     message = str(exc)
     assert message.strip() and "\n" not in message.strip(), f"a message of several lines: {message!r}"
     return message
+
+
+def run_main(args: list, capsys, monkeypatch, *, quiet: bool = False) -> tuple[int | None, str, str]:
+    """``capssim [-q] ARGS`` through the console entry point :func:`capssim.cli.main`, in this process.
+
+    Returns the exit status (``SystemExit.code``, ``None`` for 0) and the captured stdout and stderr; the
+    root logger's handlers (which the CLI points at the captured stream) are restored.
+    """
+    import sys
+
+    from capssim.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["capssim", *(["-q"] if quiet else []), *map(str, args)])
+    handlers = logging.root.handlers[:]
+    try:
+        try:
+            main()
+        except SystemExit as exc:
+            code = exc.code
+        else:
+            raise AssertionError(f"capssim {args}: main() returned without exiting")
+    finally:  # the CLI points logging at the captured stream; give the old handlers back
+        logging.root.handlers[:] = handlers
+    out = capsys.readouterr()
+    return code, out.out, out.err
