@@ -252,16 +252,15 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     if get_method(method).input_kind != "caps":
         raise InputError("--tile", f"method {method}", "a CAPS-input method (DoFP methods run untiled)",
                          "Leave --tile and --memory-gb out for DoFP methods.")
+    budget, source = memory_budget(memory_gb)
     if tile is None:
-        budget, source = memory_budget(memory_gb)
         if fits(capture.hr_shape, budget):
             return None  # the whole frame fits: the untiled run
         tile_for_budget(capture.hr_shape, budget, margin=default_margin(), workers=workers, source=source)  # early
     t0 = time.perf_counter()
-    budget_bytes = memory_budget(memory_gb)[0]
     homographies, reg_record = frame_warps(capture, device=device, true_warps=true_warps, registration=registration,
                                            reuse_registration=reuse_registration, calibration=calibration,
-                                           budget_bytes=budget_bytes)
+                                           budget_bytes=budget)
     t_reg = time.perf_counter() - t0
     layout = choose_layout(capture, options, aperture_homographies=homographies, tile=tile, memory_gb=memory_gb,
                            workers=workers, margin=margin)
