@@ -4,6 +4,8 @@
 VENV ?= .venv
 PY := $(VENV)/bin/python
 OUT ?= runs/quick
+# pytest workers for `make test` (pytest-xdist); 2 matches the 2-core CI machines
+TEST_WORKERS ?= 2
 
 .PHONY: setup demo test test-all lint docs bench-check results-page bench-recon clean
 
@@ -24,10 +26,10 @@ bench-recon: setup
 	$(VENV)/bin/capssim bench reconstruct --size 256 --size 512 --repeats 3
 
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS)
 
 test-all: setup
-	$(PY) -m pytest -q -m "slow or not slow"
+	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "slow or not slow"
 
 # ruff: pyflakes and import sorting (pyproject.toml [tool.ruff])
 lint: setup
