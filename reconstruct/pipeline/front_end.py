@@ -100,4 +100,4 @@ def caps_observations(capture, context: RunContext, options) -> FrontEnd:
     problem = Problem(obs=obs, operator=operator, homographies=homographies, seen=seen, mixing=mixing, unmix=unmix)
     return FrontEnd(problems=[problem], registration=reg_record, psf=psf_record,
                     params={"channels": obs.n_channels, "reference_image": 0},
-                    extra={"field_of_view_weight_fraction": float(obs.weights.mean())})
+                    extra={"field_of_view_weight_fraction": float(obs.weights.mean())}, geometry=geometry)

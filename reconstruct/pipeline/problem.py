@@ -33,7 +33,8 @@ class Problem:
     ``unmix`` ``(C, C)``: the analyzer the fused initialization is unmixed by (``None``: ideal);
     ``channels``: the output channels (of the 12, ``c = 3 p + k``) it reconstructs, in order;
     ``label``: its name in progress messages (``""`` for a single problem); ``history_fields``: what
-    each of its history entries also records (e.g. ``{"colour": "R"}``).
+    each of its history entries also records (e.g. ``{"colour": "R"}``); ``init``: the initial estimate
+    ``(C, H, W)`` the front end provides (``None``: the pipeline fuses the observations).
     """
 
     obs: Observations
@@ -45,6 +46,7 @@ class Problem:
     channels: slice = field(default_factory=lambda: slice(None))
     label: str = ""
     history_fields: dict = field(default_factory=dict)
+    init: object = None
 
     @property
     def hr_shape(self) -> tuple[int, int]:
@@ -62,7 +64,8 @@ class FrontEnd:
     """A front end's result: the problems, the registration and PSF records, and the method's own record.
 
     ``params`` are added to the record's ``params`` (e.g. ``channels``), ``extra`` to the record itself
-    (e.g. ``field_of_view_weight_fraction``).
+    (e.g. ``field_of_view_weight_fraction``); ``geometry`` is the array geometry the problems were built
+    with (:class:`capssim.array_geometry.ArrayGeometry`, or ``None``).
     """
 
     problems: list[Problem]
@@ -70,3 +73,4 @@ class FrontEnd:
     psf: dict
     params: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    geometry: object = None

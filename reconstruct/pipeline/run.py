@@ -9,7 +9,8 @@ Paper sections 3-4 (Fig. 3, Algorithm 1). Every CAPS method is a :class:`Pipelin
    problem per colour after demosaicking);
 2. **data term** (``-p data_term=NAME``, :mod:`.slots`): ``cagf`` (eq. 15-16, 25-26) or ``plain``;
 3. **initialization**: all observations fused on the HR grid
-   (:func:`capssim.reconstruct.model.init_fusion.fuse_initial_estimate`), unmixed by a calibrated analyzer;
+   (:func:`capssim.reconstruct.model.init_fusion.fuse_initial_estimate`), unmixed by a calibrated analyzer,
+   unless the front end provides one (``Problem.init``; ``caps-plus``);
 4. **prior** (``-p prior=NAME``, :mod:`.slots`): ``nlstr`` (section 3.3), ``tikhonov``, ``none``, or a
    registered one; one instance per image shape, reset by the solver for each problem;
 5. **solver**: ADMM (eq. 20-30, :func:`capssim.reconstruct.solvers.admm.admm`) with a prior, steepest
@@ -157,9 +158,12 @@ def _solve_problem(capture, context: RunContext, opts: CapsOptions, defaults: Ca
     problem, timer, admm_params = problems[index], context.timer, opts.admm
     data = get_data_term(opts.data_term).factory(problem, options=opts, stage=timer.stage)
     with timer.stage("init"):
-        init = fuse_initial_estimate(problem.seen, problem.homographies, problem.hr_shape)
-        if problem.unmix is not None:  # the fused channels see the calibrated analyzer: A x per pixel
-            init = unmix_analyzer(init, problem.unmix)
+        if problem.init is not None:  # the front end's own estimate
+            init = problem.init
+        else:
+            init = fuse_initial_estimate(problem.seen, problem.homographies, problem.hr_shape)
+            if problem.unmix is not None:  # the fused channels see the calibrated analyzer: A x per pixel
+                init = unmix_analyzer(init, problem.unmix)
     spec = get_prior(opts.prior)
     shape = problem.image_shape
     if spec.factory is not None and shape not in priors:

@@ -8,8 +8,10 @@
 
 Built in:
 
-* data terms: ``cagf``, the confidence-guided data term of eq. 15-16 / 25-26 (``caps``), and
-  ``plain``, the same observations with each channel's own only (``caps-no-cagf``);
+* data terms: ``cagf``, the confidence-guided data term of eq. 15-16 / 25-26 (``caps``),
+  ``plain``, the same observations with each channel's own only (``caps-no-cagf``), and
+  ``cagf-split``, CAGF with the residual's polarization part shared only within one analyzer (not the
+  paper's; ``caps-plus``, :mod:`capssim.reconstruct.model.polarization_split`);
 * priors: ``nlstr``, the nonlocal sparse tensor of section 3.3 (``caps``); ``tikhonov``, a quadratic
   smoothness prior (not the paper's; ``-p tikhonov_weight=W``); ``none``, the data term alone, solved
   by steepest descent (eq. 16, ``caps-no-nlstr``).
@@ -31,6 +33,7 @@ from capssim.errors import InputError
 
 from ..model.cagf import cagf_confidence
 from ..model.data_term import ConfidenceDataTerm
+from ..model.polarization_split import PolarizationSplitDataTerm
 from ..priors.nlstr import NonlocalSparseTensor
 from ..priors.nlstr_prior import NLSTRPrior
 from ..priors.tikhonov import TikhonovPrior
@@ -222,6 +225,13 @@ def confidence_data_term(problem: Problem, *, options, stage: StageFactory) -> C
     return ConfidenceDataTerm(obs, problem.operator, confidence=confidence, mixing=problem.mixing)
 
 
+def split_data_term(problem: Problem, *, options, stage: StageFactory) -> PolarizationSplitDataTerm:
+    """CAGF (eq. 12-14) with the polarization-split direction ``P L P B + (I - P) L_angle (I - P) B``
+    (:mod:`capssim.reconstruct.model.polarization_split`; not the paper's)."""
+    term = confidence_data_term(problem, options=options, stage=stage)
+    return PolarizationSplitDataTerm(term.obs, term.operator, confidence=term.confidence, mixing=problem.mixing)
+
+
 def plain_data_term(problem: Problem, *, options, stage: StageFactory) -> ConfidenceDataTerm:
     """Eq. 15 without CAGF: each channel sees its own observations only (the ``caps-no-cagf`` ablation)."""
     return ConfidenceDataTerm(problem.obs, problem.operator, confidence=None, mixing=problem.mixing)
@@ -229,6 +239,9 @@ def plain_data_term(problem: Problem, *, options, stage: StageFactory) -> Confid
 
 register_data_term("cagf", confidence_data_term,
                    description="confidence-guided data term (eq. 15-16, 25-26): all observations, weighted by CAGF")
+register_data_term("cagf-split", split_data_term,
+                   description="CAGF data term whose residual's polarization part is shared only within one "
+                               "analyzer (not the paper's; caps-plus)")
 register_data_term("plain", plain_data_term,
                    description="data term of each channel's own observations (eq. 15, no CAGF)")
 
