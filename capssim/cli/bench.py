@@ -86,6 +86,20 @@ def parse_hr_size(text) -> "int | tuple[int, int]":
     return width if len(parts) == 1 else (width, height)
 
 
+def _check_caps_methods(names):
+    """``-m`` names of registered CAPS-input methods, in order, without repeats."""
+    from capssim.errors import InputError
+    from capssim.reconstruct import available_methods, get_method  # start-up time
+
+    for name in names:
+        get_method(name)  # UnknownNameError lists the valid names
+        if available_methods()[name].input_kind != "caps":
+            caps = sorted(n for n, spec in available_methods().items() if spec.input_kind == "caps")
+            raise InputError("--method", name, "a method of CAPS captures: " + ", ".join(caps),
+                             "Time DoFP methods with 'capssim bench dofp'.")
+    return list(dict.fromkeys(names))
+
+
 def _parse_sizes(values):
     return None if values is None else [parse_hr_size(v) for v in values]
 
@@ -99,7 +113,11 @@ def reconstruct(
                                          "full frame); repeatable.", callback=_parse_sizes),
     devices: List[str] = typer.Option([DEFAULT_DEVICE], "--device", metavar="|".join(DEVICES), callback=check_device,
                                       help=DEVICE_HELP + " Repeatable: one timing per device."),
-    iterations: int = typer.Option(25, "--iterations", help="ADMM iterations (paper: 25).", callback=check_iterations),
+    iterations: Optional[int] = typer.Option(None, "--iterations", help="ADMM iterations of every method (default: "
+                                             "each method's own; caps: 25, the paper's).", callback=check_iterations),
+    methods: List[str] = typer.Option(["caps"], "--method", "-m", metavar="NAME",
+                                      help="CAPS method to time (repeatable), each on the same capture, e.g. "
+                                           "-m caps -m caps-plus.", callback=_check_caps_methods),
     repeats: int = RepeatsOption,
     threads: Optional[int] = ThreadsOption,
     estimated_warps: bool = typer.Option(False, "--estimated-warps", help="Time the registration too."),
@@ -111,12 +129,12 @@ def reconstruct(
                                         help="Also write a plot of time and peak memory against the pixel count."),
     as_json: bool = JsonOption,
 ) -> None:
-    """Wall time and peak memory per stage of 'caps' at the paper's defaults, each run in a fresh process."""
+    """Wall time and peak memory per stage of 'caps' (or each -m method) at its defaults, each run in a fresh process."""
     resolved = list(dict.fromkeys(_set_threads(threads, d, adaptive=True).type for d in devices))
     from capssim.eval.benchmarks.reconstruct import format_tables, plot_scaling, run_benchmark
 
     results = run_benchmark(sizes=sizes, devices=resolved, iterations=iterations, repeats=repeats, gt=gt,
-                            true_warps=not estimated_warps, threads=threads, tile=tile,
+                            true_warps=not estimated_warps, threads=threads, tile=tile, methods=methods,
                             log=lambda msg: typer.echo(msg, err=True))
     _say(as_json)(format_tables(results))
     if plot is not None:

@@ -1,9 +1,10 @@
-"""Speed benchmark of ``caps``: wall time and peak memory per stage, per HR size and device.
+"""Speed benchmark of ``caps`` (or other CAPS methods): wall time and peak memory per stage, per HR size and device.
 
 Run ``capssim bench reconstruct``. For each HR size (``N`` for ``N x N``, or ``W x H``: the prototype's full frame is
 2560x2048) a capture is simulated (the paper's protocol, Gaussian noise 0.01) from
 ``../shared/data/gt/qiu-kettle`` when present, else from a synthetic scene; then ``caps``
-runs at the paper's defaults in a fresh subprocess per (size, device, repeat), so the peak
+(and every other ``methods`` entry, e.g. ``caps-plus``) runs at its defaults in a fresh subprocess per
+(size, device, method, repeat), so the peak
 memory of one run is not inflated by another. With a ``tile`` the frame is also reconstructed in
 tiles (:func:`capssim.reconstruct.tiles.run.reconstruct_tiled`), and untiled only where its memory estimate
 (:func:`capssim.reconstruct.tiles.memory.estimate_bytes`) fits the machine's limit. Peak memory is the process RSS (CPU,
@@ -172,11 +173,12 @@ def _run_method(method: str, capture, ctx: RunContext, tile: int | None):
     return out[0]
 
 
-def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, method: str = "caps",
+def worker(capture_path: Path, device: str, iterations: int | None, true_warps: bool, method: str = "caps",
            threads: int | None = None, tile: int | None = None) -> dict:
     """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`); ``tile``: the
     HR core side of a tiled run (its stages are not timed one by one: only the wall time and the peak).
 
+    ``iterations``: the ADMM iterations, or None for the method's own default.
     ``threads``: a fixed count, or None for the inherited setting (``$CAPSSIM_THREADS``; ``auto``: the
     count adapts to the machine's load at each stage, :func:`capssim.threads.adapt_threads`)."""
     set_threads(threads)
@@ -185,7 +187,8 @@ def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, m
     capture = read_capture(capture_path, load_gt=False)
     timer = MemoryStageTimer(dev)
     baseline = _rss_bytes() if dev.type != "cuda" else 0
-    ctx = RunContext(device=dev, timer=timer, options={"iterations": iterations}, true_warps=true_warps,
+    options = {} if iterations is None else {"iterations": iterations}
+    ctx = RunContext(device=dev, timer=timer, options=options, true_warps=true_warps,
                      reuse_registration=False)  # --estimated-warps times the registration in every run
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
@@ -199,7 +202,7 @@ def worker(capture_path: Path, device: str, iterations: int, true_warps: bool, m
         "method": method, "hr_size": capture.hr_shape[0], "hr_shape": list(capture.hr_shape), "tile": tile,
         "device": str(dev),
         "threads": f"auto, {_thread_range(adaptive_decisions())}" if adaptive else torch.get_num_threads(),
-        "iterations": iterations, "true_warps": true_warps, "wall_s": wall,
+        "iterations": out.params.get("iterations", iterations), "true_warps": true_warps, "wall_s": wall,
         "stages_s": dict(timer.stages), "stage_peak_mb": {k: v / 2**20 for k, v in timer.peaks.items()},
         "peak_mb": timer.overall_peak / 2**20, "baseline_mb": baseline / 2**20,
         "load_before": load_before, "load_after": os.getloadavg()[0],
@@ -215,11 +218,14 @@ def _variants(size, tile: int | None) -> list[int | None]:
     return ([None] if fits((height, width), memory_budget(None)[0]) else []) + [tile]
 
 
-def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations: int = 25, repeats: int = 1,
-                  gt: Path | None = None, true_warps: bool = True, threads: int | None = None, tile: int | None = None,
+def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations: int | None = None,
+                  repeats: int = 1, gt: Path | None = None, true_warps: bool = True, threads: int | None = None,
+                  tile: int | None = None, methods=("caps",),
                   log: Callable[[str], None] = lambda msg: None) -> list[dict]:
-    """Time ``caps`` for each size (``N`` or ``(width, height)``) and device; returns the fastest run of each.
+    """Time each method of ``methods`` (CAPS-input methods; ``caps`` by default) for each size (``N`` or
+    ``(width, height)``) and device, on the same capture; returns the fastest run of each.
 
+    ``iterations``: the ADMM iterations of every method (None: each method's own default; ``caps``: 25).
     ``threads``: torch CPU threads of each run (None: torch's choice). ``tile``: also run in tiles of this HR
     side, and untiled only where the memory estimate fits (:func:`_variants`).
     """
@@ -228,13 +234,14 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
     with tempfile.TemporaryDirectory(prefix="capssim-bench-") as tmp:
         for size in sizes:
             path = make_capture(hr_dims(size), Path(tmp), gt)
-            for dev, tiled in ((d, t) for d in devs for t in _variants(size, tile)):
+            for dev, tiled, method in ((d, t, m) for d in devs for t in _variants(size, tile) for m in methods):
                 runs = []
                 for r in range(repeats):
                     what = "untiled" if tiled is None else f"tiles of {tiled}"
-                    log(f"caps {size_label(size)} ({what}) on {dev}, run {r + 1}/{repeats} ...")
+                    log(f"{method} {size_label(size)} ({what}) on {dev}, run {r + 1}/{repeats} ...")
                     cmd = [sys.executable, "-m", WORKER_MODULE, "--worker", str(path), "--device", dev,
-                           "--iterations", str(iterations)] + ([] if true_warps else ["--estimated-warps"])
+                           "--method", method] + ([] if true_warps else ["--estimated-warps"])
+                    cmd += [] if iterations is None else ["--iterations", str(iterations)]
                     cmd += [] if threads is None else ["--threads", str(threads)]
                     cmd += [] if tiled is None else ["--tile", str(tiled)]
                     proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
@@ -248,10 +255,11 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
     return results
 
 
-def _column_label(run: dict) -> str:
-    """``'WxH'`` of a run, with ``' t<side>'`` for a tiled one."""
+def _column_label(run: dict, *, with_method: bool = False) -> str:
+    """``'WxH'`` of a run, with ``' t<side>'`` for a tiled one (and its method first, ``with_method``)."""
     h, w = run.get("hr_shape") or (run["hr_size"], run["hr_size"])
-    return f"{w}x{h}" + (f" t{run['tile']}" if run.get("tile") else "")
+    label = f"{w}x{h}" + (f" t{run['tile']}" if run.get("tile") else "")
+    return f"{run.get('method', 'caps')} {label}" if with_method else label
 
 
 def format_tables(results: list[dict]) -> str:
@@ -259,11 +267,14 @@ def format_tables(results: list[dict]) -> str:
     lines = []
     for dev in dict.fromkeys(r["device"] for r in results):
         rows = [r for r in results if r["device"] == dev]
-        labels = [_column_label(r) for r in rows]
+        names = list(dict.fromkeys(r.get("method", "caps") for r in rows))
+        labels = [_column_label(r, with_method=len(names) > 1) for r in rows]
         stages = [s for s in STAGE_ORDER if any(s in r["stages_s"] for r in rows)]
         stages += sorted({s for r in rows for s in r["stages_s"]} - set(stages))
         mem_unit = "peak RSS MB" if dev == "cpu" else "peak allocated MB"
-        head = f"caps, {rows[0]['iterations']} iterations, device {dev}" + (
+        iterations = ", ".join(f"{n} {next(r['iterations'] for r in rows if r.get('method', 'caps') == n)}"
+                               for n in names)
+        head = f"{iterations} iterations, device {dev}" + (
             f" ({rows[0]['threads']}{'' if isinstance(rows[0]['threads'], str) else ' threads'})" if dev == "cpu" else "")
         lines.append(head + f"; cells: seconds ({mem_unit}); fastest of {rows[0]['repeats']} run(s)")
         width = 26
@@ -296,10 +307,13 @@ def plot_scaling(results: list[dict], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, (ax_t, ax_m) = plt.subplots(1, 2, figsize=(10, 4))
-    for key in dict.fromkeys((r["device"], r.get("tile")) for r in results):
-        rows = sorted((r for r in results if (r["device"], r.get("tile")) == key), key=lambda r: _pixels(r))
+    names = list(dict.fromkeys(r.get("method", "caps") for r in results))
+    for key in dict.fromkeys((r["device"], r.get("tile"), r.get("method", "caps")) for r in results):
+        rows = sorted((r for r in results if (r["device"], r.get("tile"), r.get("method", "caps")) == key),
+                      key=lambda r: _pixels(r))
         mp = [_pixels(r) / 1e6 for r in rows]
-        label = f"{key[0]}, " + ("untiled" if key[1] is None else f"tiles of {key[1]}")
+        label = (f"{key[2]}, " if len(names) > 1 else "") + f"{key[0]}, " + (
+            "untiled" if key[1] is None else f"tiles of {key[1]}")
         ax_t.plot(mp, [r["wall_s"] for r in rows], "o-", label=label)
         ax_m.plot(mp, [r["peak_mb"] / 1024 for r in rows], "o-", label=label)
         for x, r in zip(mp, rows):
@@ -309,7 +323,8 @@ def plot_scaling(results: list[dict], path: Path) -> Path:
         ax.set(xscale="log", yscale="log", xlabel="HR pixels (megapixels)", ylabel=what)
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
-    ax_t.set_title(f"caps, {results[0]['iterations']} iterations: time")
+    ax_t.set_title(f"{', '.join(names)}, {results[0]['iterations']} iterations: time" if len(names) == 1
+                   else f"{', '.join(names)}: time")
     ax_m.set_title("peak memory")
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
@@ -329,13 +344,14 @@ def _worker_main(argv=None) -> None:
                                      description="internal worker of 'capssim bench reconstruct'")
     parser.add_argument("--worker", type=Path, required=True, help="run one timed reconstruction of this capture")
     parser.add_argument("--device", default="cpu")
-    parser.add_argument("--iterations", type=int, default=25)
+    parser.add_argument("--iterations", type=int, default=None)
+    parser.add_argument("--method", default="caps")
     parser.add_argument("--estimated-warps", action="store_true")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--tile", type=int, default=None)
     args = parser.parse_args(argv)
     print(json.dumps(worker(args.worker, args.device, args.iterations, not args.estimated_warps,
-                            threads=args.threads, tile=args.tile)))
+                            method=args.method, threads=args.threads, tile=args.tile)))
 
 
 if __name__ == "__main__":

@@ -34,3 +34,19 @@ def test_a_non_square_size_runs_untiled_and_tiled():
     runs = json.loads(r.stdout)
     assert [run["tile"] for run in runs] == [None, 64]
     assert all(run["hr_shape"] == [96, 64] and run["wall_s"] > 0 and run["peak_mb"] > 0 for run in runs)
+
+
+def test_methods_are_timed_on_the_same_capture_each_at_its_own_iterations():
+    """``-m caps -m caps-plus`` (issue 36, cost): one run per method, each at its defaults unless --iterations."""
+    r = CliRunner().invoke(app, ["bench", "reconstruct", "--size", "32", "-m", "caps", "-m", "caps-plus",
+                                 "--device", "cpu", "--threads", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    runs = json.loads(r.stdout)
+    assert [(run["method"], run["iterations"]) for run in runs] == [("caps", 25), ("caps-plus", 50)]
+    assert all(run["hr_shape"] == [32, 32] and run["wall_s"] > 0 and run["peak_mb"] > 0 for run in runs)
+
+
+@pytest.mark.parametrize("name, hint", [("dofp-igri2", "capssim bench dofp"), ("capz", "caps")])
+def test_a_method_that_is_not_a_caps_method_gives_one_line(name, hint):
+    outcome, message = invoke(["bench", "reconstruct", "--size", "32", "-m", name])
+    assert outcome == "error" and hint in message
