@@ -49,6 +49,7 @@ ROWS = [
     Row(7, "caps, BGGR", "caps", "BGGR", 0.01, (("iterations", 3),)),
     Row(7, "caps, GRBG", "caps", "GRBG", 0.01, (("iterations", 3),)),
     Row(7, "caps-naive, GBRG", "caps-naive", "GBRG", 1e-4),
+    Row(7, "caps-plus, BGGR", "caps-plus", "BGGR", 0.01, (("iterations", 3),)),
 ]
 
 
