@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from support.fuzz import run_main
+from support.fuzz import run_cli
 
 from capssim.resources import MEMORY_LIMIT_ENV, check_image_memory, image_header_shape
 
@@ -124,10 +124,6 @@ ROWS = [
 ]
 
 
-def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
-    """``capssim -q ARGS`` through the console entry point, in this process: exit status and stderr."""
-    status, _, err = run_main(args, capsys, monkeypatch, quiet=True)
-    return status, err
 
 
 @pytest.mark.parametrize("row", ROWS, ids=lambda r: f"class{r.cls}-{r.name}")
@@ -144,7 +140,8 @@ def test_refused_before_work_in_one_line(row, tmp_path, capsys, monkeypatch):
         def must_not_run(*args, **kwargs):
             raise AssertionError(f"{row.forbid} ran: the input was not refused before the work")
         monkeypatch.setattr(importlib.import_module(module), name, must_not_run)
-    status, err = run_cli([str(a).replace("{root}", str(tmp_path)) for a in row.args], capsys, monkeypatch)
+    args = [str(a).replace("{root}", str(tmp_path)) for a in row.args]
+    status, err = run_cli(args, capsys, monkeypatch, quiet=True)
     assert status == 2, err
     assert "Traceback" not in err, err
     lines = [line for line in err.splitlines() if line.strip()]

@@ -13,7 +13,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from support.fuzz import run_main
+from support.fuzz import run_cli
 
 from capssim.errors import InputError
 from capssim.imageio import atomic_write_text, read_tiff, write_png, write_tiff
@@ -27,10 +27,6 @@ class Row:
     ext: str  #: the extension of the file the link points at
 
 
-def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
-    """``capssim -q ARGS`` through the console entry point, in this process: exit status and stderr."""
-    status, _, err = run_main(args, capsys, monkeypatch, quiet=True)
-    return status, err
 
 
 def _hidden(folder: Path) -> list[str]:
@@ -61,7 +57,7 @@ def test_a_file_output_through_a_link_lands_where_the_link_points(row, tmp_path,
         target.write_bytes(b"the old file")
     link = tmp_path / ("link.tiff" if ext == ".tiff" else "link")
     link.symlink_to(target)
-    status, err = run_cli(row.args(tmp_path), capsys, monkeypatch)
+    status, err = run_cli(row.args(tmp_path), capsys, monkeypatch, quiet=True)
     assert status == 0, err
     assert link.is_symlink() and link.resolve() == target, "the link was replaced by a file"
     assert target.is_file() and target.read_bytes() != b"the old file"

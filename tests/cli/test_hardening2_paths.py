@@ -18,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from support.fuzz import run_main
+from support.fuzz import one_error_line, run_cli
 
 from capssim.errors import InputError
 from capssim.output_paths import check_files_in, follow_links, resolve_output, write_error
@@ -34,20 +34,8 @@ class Row:
     setup: Callable[[Path], None] = field(default=lambda root: None)
 
 
-def run_cli(args: list, capsys, monkeypatch) -> tuple[int, str]:
-    """``capssim -q ARGS`` through the console entry point, in this process: exit status and stderr."""
-    status, _, err = run_main(args, capsys, monkeypatch, quiet=True)
-    return status, err
 
 
-def one_error_line(status: int, err: str, *fragments: str) -> str:
-    assert status == 2, err
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for fragment in fragments:
-        assert fragment in lines[0], (fragment, err)
-    return lines[0]
 
 
 def leftovers(folder: Path) -> list[str]:
@@ -206,7 +194,7 @@ def test_refused_outputs_are_one_line_before_any_work(row, root, capsys, monkeyp
 
         monkeypatch.setattr(f"{module}.{name}", work_started)
     before = sorted(p.name for p in root.iterdir())
-    one_error_line(*run_cli(row.args(root), capsys, monkeypatch), *row.fragments)
+    one_error_line(*run_cli(row.args(root), capsys, monkeypatch, quiet=True), *row.fragments)
     assert sorted(p.name for p in root.iterdir()) == before, "a refused command left something behind"
     assert leftovers(root) == []
 
@@ -233,7 +221,7 @@ FOLLOWED = [
 def test_links_to_a_usable_place_are_followed(row, root, capsys, monkeypatch):
     assert row.cls == 5
     row.setup(root)
-    status, err = run_cli(row.args(root), capsys, monkeypatch)
+    status, err = run_cli(row.args(root), capsys, monkeypatch, quiet=True)
     assert status == 0, err
     assert (root / "dangling").is_symlink() and (root / "elsewhere" / "out").is_dir()
     assert any((root / "elsewhere" / "out").iterdir())
@@ -300,12 +288,13 @@ WRITE_FAILS = [
 def test_a_failed_write_is_one_line_and_leaves_nothing_half_written(row, root, capsys, monkeypatch):
     assert row.cls == 5
     if "evaluate" in row.name:  # a reconstruction to score
-        status, err = run_cli(["reconstruct", root / "cap", "-m", "dofp-bilinear", "--no-progress"], capsys, monkeypatch)
+        status, err = run_cli(["reconstruct", root / "cap", "-m", "dofp-bilinear", "--no-progress"], capsys,
+                              monkeypatch, quiet=True)
         assert status == 0, err
     snapshot = {p: p.read_bytes() for p in (root / "cap").rglob("*") if p.is_file()}
     writer, code = row.forbid.split(":")
     monkeypatch.setattr(*FAILING[writer](int(code)))
-    line = one_error_line(*run_cli(row.args(root), capsys, monkeypatch), *row.fragments)
+    line = one_error_line(*run_cli(row.args(root), capsys, monkeypatch, quiet=True), *row.fragments)
     assert ".tmp-" not in line  # the message names the output, not a temporary
     assert not (root / "new").exists()
     assert {p: p.read_bytes() for p in (root / "cap").rglob("*") if p.is_file()} == snapshot
@@ -318,8 +307,8 @@ def test_an_os_error_no_writer_named_is_still_one_line(root, capsys, monkeypatch
         raise OSError(errno.EIO, os.strerror(errno.EIO), str(root / "somewhere"))
 
     monkeypatch.setattr("capssim.simulate.simulate_capture", broken)
-    one_error_line(*run_cli(["simulate", root / "gt", "-o", root / "new", "--crop", 32], capsys, monkeypatch),
-                   "somewhere", "Input/output error, EIO")
+    one_error_line(*run_cli(["simulate", root / "gt", "-o", root / "new", "--crop", 32], capsys, monkeypatch,
+                            quiet=True), "somewhere", "Input/output error, EIO")
 
 
 # -- the helper itself ------------------------------------------------------------------------------------------

@@ -131,3 +131,26 @@ def run_main(args: list, capsys, monkeypatch, *, quiet: bool = False) -> tuple[i
         logging.root.handlers[:] = handlers
     out = capsys.readouterr()
     return code, out.out, out.err
+
+
+def run_cli(args: list, capsys, monkeypatch, *, quiet: bool = False) -> tuple[int, str]:
+    """``capssim [-q] ARGS`` (:func:`run_main`): the exit status (0 for success) and what it printed, stderr
+    alone with ``quiet`` (``-q``: no log lines), else stdout + stderr."""
+    status, out, err = run_main(args, capsys, monkeypatch, quiet=quiet)
+    return status or 0, err if quiet else out + err
+
+
+def one_error_line(status: int, text: str, *fragments: str, skip_log_lines: bool = False,
+                   forbidden: tuple = ()) -> str:
+    """The one ``error: ...`` line of a refused command (exit 2, no traceback), holding every fragment and
+    none of ``forbidden``; ``skip_log_lines`` leaves out ``INFO``/``WARNING`` log lines before counting."""
+    assert status == 2, text
+    assert "Traceback" not in text, text
+    lines = [line for line in text.splitlines()
+             if line.strip() and not (skip_log_lines and line.startswith(("INFO", "WARNING")))]
+    assert len(lines) == 1 and lines[0].startswith("error: "), text
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, text)
+    for word in forbidden:
+        assert word not in lines[0], (word, text)
+    return lines[0]
