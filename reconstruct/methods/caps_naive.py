@@ -187,14 +187,20 @@ def bicubic_warp(images: torch.Tensor, homographies: np.ndarray, out_hw: tuple[i
     return F.grid_sample(images, grid, mode="bicubic", padding_mode="border", align_corners=True)
 
 
+def demosaicked_frames(capture, context: RunContext, bayer_method: str) -> torch.Tensor:
+    """Step 1: ``(4, 3, H, W)`` float32 on the context device, each aperture's raw frame (flat field divided
+    out with a calibration, :func:`flat_corrected_raw`) demosaicked on its own (:func:`demosaic_apertures`)."""
+    raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
+    rgb = demosaic_apertures(raw, bayer_method=bayer_method, clip_max=clip_max, cfa=capture.cfa)
+    return torch.from_numpy(rgb).to(context.device)
+
+
 def demosaic_and_register(capture, context: RunContext, opts: NaiveOptions):
     """Steps 1-2: ``(4, 3, H, W)`` demosaicked frames (tensor on the context device), the array
     geometry (true or registered) and the registration record."""
     timer = context.timer
     with timer.stage("demosaic"):
-        raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
-        rgb = demosaic_apertures(raw, bayer_method=opts.bayer_method, clip_max=clip_max, cfa=capture.cfa)
-        rgb = torch.from_numpy(rgb).to(context.device)
+        rgb = demosaicked_frames(capture, context, opts.bayer_method)
     with timer.stage("registration"):
         lr_images, lr_saturated = capture.lr_images()
         geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)

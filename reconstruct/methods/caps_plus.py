@@ -35,7 +35,7 @@ from ..pipeline import PipelineConfig, caps_observations, run_pipeline
 from ..pipeline.problem import FrontEnd
 from ..registry import MethodOutput, RunContext, register_method
 from .caps import REFERENCE as CAPS_REFERENCE
-from .caps_naive import bicubic_warp, demosaic_apertures, flat_corrected_raw
+from .caps_naive import bicubic_warp, demosaicked_frames
 
 __all__ = ["CAPS_PLUS", "INITIALIZATIONS", "caps_plus_observations", "demosaicked_initialization"]
 
@@ -49,13 +49,11 @@ def demosaicked_initialization(capture, context: RunContext, geometry) -> torch.
     """``(12, H, W)`` float32 on the context device: ``caps-naive``'s image under ``geometry``.
 
     Each aperture's raw frame (flat field divided out with a calibration) is demosaicked on its own
-    (:func:`~capssim.reconstruct.methods.caps_naive.demosaic_apertures`, Menon 2007) and resampled onto the
+    (:func:`~capssim.reconstruct.methods.caps_naive.demosaicked_frames`, Menon 2007) and resampled onto the
     HR reference grid by one bicubic warp through ``geometry.raw_homographies``; channel ``c = 3 p + k``;
     unmixed by a calibrated analyzer; clipped to [0, 1].
     """
-    raw, clip_max = flat_corrected_raw(capture, context)
-    rgb = demosaic_apertures(raw, bayer_method=INIT_BAYER_METHOD, clip_max=clip_max, cfa=capture.cfa)
-    rgb = torch.from_numpy(rgb).to(device=context.device, dtype=torch.float32)
+    rgb = demosaicked_frames(capture, context, INIT_BAYER_METHOD)
     image = bicubic_warp(rgb, geometry.raw_homographies, geometry.hr_shape).reshape(12, *geometry.hr_shape)
     analyzer = calibrated_analyzer(context)
     if analyzer is not None:
