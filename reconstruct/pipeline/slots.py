@@ -215,21 +215,26 @@ def reserve_option_names(names) -> None:
 
 
 # -- built-in data terms ---------------------------------------------------------------------------
-def confidence_data_term(problem: Problem, *, options, stage: StageFactory) -> ConfidenceDataTerm:
-    """Eq. 15-16 / 25-26: every observation back-projected onto every channel, weighted by CAGF (eq. 12-14)."""
+def problem_confidence(problem: Problem, *, options, stage: StageFactory) -> torch.Tensor:
+    """CAGF's confidence ``L^H`` ``(C, C, H, W)`` between the channels of ``problem`` (eq. 12-14)."""
     obs = problem.obs
     with stage("cagf"):
-        confidence = cagf_confidence(problem.seen.images, problem.homographies, obs.channel_of, obs.n_channels,
-                                     problem.hr_shape, weights=obs.weights, nu=options.cagf.nu,
-                                     radius=options.cagf.radius, eps=options.cagf.eps)
-    return ConfidenceDataTerm(obs, problem.operator, confidence=confidence, mixing=problem.mixing)
+        return cagf_confidence(problem.seen.images, problem.homographies, obs.channel_of, obs.n_channels,
+                               problem.hr_shape, weights=obs.weights, nu=options.cagf.nu,
+                               radius=options.cagf.radius, eps=options.cagf.eps)
+
+
+def confidence_data_term(problem: Problem, *, options, stage: StageFactory) -> ConfidenceDataTerm:
+    """Eq. 15-16 / 25-26: every observation back-projected onto every channel, weighted by CAGF (eq. 12-14)."""
+    return ConfidenceDataTerm(problem.obs, problem.operator, mixing=problem.mixing,
+                              confidence=problem_confidence(problem, options=options, stage=stage))
 
 
 def split_data_term(problem: Problem, *, options, stage: StageFactory) -> PolarizationSplitDataTerm:
     """CAGF (eq. 12-14) with the polarization-split direction ``P L P B + (I - P) L_angle (I - P) B``
     (:mod:`capssim.reconstruct.model.polarization_split`; not the paper's)."""
-    term = confidence_data_term(problem, options=options, stage=stage)
-    return PolarizationSplitDataTerm(term.obs, term.operator, confidence=term.confidence, mixing=problem.mixing)
+    return PolarizationSplitDataTerm(problem.obs, problem.operator, mixing=problem.mixing,
+                                     confidence=problem_confidence(problem, options=options, stage=stage))
 
 
 def plain_data_term(problem: Problem, *, options, stage: StageFactory) -> ConfidenceDataTerm:
