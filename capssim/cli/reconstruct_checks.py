@@ -89,9 +89,11 @@ def warn_raw_range(folder: Path, kinds: set[str]) -> None:
     as they are."""
     import numpy as np
 
-    from capssim.capture import read_capture  # start-up time
+    from capssim.capture import read_capture, read_meta  # start-up time
     from capssim.data_range import warn_out_of_range
 
+    if not _has_float_frames(Path(folder), read_meta(folder), kinds):
+        return  # integer frames (the usual case): nothing to warn about, and the frames are read once, by the method
     capture = read_capture(folder, load_gt=False)
     sensor = capture.meta.get("sensor", {})
     low, high = float(sensor.get("black_level", 0.0)), float(sensor.get("white_level", 1.0))
@@ -103,3 +105,29 @@ def warn_raw_range(folder: Path, kinds: set[str]) -> None:
                               below_means="below the black level", above_means="above the white level",
                               consequence="float frames carry no saturation mask: these values are used as they "
                                           "are (check the sensor's black_level/white_level in meta.json)")
+
+
+def _has_float_frames(folder: Path, meta: dict, kinds: set[str]) -> bool:
+    """Whether a raw frame file of ``kinds`` (``caps``, ``dofp``) is stored as floats, from its TIFF header alone;
+    ``True`` when a header cannot be read (the full read then reports the file)."""
+    import numpy as np
+    import tifffile
+
+    names = {"caps": "caps_raw", "dofp": "dofp_raw"}
+    files = meta.get("files") or {}
+    quiet = logging.getLogger("tifffile")
+    level, quiet.level = quiet.level, logging.CRITICAL  # a probe: read_capture reports a damaged file
+    try:
+        for kind in sorted(kinds):
+            name = files.get(names.get(kind, ""))
+            if not name:
+                continue
+            try:
+                with tifffile.TiffFile(folder / name) as tif:
+                    if np.issubdtype(np.dtype(tif.series[0].dtype), np.floating):
+                        return True
+            except Exception:  # noqa: BLE001 - missing or damaged: let read_capture name it
+                return True
+    finally:
+        quiet.setLevel(level)
+    return False
