@@ -165,18 +165,26 @@ def _thread_range(decisions: list[tuple[float, int]]) -> str:
 
 
 def _run_method(method: str, capture, ctx: RunContext, tile: int | None):
-    """The method's output, untiled, or in tiles of ``tile`` HR pixels (one worker, the run's device)."""
+    """The method's output, untiled, or in tiles of ``tile`` HR pixels (one worker, the run's device), and the
+    tiled run's record (``None`` untiled)."""
     if tile is None:
-        return get_method(method).function(capture, context=ctx)
-    out = reconstruct_tiled(capture, method, tile=tile, device=str(ctx.device), true_warps=ctx.true_warps,
-                            reuse_registration=False, **ctx.options)
-    return out[0]
+        return get_method(method).function(capture, context=ctx), None
+    return reconstruct_tiled(capture, method, tile=tile, device=str(ctx.device), true_warps=ctx.true_warps,
+                             reuse_registration=False, **ctx.options)
+
+
+def _tiled_stages(record: dict, wall: float) -> dict:
+    """A tiled run's stages: each summed over the tiles (their record), plus ``tiles_other`` = the rest of the
+    wall time (cropping the capture, blending, the physical projection)."""
+    stages = {k: float(v) for k, v in record.get("stages_s", {}).items()}
+    stages["tiles_other"] = max(0.0, wall - sum(stages.values()))
+    return stages
 
 
 def worker(capture_path: Path, device: str, iterations: int | None, true_warps: bool, method: str = "caps",
            threads: int | None = None, tile: int | None = None) -> dict:
     """One timed run in this process (called in a fresh subprocess by :func:`run_benchmark`); ``tile``: the
-    HR core side of a tiled run (its stages are not timed one by one: only the wall time and the peak).
+    HR core side of a tiled run (its stages are summed over the tiles; their peaks are not measured).
 
     ``iterations``: the ADMM iterations, or None for the method's own default.
     ``threads``: a fixed count, or None for the inherited setting (``$CAPSSIM_THREADS``; ``auto``: the
@@ -193,7 +201,7 @@ def worker(capture_path: Path, device: str, iterations: int | None, true_warps: 
     load_before = os.getloadavg()[0]
     t0 = time.perf_counter()
     with torch.no_grad():
-        out = _run_method(method, capture, ctx, tile)
+        out, tiled_record = _run_method(method, capture, ctx, tile)
     wall = time.perf_counter() - t0
     timer.close()
     if not np.all(np.isfinite(out.image)):
@@ -203,7 +211,8 @@ def worker(capture_path: Path, device: str, iterations: int | None, true_warps: 
         "device": str(dev),
         "threads": f"auto, {_thread_range(adaptive_decisions())}" if adaptive else torch.get_num_threads(),
         "iterations": out.params.get("iterations", iterations), "true_warps": true_warps, "wall_s": wall,
-        "stages_s": dict(timer.stages), "stage_peak_mb": {k: v / 2**20 for k, v in timer.peaks.items()},
+        "stages_s": dict(timer.stages) if tiled_record is None else _tiled_stages(tiled_record, wall),
+        "stage_peak_mb": {k: v / 2**20 for k, v in timer.peaks.items()},
         "peak_mb": timer.overall_peak / 2**20, "baseline_mb": baseline / 2**20,
         "load_before": load_before, "load_after": os.getloadavg()[0],
         "n_groups": out.params.get("n_groups"), "rematches": sum(bool(h.get("rematched")) for h in out.history),

@@ -37,8 +37,10 @@ For each reference block:
    image and are added as reshaped images, else by ``index_add``.
 
 Steps 3-4 run on chunks of about :data:`CHUNK_GROUPS` groups, whose temporaries stay in
-the cache. Memory is bounded by processing reference rows in strips sized by ``strip_mb``; the
-working set is estimated and checked (:mod:`capssim.resources`) before anything is
+the cache. Memory is bounded by ``strip_mb``: steps 3-4 process reference rows in whole-width strips,
+and the dictionaries (step 2) are computed in rectangles of reference blocks of a fixed size (the Gram
+maps' halo then costs the same share at every image size, where thin strips of a wide image were mostly
+halo); the working set is estimated and checked (:mod:`capssim.resources`) before anything is
 allocated. On CUDA the same code runs unchanged. The block-matching schedule across ADMM
 iterations belongs to :class:`capssim.reconstruct.priors.nlstr_prior.NLSTRPrior`.
 """
@@ -111,6 +113,17 @@ class _Strip:
     y_hi: int                  # last candidate block row (inclusive)
 
 
+@dataclass
+class _BasisTile:
+    """A rectangle of reference blocks whose dictionaries are computed together, and the block corners its
+    groups can reach (the Gram maps' region)."""
+    groups: torch.Tensor       # global group indices, row-major
+    y_lo: int                  # first candidate block row
+    y_hi: int                  # last candidate block row (inclusive)
+    x_lo: int                  # first candidate block column
+    x_hi: int                  # last candidate block column (inclusive)
+
+
 def _triu(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
     return tuple(torch.triu_indices(n, n, device=device))
 
@@ -136,6 +149,7 @@ class NonlocalSparseTensor:
         self.ref_x = reference_positions(w, b, params.stride).to(self.device)
         self.n_ref = int(self.ref_y.numel() * self.ref_x.numel())
         self.strips = self._plan_strips()
+        self.basis_tiles = self._plan_basis_tiles()
         self.match_tiles = plan_match_tiles(self.strips, self.ref_y, self.ref_x, block=b, stride=params.stride,
                                             search_radius=params.search_radius, budget_bytes=params.strip_bytes,
                                             item_bytes=torch.tensor([], dtype=dtype).element_size())
@@ -155,7 +169,7 @@ class NonlocalSparseTensor:
         self.tiled = b % params.stride == 0 and all(
             bool(torch.equal(pos, torch.arange(pos.numel(), device=self.device) * params.stride))
             for pos in (self.ref_y, self.ref_x))
-        self._bases_cache: tuple | None = None  # (matches, per-strip bases) of the last estimate
+        self._bases_cache: tuple | None = None  # (matches, every group's bases) of the last estimate
         self._groups_cache: tuple | None = None  # (matches, sparse group weights)
 
     # -- planning ------------------------------------------------------------------------
@@ -179,21 +193,50 @@ class NonlocalSparseTensor:
             strips.append(_Strip(rows, max(0, ya - r), min(h - b, yb + r)))
         return strips
 
+    def _basis_tile_side(self) -> int:
+        """Side (HR pixels, halo included) of a square region whose Gram maps and their temporaries (about 3x
+        the maps) fit in ``strip_mb``."""
+        item = torch.tensor([], dtype=self.dtype).element_size()
+        return int((self.params.strip_bytes / (3 * self._map_planes() * item)) ** 0.5)
+
+    def _plan_basis_tiles(self) -> list[_BasisTile]:
+        """Cut the reference grid into rectangles of about :meth:`_basis_tile_side` pixels (halo of ``R`` block
+        positions and ``b - 1`` pixels included) on both axes, so the Gram maps' halo costs the same share of
+        the work at every image size (whole-width strips thin out as the width grows)."""
+        _, h, w = self.shape
+        b, s, r = self.params.block, self.params.stride, self.params.search_radius
+        per_tile = max(4, (self._basis_tile_side() - b - 2 * r) // s + 1)  # a floor for tiny strip_mb
+        nx = self.ref_x.numel()
+
+        def cuts(n: int) -> list[tuple[int, int]]:
+            parts = max(1, -(-n // per_tile))
+            edges = [round(i * n / parts) for i in range(parts + 1)]
+            return [(edges[i], edges[i + 1]) for i in range(parts)]
+
+        tiles = []
+        cols_all = torch.arange(nx, device=self.device)
+        for r0, r1 in cuts(self.ref_y.numel()):
+            for c0, c1 in cuts(nx):
+                groups = (torch.arange(r0, r1, device=self.device)[:, None] * nx + cols_all[None, c0:c1]).reshape(-1)
+                tiles.append(_BasisTile(groups, max(0, int(self.ref_y[r0]) - r), min(h - b, int(self.ref_y[r1 - 1]) + r),
+                                        max(0, int(self.ref_x[c0]) - r), min(w - b, int(self.ref_x[c1 - 1]) + r)))
+        return tiles
+
     def working_set_bytes(self, n_similar: int) -> int:
         """Peak bytes of one NLSTR step with ``n_similar`` blocks per group, about: the padded image,
         the matches ``(K, P)``, and the larger of: per matching tile (``m x v`` image pixels, ``n x u`` reference
         blocks) the offset maps ``((2R+1)^2, m, v)`` (x4) with the candidate tables ``(n u, (2R+1)^2)``, and the
         whole-width box sums ``((2R+1)^2, m, Nx)`` of a band of one-row strips; per strip of ``n`` reference rows
-        (``m`` image rows) the Gram maps ``(m-b+1, W-b+1, planes)`` (x3) with the groups' blocks ``(n Nx, b, b, C)``
-        (x10)."""
+        (``m`` image rows) the groups' blocks ``(n Nx, b, b, C)`` (x10); per basis tile (``m x v`` pixels) the Gram
+        maps ``(m-b+1, v-b+1, planes)`` (x3)."""
         c, h, w = self.shape
         b, s, r = self.params.block, self.params.stride, self.params.search_radius
         item, n_off = torch.tensor([], dtype=self.dtype).element_size(), (2 * r + 1) ** 2
         p, nx = max(1, min(int(n_similar), n_off)), int(self.ref_x.numel())
         rows = max(int(st.ref_rows.numel()) for st in self.strips)
         match = max(self._match_tile_bytes(tile, item) for tile in self.match_tiles)
-        gram_rows = min(h, (rows - 1) * s + b + 2 * r) - b + 1
-        gram = gram_rows * (w - b + 1) * self._map_planes() * item * 3 + rows * nx * b * b * c * item * 10
+        gram = max((t.y_hi - t.y_lo + 1) * (t.x_hi - t.x_lo + 1) for t in self.basis_tiles) * self._map_planes() * item * 3
+        gram = max(gram, rows * nx * b * b * c * item * 10)
         persistent = c * (h + 4 * r) * (w + 4 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
         persistent += self.n_ref * b * b * c * item  # U of every group
         return int(persistent + 4 * h * w * c * item + max(match, gram))
@@ -259,11 +302,12 @@ class NonlocalSparseTensor:
             self._groups_cache = (matches, group_matrix(matches.pos_y * w + matches.pos_x, matches.weights, n_columns))
         return self._groups_cache[1]
 
-    def _strip_bases(self, z: torch.Tensor, strip: _Strip, py: torch.Tensor, px: torch.Tensor):
-        """PCA bases ``Ph, Pw`` ``(k, b, b)`` and ``Pc`` ``(k, C, C)`` of a strip's groups (eq. 21)."""
-        b, w = self.params.block, self.shape[2]
-        maps = gram_maps(z[:, strip.y_lo:strip.y_hi + b, :], b, self._tri_c)        # (ny*nx, planes)
-        local = (py - strip.y_lo) * (w - b + 1) + px                                  # (k, P)
+    def _tile_bases(self, z: torch.Tensor, tile: _BasisTile, py: torch.Tensor, px: torch.Tensor):
+        """PCA bases ``Ph, Pw`` ``(k, b, b)`` and ``Pc`` ``(k, C, C)`` of a basis tile's groups (eq. 21), whose
+        matches have corners ``py, px`` ``(k, P)``."""
+        b = self.params.block
+        maps = gram_maps(z[:, tile.y_lo:tile.y_hi + b, tile.x_lo:tile.x_hi + b], b, self._tri_c)  # (ny*nx, planes)
+        local = (py - tile.y_lo) * (tile.x_hi - tile.x_lo + 1) + (px - tile.x_lo)                  # (k, P)
         sums = maps.index_select(0, local[:, 0])
         for j in range(1, local.shape[1]):
             sums.add_(maps.index_select(0, local[:, j]))
@@ -272,6 +316,18 @@ class NonlocalSparseTensor:
         k = py.shape[0]
         bases_hw = orthonormal_bases(gram_hw)
         return bases_hw[:k], bases_hw[k:], orthonormal_bases(gram_c)
+
+    def _all_bases(self, z: torch.Tensor, matches: BlockMatches) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The dictionaries of every group, ``Ph, Pw`` ``(K, b, b)`` and ``Pc`` ``(K, C, C)``, basis tile by basis
+        tile (the Gram maps are position-independent sums, so tiles give the whole image's numbers)."""
+        c, b = self.shape[0], self.params.block
+        ph = z.new_empty(self.n_ref, b, b)
+        pw, pc = torch.empty_like(ph), z.new_empty(self.n_ref, c, c)
+        for tile in self.basis_tiles:
+            g = tile.groups
+            for out, part in zip((ph, pw, pc), self._tile_bases(z, tile, matches.pos_y[g], matches.pos_x[g])):
+                out.index_copy_(0, g, part)
+        return ph, pw, pc
 
     def _reference_blocks(self, z_pixels: torch.Tensor, strip: _Strip) -> torch.Tensor:
         """The strip's reference blocks ``(rows, Nx, b, b, C)`` as a strided view of ``z_pixels`` (tiled grid)."""
@@ -336,22 +392,18 @@ class NonlocalSparseTensor:
         if reuse_bases and (self._bases_cache is None or self._bases_cache[0] is not matches):
             raise InputError("reuse_bases", True, "False when the matches changed (no dictionaries to reuse)")
         if not reuse_bases:
-            self._bases_cache = (matches, [])
+            self._bases_cache = (matches, self._all_bases(z, matches))
+        bases = self._bases_cache[1]
         z_pixels = z.permute(1, 2, 0).reshape(h * w, c).contiguous()
         segments = row_segments(z_pixels, b)
         u_all = weighted_block_sums(z_pixels, self._group_matrix(matches), b, w).view(self.n_ref, b, b * c)
         row_starts = torch.arange(b, device=z.device) * w
         num = torch.zeros(h * w, c, dtype=z.dtype, device=z.device)
         acc: dict = {}
-        for s_i, strip in enumerate(self.strips):
+        for strip in self.strips:
             ry, rx, groups = self._strip_refs(strip)
             k = groups.numel()
-            py, px = matches.pos_y[groups], matches.pos_x[groups]
-            if reuse_bases:
-                ph, pw, pc = self._bases_cache[1][s_i]
-            else:
-                ph, pw, pc = self._strip_bases(z, strip, py, px)
-                self._bases_cache[1].append((ph, pw, pc))
+            ph, pw, pc = (basis.narrow(0, int(groups[0]), k) for basis in bases)  # a strip's groups are consecutive
             if self.tiled:  # the reference blocks R: a strided view (rows, Nx, b, b*C)
                 refs = self._reference_blocks(z_pixels, strip).flatten(-2)
             else:

@@ -90,12 +90,24 @@ def window_sums_at(x: torch.Tensor, size: int, starts: torch.Tensor, *, dim: int
     return out
 
 
+def _channel_dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``sum_c a[c] * b[c]`` of two ``(C, H, W)`` tensors, one multiply and one add per channel in channel order:
+    every pixel's number is the same wherever the region starts (a ``sum(0)`` reduction rounds differently with
+    the width), so Gram maps of a window equal the whole image's there."""
+    out = torch.mul(a[0], b[0])
+    tmp = torch.empty_like(out)
+    for i in range(1, a.shape[0]):
+        out.add_(torch.mul(a[i], b[i], out=tmp))
+    return out
+
+
 def gram_maps(zr: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     """Per-block-position Gram entries of a region ``(C, Hr, W)`` -> ``(Ny*Nx, planes)``.
 
     Planes: height mode ``(i, i+d)`` for ``i + d < b`` (b(b+1)/2, ordered by ``d`` then ``i``),
     width mode likewise, channel mode ``(c, c')`` for ``c <= c'`` (``tri_c``: ``torch.triu_indices(C, C)``,
-    row-major). The box sums are exact pairwise sums (:func:`capssim.reconstruct.filters.sliding_window_sum`);
+    row-major). The box sums are exact pairwise sums (:func:`capssim.reconstruct.filters.sliding_window_sum`) and
+    the channel sums run in channel order, so a position's entries do not depend on where the region starts;
     every plane is written once into the position-major result (no stacking and concatenation).
     """
     c, hr, w = zr.shape
@@ -105,11 +117,11 @@ def gram_maps(zr: torch.Tensor, block: int, tri_c: tuple[torch.Tensor, torch.Ten
     out = zr.new_empty(ny, nx, 2 * nb + tri_c[0].numel())
     slot = 0
     for d in range(b):  # height mode: G_h[i, i+d] = sum_{j<b, c} z[c, y+i, x+j] z[c, y+i+d, x+j]
-        rowbox = sliding_window_sum((zr[:, :hr - d, :] * zr[:, d:, :]).sum(0), b, dim=1)   # (hr-d, nx)
+        rowbox = sliding_window_sum(_channel_dot(zr[:, :hr - d, :], zr[:, d:, :]), b, dim=1)   # (hr-d, nx)
         out[:, :, slot:slot + b - d] = rowbox.unfold(0, b - d, 1)[:ny]
         slot += b - d
     for d in range(b):  # width mode: G_w[j, j+d] = sum_{i<b, c} z[c, y+i, x+j] z[c, y+i, x+j+d]
-        colbox = sliding_window_sum((zr[:, :, :w - d] * zr[:, :, d:]).sum(0), b, dim=0)    # (ny, W-d)
+        colbox = sliding_window_sum(_channel_dot(zr[:, :, :w - d], zr[:, :, d:]), b, dim=0)    # (ny, W-d)
         out[:, :, slot:slot + b - d] = colbox.unfold(1, b - d, 1)[:, :nx]
         slot += b - d
     zh = zr.permute(1, 2, 0).contiguous()                                                  # (hr, W, C)

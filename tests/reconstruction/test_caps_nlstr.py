@@ -307,3 +307,28 @@ def test_tiled_grid_gives_the_same_estimate_as_index_lists(shape, stride):
 def test_irregular_grids_are_not_tiled():
     assert not NonlocalSparseTensor((3, 42, 40), NLSTRParameters()).tiled   # 42 - 8 not a multiple of 4
     assert not NonlocalSparseTensor((3, 40, 40), NLSTRParameters(stride=3)).tiled  # 3 does not divide 8
+
+
+def test_gram_maps_of_a_window_equal_the_whole_images_in_float32():
+    # the dictionaries are computed in rectangles: a window's maps must be the whole image's numbers, bit for bit
+    gen = torch.Generator().manual_seed(3)
+    z = torch.rand(12, 61, 203, generator=gen)
+    tri = tuple(torch.triu_indices(12, 12))
+    whole = gram_maps(z, 8, tri).view(54, 196, -1)
+    window = gram_maps(z[:, 9:50, 17:130], 8, tri).view(34, 106, -1)
+    assert torch.equal(whole[9:43, 17:123], window)
+
+
+def test_basis_tiles_cover_every_group_once_and_give_the_same_estimate():
+    gen = torch.Generator().manual_seed(4)
+    z = torch.rand(12, 90, 250, generator=gen)
+    nl = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_mb=1024.0))
+    many = NonlocalSparseTensor(tuple(z.shape), NLSTRParameters(strip_mb=0.05))
+    assert len(nl.basis_tiles) == 1 and len(many.basis_tiles) > 6
+    groups = torch.cat([t.groups for t in many.basis_tiles])
+    assert torch.equal(groups.sort().values, torch.arange(nl.n_ref))
+    m = nl.match(z, 16)
+    x1, s1 = nl.estimate(z, m, terms=True)
+    nl.basis_tiles = many.basis_tiles  # same strips and grid, dictionaries in many rectangles
+    x2, s2 = nl.estimate(z, m, terms=True)
+    assert torch.equal(x1, x2) and s1 == s2
