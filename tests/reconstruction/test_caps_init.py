@@ -133,3 +133,19 @@ def test_normalized_convolution_fills_holes_as_the_whole_image_doubling(hole):
     got = normalized_convolution(num, den, 1.5)
     keep = ~missing
     torch.testing.assert_close(got[keep], expected[keep], rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("sigma", [2.0, 8.0])
+def test_blur_at_holes_equals_the_whole_image_blur(sigma):
+    from capssim.reconstruct.filters import gaussian_blur
+    from capssim.reconstruct.model.init_fusion import _gaussian_blur_at
+
+    gen = torch.Generator().manual_seed(5)
+    x = torch.rand(12, 120, 170, generator=gen)
+    corners = torch.tensor([[0, 0], [2, 7], [119, 169], [60, 1], [5, 160], [118, 3]])  # every quadrant, the borders
+    cluster = torch.stack([torch.randint(0, 30, (200,), generator=gen), torch.randint(90, 130, (200,), generator=gen)], 1)
+    for pixels in (corners, cluster):
+        at = _gaussian_blur_at(x, pixels, sigma)
+        assert torch.equal(at, gaussian_blur(x, sigma)[:, pixels[:, 0], pixels[:, 1]])
+    everywhere = torch.stack(torch.meshgrid(torch.arange(0, 120, 3), torch.arange(0, 170, 3), indexing="ij"), -1)
+    assert _gaussian_blur_at(x, everywhere.reshape(-1, 2), 20.0) is None  # boxes past the image: blur the image
