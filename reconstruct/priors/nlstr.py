@@ -68,6 +68,7 @@ from .nlstr_blocks import (
 )
 from .nlstr_matching import match_blocks, plan_match_tiles
 from .nlstr_parameters import NLSTRParameters
+from .nlstr_plan import BasisTile, Strip, map_planes, plan_basis_tiles, plan_strips
 
 log = logging.getLogger(__name__)
 
@@ -106,24 +107,6 @@ class BlockMatches:
         return int(self.pos_y.shape[1])
 
 
-@dataclass
-class _Strip:
-    ref_rows: torch.Tensor     # indices into the reference-row list
-    y_lo: int                  # first candidate block row
-    y_hi: int                  # last candidate block row (inclusive)
-
-
-@dataclass
-class _BasisTile:
-    """A rectangle of reference blocks whose dictionaries are computed together, and the block corners its
-    groups can reach (the Gram maps' region)."""
-    groups: torch.Tensor       # global group indices, row-major
-    y_lo: int                  # first candidate block row
-    y_hi: int                  # last candidate block row (inclusive)
-    x_lo: int                  # first candidate block column
-    x_hi: int                  # last candidate block column (inclusive)
-
-
 def _triu(n: int, device) -> tuple[torch.Tensor, torch.Tensor]:
     return tuple(torch.triu_indices(n, n, device=device))
 
@@ -148,8 +131,9 @@ class NonlocalSparseTensor:
         self.ref_y = reference_positions(h, b, params.stride).to(self.device)
         self.ref_x = reference_positions(w, b, params.stride).to(self.device)
         self.n_ref = int(self.ref_y.numel() * self.ref_x.numel())
-        self.strips = self._plan_strips()
-        self.basis_tiles = self._plan_basis_tiles()
+        self.strips = plan_strips(self.shape, params, self.ref_y, device=self.device)
+        self.basis_tiles = plan_basis_tiles(self.shape, params, self.ref_y, self.ref_x,
+                                            item_bytes=torch.tensor([], dtype=dtype).element_size())
         self.match_tiles = plan_match_tiles(self.strips, self.ref_y, self.ref_x, block=b, stride=params.stride,
                                             search_radius=params.search_radius, budget_bytes=params.strip_bytes,
                                             item_bytes=torch.tensor([], dtype=dtype).element_size())
@@ -173,55 +157,6 @@ class NonlocalSparseTensor:
         self._groups_cache: tuple | None = None  # (matches, sparse group weights)
 
     # -- planning ------------------------------------------------------------------------
-    def _map_planes(self) -> int:
-        b, c = self.params.block, self.shape[0]
-        return b * (b + 1) + c * (c + 1) // 2
-
-    def _plan_strips(self) -> list[_Strip]:
-        """Group reference rows so each strip's Gram maps fit in ``strip_mb``."""
-        c, h, w = self.shape
-        b, s, r = self.params.block, self.params.stride, self.params.search_radius
-        per_row = (w - b + 1) * self._map_planes() * 4 + 15 * c * w * 4
-        rows_budget = max(1, self.params.strip_bytes // max(per_row, 1))
-        # a strip of n reference rows spans about n*s + 2r block rows
-        n_rows = max(1, int((rows_budget - 2 * r) // s))
-        strips = []
-        ny = self.ref_y.numel()
-        for start in range(0, ny, n_rows):
-            rows = torch.arange(start, min(ny, start + n_rows), device=self.device)
-            ya, yb = int(self.ref_y[rows[0]]), int(self.ref_y[rows[-1]])
-            strips.append(_Strip(rows, max(0, ya - r), min(h - b, yb + r)))
-        return strips
-
-    def _basis_tile_side(self) -> int:
-        """Side (HR pixels, halo included) of a square region whose Gram maps and their temporaries (about 3x
-        the maps) fit in ``strip_mb``."""
-        item = torch.tensor([], dtype=self.dtype).element_size()
-        return int((self.params.strip_bytes / (3 * self._map_planes() * item)) ** 0.5)
-
-    def _plan_basis_tiles(self) -> list[_BasisTile]:
-        """Cut the reference grid into rectangles of about :meth:`_basis_tile_side` pixels (halo of ``R`` block
-        positions and ``b - 1`` pixels included) on both axes, so the Gram maps' halo costs the same share of
-        the work at every image size (whole-width strips thin out as the width grows)."""
-        _, h, w = self.shape
-        b, s, r = self.params.block, self.params.stride, self.params.search_radius
-        per_tile = max(4, (self._basis_tile_side() - b - 2 * r) // s + 1)  # a floor for tiny strip_mb
-        nx = self.ref_x.numel()
-
-        def cuts(n: int) -> list[tuple[int, int]]:
-            parts = max(1, -(-n // per_tile))
-            edges = [round(i * n / parts) for i in range(parts + 1)]
-            return [(edges[i], edges[i + 1]) for i in range(parts)]
-
-        tiles = []
-        cols_all = torch.arange(nx, device=self.device)
-        for r0, r1 in cuts(self.ref_y.numel()):
-            for c0, c1 in cuts(nx):
-                groups = (torch.arange(r0, r1, device=self.device)[:, None] * nx + cols_all[None, c0:c1]).reshape(-1)
-                tiles.append(_BasisTile(groups, max(0, int(self.ref_y[r0]) - r), min(h - b, int(self.ref_y[r1 - 1]) + r),
-                                        max(0, int(self.ref_x[c0]) - r), min(w - b, int(self.ref_x[c1 - 1]) + r)))
-        return tiles
-
     def working_set_bytes(self, n_similar: int) -> int:
         """Peak bytes of one NLSTR step with ``n_similar`` blocks per group, about: the padded image,
         the matches ``(K, P)``, and the larger of: per matching tile (``m x v`` image pixels, ``n x u`` reference
@@ -230,12 +165,12 @@ class NonlocalSparseTensor:
         (``m`` image rows) the groups' blocks ``(n Nx, b, b, C)`` (x10); per basis tile (``m x v`` pixels) the Gram
         maps ``(m-b+1, v-b+1, planes)`` (x3)."""
         c, h, w = self.shape
-        b, s, r = self.params.block, self.params.stride, self.params.search_radius
+        b, r = self.params.block, self.params.search_radius
         item, n_off = torch.tensor([], dtype=self.dtype).element_size(), (2 * r + 1) ** 2
         p, nx = max(1, min(int(n_similar), n_off)), int(self.ref_x.numel())
         rows = max(int(st.ref_rows.numel()) for st in self.strips)
         match = max(self._match_tile_bytes(tile, item) for tile in self.match_tiles)
-        gram = max((t.y_hi - t.y_lo + 1) * (t.x_hi - t.x_lo + 1) for t in self.basis_tiles) * self._map_planes() * item * 3
+        gram = max((t.y_hi - t.y_lo + 1) * (t.x_hi - t.x_lo + 1) for t in self.basis_tiles) * map_planes(self.params.block, self.shape[0]) * item * 3
         gram = max(gram, rows * nx * b * b * c * item * 10)
         persistent = c * (h + 4 * r) * (w + 4 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
         persistent += self.n_ref * b * b * c * item  # U of every group
@@ -259,7 +194,7 @@ class NonlocalSparseTensor:
             f"n_similar {n_similar})"), fix="Use a smaller -p search_radius (default 7), n_similar or block, or a "
                                             "larger stride.")
 
-    def _strip_refs(self, strip: _Strip) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _strip_refs(self, strip: Strip) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Reference coordinates of a strip and their global group indices."""
         nx = self.ref_x.numel()
         ry = self.ref_y[strip.ref_rows][:, None].expand(-1, nx).reshape(-1)
@@ -302,7 +237,7 @@ class NonlocalSparseTensor:
             self._groups_cache = (matches, group_matrix(matches.pos_y * w + matches.pos_x, matches.weights, n_columns))
         return self._groups_cache[1]
 
-    def _tile_bases(self, z: torch.Tensor, tile: _BasisTile, py: torch.Tensor, px: torch.Tensor):
+    def _tile_bases(self, z: torch.Tensor, tile: BasisTile, py: torch.Tensor, px: torch.Tensor):
         """PCA bases ``Ph, Pw`` ``(k, b, b)`` and ``Pc`` ``(k, C, C)`` of a basis tile's groups (eq. 21), whose
         matches have corners ``py, px`` ``(k, P)``."""
         b = self.params.block
@@ -329,14 +264,14 @@ class NonlocalSparseTensor:
                 out.index_copy_(0, g, part)
         return ph, pw, pc
 
-    def _reference_blocks(self, z_pixels: torch.Tensor, strip: _Strip) -> torch.Tensor:
+    def _reference_blocks(self, z_pixels: torch.Tensor, strip: Strip) -> torch.Tensor:
         """The strip's reference blocks ``(rows, Nx, b, b, C)`` as a strided view of ``z_pixels`` (tiled grid)."""
         c, _, w = self.shape
         b, s = self.params.block, self.params.stride
         y0, rows, nx = int(self.ref_y[strip.ref_rows[0]]), strip.ref_rows.numel(), self.ref_x.numel()
         return z_pixels.as_strided((rows, nx, b, b, c), (s * w * c, s * c, w * c, c, 1), y0 * w * c)
 
-    def _add_tiles(self, num: torch.Tensor, blocks: torch.Tensor, strip: _Strip) -> None:
+    def _add_tiles(self, num: torch.Tensor, blocks: torch.Tensor, strip: Strip) -> None:
         """``num`` ``(H, W, C)`` += the strip's ``blocks`` ``(k, b, b, C)`` at their grid positions (eq. 29's
         ``sum_k R_k^T``): the blocks of every ``(b/s)``-th row and column do not overlap, so each of the
         ``(b/s)^2`` phases is one reshaped image added into a slice."""

@@ -7,7 +7,7 @@ box-summed along the width and then along the height (:func:`.nlstr_blocks.windo
 then ``topk``. Each pass over a region recomputes a margin of ``2 R + b - s`` rows and columns, so
 the work per pixel is that of the region's size: regions must not get thinner as the image grows.
 
-Earlier versions matched the whole width in the strips of :meth:`NonlocalSparseTensor._plan_strips`,
+Earlier versions matched the whole width in the strips of :func:`.nlstr_plan.plan_strips`,
 whose height is ``strip_mb`` over the width: at 2048 px wide a strip held 2 reference rows, the margin
 was 2.7x the useful work, and block matching grew from 10 % of the ``caps`` time at 512² to 30 % at
 2048². Here a :class:`MatchTile` is about ``sqrt(strip_mb / MATCH_BYTES_PER_PIXEL)`` pixels on a
