@@ -128,15 +128,15 @@ class NonlocalSparseTensor:
         self.shape = (c, h, w)
         self.device = torch.device(device)
         self.dtype = dtype
+        self.item_bytes = torch.tensor([], dtype=dtype).element_size()
         self.ref_y = reference_positions(h, b, params.stride).to(self.device)
         self.ref_x = reference_positions(w, b, params.stride).to(self.device)
         self.n_ref = int(self.ref_y.numel() * self.ref_x.numel())
         self.strips = plan_strips(self.shape, params, self.ref_y, device=self.device)
-        self.basis_tiles = plan_basis_tiles(self.shape, params, self.ref_y, self.ref_x,
-                                            item_bytes=torch.tensor([], dtype=dtype).element_size())
+        self.basis_tiles = plan_basis_tiles(self.shape, params, self.ref_y, self.ref_x, item_bytes=self.item_bytes)
         self.match_tiles = plan_match_tiles(self.strips, self.ref_y, self.ref_x, block=b, stride=params.stride,
                                             search_radius=params.search_radius, budget_bytes=params.strip_bytes,
-                                            item_bytes=torch.tensor([], dtype=dtype).element_size())
+                                            item_bytes=self.item_bytes)
         self.check_resources(n_similar=1)
         # in-block pixel offsets (b*b,) in the flattened H*W image
         ii, jj = torch.meshgrid(torch.arange(b, device=self.device), torch.arange(b, device=self.device), indexing="ij")
@@ -166,15 +166,15 @@ class NonlocalSparseTensor:
         maps ``(m-b+1, v-b+1, planes)`` (x3)."""
         c, h, w = self.shape
         b, r = self.params.block, self.params.search_radius
-        item, n_off = torch.tensor([], dtype=self.dtype).element_size(), (2 * r + 1) ** 2
+        item, n_off = self.item_bytes, (2 * r + 1) ** 2
         p, nx = max(1, min(int(n_similar), n_off)), int(self.ref_x.numel())
         rows = max(int(st.ref_rows.numel()) for st in self.strips)
         match = max(self._match_tile_bytes(tile, item) for tile in self.match_tiles)
-        gram = max((t.y_hi - t.y_lo + 1) * (t.x_hi - t.x_lo + 1) for t in self.basis_tiles) * map_planes(self.params.block, self.shape[0]) * item * 3
-        gram = max(gram, rows * nx * b * b * c * item * 10)
+        maps = max((t.y_hi - t.y_lo + 1) * (t.x_hi - t.x_lo + 1) for t in self.basis_tiles) * map_planes(b, c) * item * 3
+        blocks = rows * nx * b * b * c * item * 10
         persistent = c * (h + 4 * r) * (w + 4 * r) * item + self.n_ref * (p * (16 + 2 * item) + b * b * 16)
         persistent += self.n_ref * b * b * c * item  # U of every group
-        return int(persistent + 4 * h * w * c * item + max(match, gram))
+        return int(persistent + 4 * h * w * c * item + max(match, maps, blocks))
 
     def _match_tile_bytes(self, tile, item: int) -> int:
         """Peak bytes of block matching in one tile (:meth:`working_set_bytes`)."""

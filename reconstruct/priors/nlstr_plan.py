@@ -44,7 +44,9 @@ def map_planes(block: int, channels: int) -> int:
 
 
 def plan_strips(shape, params: NLSTRParameters, ref_y: torch.Tensor, *, device) -> list[Strip]:
-    """Group reference rows so a strip's blocks (and the whole-width rows of its region) fit in ``strip_mb``."""
+    """Group reference rows into strips whose blocks fit in ``strip_mb``. The budget per row still counts a
+    whole-width row of Gram maps, as when the dictionaries were computed in strips: block matching's tiles follow
+    these strips and must sum their rows as before, so the plan is kept as it was."""
     c, h, w = shape
     b, s, r = params.block, params.stride, params.search_radius
     per_row = (w - b + 1) * map_planes(b, c) * 4 + 15 * c * w * 4
