@@ -227,6 +227,17 @@ def _variants(size, tile: int | None) -> list[int | None]:
     return ([None] if fits((height, width), memory_budget(None)[0]) else []) + [tile]
 
 
+def _worker_command(path: Path, dev: str, method: str, tiled: int | None, *, iterations: int | None,
+                    true_warps: bool, threads: int | None) -> list[str]:
+    """The command line of one timed run (:func:`worker` in a fresh process)."""
+    cmd = [sys.executable, "-m", WORKER_MODULE, "--worker", str(path), "--device", dev, "--method", method]
+    cmd += [] if true_warps else ["--estimated-warps"]
+    cmd += [] if iterations is None else ["--iterations", str(iterations)]
+    cmd += [] if threads is None else ["--threads", str(threads)]
+    cmd += [] if tiled is None else ["--tile", str(tiled)]
+    return cmd
+
+
 def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations: int | None = None,
                   repeats: int = 1, gt: Path | None = None, true_warps: bool = True, threads: int | None = None,
                   tile: int | None = None, methods=("caps",),
@@ -234,33 +245,62 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
     """Time each method of ``methods`` (CAPS-input methods; ``caps`` by default) for each size (``N`` or
     ``(width, height)``) and device, on the same capture; returns the fastest run of each.
 
+    The ``repeats`` run in rounds: each round times every (size, device, tiling, method) once, so a drift of the
+    machine's speed between rounds touches every size alike. Each result carries ``all_wall_s`` (one per round),
+    ``median_wall_s`` and ``per_pixel_vs_reference``: the median over the rounds of its time per pixel over that of
+    the round's reference run (the first size's untiled run of the same device and method; :func:`paired_ratios`).
+
     ``iterations``: the ADMM iterations of every method (None: each method's own default; ``caps``: 25).
     ``threads``: torch CPU threads of each run (None: torch's choice). ``tile``: also run in tiles of this HR
     side, and untiled only where the memory estimate fits (:func:`_variants`).
     """
-    results = []
     devs = [d for d in devices if d != "cuda" or torch.cuda.is_available()]
     with tempfile.TemporaryDirectory(prefix="capssim-bench-") as tmp:
-        for size in sizes:
-            path = make_capture(hr_dims(size), Path(tmp), gt)
-            for dev, tiled, method in ((d, t, m) for d in devs for t in _variants(size, tile) for m in methods):
-                runs = []
-                for r in range(repeats):
-                    what = "untiled" if tiled is None else f"tiles of {tiled}"
-                    log(f"{method} {size_label(size)} ({what}) on {dev}, run {r + 1}/{repeats} ...")
-                    cmd = [sys.executable, "-m", WORKER_MODULE, "--worker", str(path), "--device", dev,
-                           "--method", method] + ([] if true_warps else ["--estimated-warps"])
-                    cmd += [] if iterations is None else ["--iterations", str(iterations)]
-                    cmd += [] if threads is None else ["--threads", str(threads)]
-                    cmd += [] if tiled is None else ["--tile", str(tiled)]
-                    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-                    if proc.returncode != 0:
-                        raise RuntimeError(f"benchmark worker failed:\n{proc.stderr[-2000:]}")
-                    runs.append(json.loads(proc.stdout.strip().splitlines()[-1]))
-                best = min(runs, key=lambda r: r["wall_s"])
-                best["repeats"] = repeats
-                best["all_wall_s"] = [r["wall_s"] for r in runs]
-                results.append(best)
+        paths = {size_label(size): make_capture(hr_dims(size), Path(tmp), gt) for size in sizes}
+        jobs = [(size_label(size), d, t, m) for size in sizes for d in devs for t in _variants(size, tile)
+                for m in methods]
+        jobs = list(dict.fromkeys(jobs))
+        runs: dict[tuple, list[dict]] = {job: [] for job in jobs}
+        for r in range(repeats):
+            for job in jobs:
+                label, dev, tiled, method = job
+                what = "untiled" if tiled is None else f"tiles of {tiled}"
+                log(f"{method} {label} ({what}) on {dev}, round {r + 1}/{repeats} ...")
+                cmd = _worker_command(paths[label], dev, method, tiled, iterations=iterations,
+                                      true_warps=true_warps, threads=threads)
+                proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                if proc.returncode != 0:
+                    raise RuntimeError(f"benchmark worker failed:\n{proc.stderr[-2000:]}")
+                runs[job].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    results = []
+    for job in jobs:
+        best = dict(min(runs[job], key=lambda run: run["wall_s"]))
+        best["repeats"] = repeats
+        best["all_wall_s"] = [run["wall_s"] for run in runs[job]]
+        best["median_wall_s"] = float(np.median(best["all_wall_s"]))
+        results.append(best)
+    return paired_ratios(results)
+
+
+def paired_ratios(results: list[dict]) -> list[dict]:
+    """Add ``per_pixel_vs_reference`` to each run of ``results`` (in place; returned): the median over the rounds
+    of ``(wall / pixels) / (reference wall / reference pixels)``, the reference being the first untiled run of the
+    same device and method in the list and round ``r`` of one paired with round ``r`` of the other. ``None`` where
+    there is no untiled reference. Pairing by round cancels the machine's drift over a long benchmark."""
+    references: dict[tuple, dict] = {}
+    for run in results:
+        key = (run["device"], run.get("method", "caps"))
+        if run.get("tile") is None and key not in references:
+            references[key] = run
+    for run in results:
+        ref = references.get((run["device"], run.get("method", "caps")))
+        if ref is None:
+            run["per_pixel_vs_reference"], run["reference"] = None, None
+            continue
+        pairs = zip(run.get("all_wall_s", [run["wall_s"]]), ref.get("all_wall_s", [ref["wall_s"]]))
+        ratios = [(a / _pixels(run)) / (b / _pixels(ref)) for a, b in pairs]
+        run["per_pixel_vs_reference"] = float(np.median(ratios))
+        run["reference"] = _column_label(ref)
     return results
 
 
@@ -296,6 +336,14 @@ def format_tables(results: list[dict]) -> str:
                 cells.append("-" if t is None else f"{t:8.2f} ({m:6.0f})" if m is not None else f"{t:8.2f}")
             lines.append(f"{st:{width}s}" + "".join(f"{c:>22s}" for c in cells))
         lines.append(f"{'total wall time':{width}s}" + "".join(f"{r['wall_s']:>13.2f} s{'':7s}" for r in rows))
+        if rows[0]["repeats"] > 1:
+            lines.append(f"{'median wall time':{width}s}" + "".join(
+                f"{r.get('median_wall_s', r['wall_s']):>13.2f} s{'':7s}" for r in rows))
+        ratios = [r.get("per_pixel_vs_reference") for r in rows]
+        if any(v is not None for v in ratios):
+            ref = next(r["reference"] for r in rows if r.get("reference"))
+            lines.append(f"{'per pixel, x ' + ref:{width}s}" + "".join(
+                f"{'-' if v is None else f'{v:.2f}x':>22s}" for v in ratios))
         lines.append(f"{'peak memory (MB)':{width}s}" + "".join(f"{r['peak_mb']:>15.0f}{'':7s}" for r in rows))
         lines.append(f"{'groups / re-matchings':{width}s}"
                      + "".join(f"{str(r['n_groups']) + ' / ' + str(r['rematches']):>22s}" for r in rows))

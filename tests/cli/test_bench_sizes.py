@@ -50,3 +50,33 @@ def test_methods_are_timed_on_the_same_capture_each_at_its_own_iterations():
 def test_a_method_that_is_not_a_caps_method_gives_one_line(name, hint):
     outcome, message = invoke(["bench", "reconstruct", "--size", "32", "-m", name])
     assert outcome == "error" and hint in message
+
+
+def test_paired_ratios_divide_round_by_round_and_take_the_median():
+    """Issue 35, linear time: each round's run is divided by the same round's reference run, so a machine that
+    slows down between rounds moves both alike; the median of the rounds is kept."""
+    from capssim.eval.benchmarks.reconstruct import paired_ratios
+
+    ref = {"device": "cpu", "method": "caps", "tile": None, "hr_shape": [512, 512], "wall_s": 10.0,
+           "all_wall_s": [10.0, 20.0, 12.0]}
+    big = {"device": "cpu", "method": "caps", "tile": None, "hr_shape": [1024, 1024], "wall_s": 44.0,
+           "all_wall_s": [44.0, 88.0, 60.0]}
+    tiled = {**big, "tile": 512, "all_wall_s": [48.0, 80.0, 48.0]}
+    other = {**big, "method": "caps-plus", "tile": 512}  # no untiled run of its own: no reference
+    out = paired_ratios([ref, big, tiled, other])
+    assert out[0]["per_pixel_vs_reference"] == 1.0 and out[0]["reference"] == "512x512"
+    assert out[1]["per_pixel_vs_reference"] == pytest.approx(1.1)        # rounds 1.1, 1.1, 1.25
+    assert out[2]["per_pixel_vs_reference"] == pytest.approx(1.0)        # rounds 1.2, 1.0, 1.0
+    assert out[3]["per_pixel_vs_reference"] is None
+
+
+@pytest.mark.slow
+def test_repeats_run_in_rounds_and_report_the_median_and_the_paired_ratio():
+    r = CliRunner().invoke(app, ["bench", "reconstruct", "--size", "32", "--size", "64x32", "--repeats", "2",
+                                 "--device", "cpu", "--iterations", "1", "--threads", "1", "--json"])
+    assert r.exit_code == 0, r.output
+    runs = json.loads(r.stdout)
+    assert [len(run["all_wall_s"]) for run in runs] == [2, 2]
+    assert all(min(run["all_wall_s"]) == run["wall_s"] <= run["median_wall_s"] for run in runs)
+    assert runs[0]["per_pixel_vs_reference"] == 1.0 and runs[1]["reference"] == "32x32"
+    assert runs[1]["per_pixel_vs_reference"] > 0
