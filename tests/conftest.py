@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import datasets, scenes
+from support import datasets, registration, scenes
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CAPSSIM_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -78,3 +78,15 @@ def records_by_index():
 @pytest.fixture
 def scene64() -> np.ndarray:
     return scenes.smooth_random_scene(64)
+
+
+@pytest.fixture
+def small_capture_dir(tmp_path) -> Path:
+    """:func:`support.registration.small_capture` in ``tmp_path``: a 32x32 HR capture folder."""
+    return registration.small_capture(tmp_path)
+
+
+@pytest.fixture
+def fake_registration(monkeypatch):
+    """:func:`support.registration.counting_registration` bound to this test: ``(**record) -> calls``."""
+    return lambda **record: registration.counting_registration(monkeypatch, **record)

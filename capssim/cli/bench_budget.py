@@ -30,7 +30,8 @@ def budget(
                                                                    "the results page from the stored budget.jsonl."),
     cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/NAME/cache; "
                                                                "a suite run's cache can be shared)."),
-    fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
+    fresh: bool = typer.Option(False, "--fresh", help="Redo the cases this run plans (all, or those of -m and "
+                                                      "--scene) although OUTPUT has them; other cases' results stay."),
     device: str = DeviceOption,
     threads: Optional[int] = ThreadsOption,
     workers: Optional[int] = typer.Option(None, "--workers", "-w", min=0, metavar="N",

@@ -101,7 +101,8 @@ def suite(
     device: str = DeviceOption,
     threads: Optional[int] = ThreadsOption,
     cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/cache)."),
-    fresh: bool = typer.Option(False, "--fresh", help="Ignore completed cases in OUTPUT and redo them."),
+    fresh: bool = typer.Option(False, "--fresh", help="Redo the cases this run plans (all, or those of -m and "
+                                                      "--scene) although OUTPUT has them; other cases' results stay."),
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the plots (report and results only)."),
     allow_other_suite: bool = typer.Option(False, "--allow-other-suite",
                                            help="Run into an OUTPUT that another suite owns (its results are moved "

@@ -52,16 +52,20 @@ def results_text(records: list[dict]) -> str:
 class ResultsLog:
     """The ``results.jsonl`` of one run: the previous run's records, appends, the final rewrite.
 
-    ``fresh``: forget the previous records (the file is emptied).
+    ``fresh``: redo this run's cases (:meth:`done` answers ``None``); the previous records of cases outside this
+    run's plan (other methods or scenes of the suite) are kept, as in any run.
     """
 
     def __init__(self, path: Path, *, fresh: bool = False):
         self.path = Path(path)
-        self.previous = {} if fresh else read_results(self.path)
+        self.fresh = bool(fresh)
+        self.previous = read_results(self.path)
         atomic_write_text(self.path, results_text(list(self.previous.values())))
 
     def done(self, case_id: str) -> dict | None:
-        """The previous run's record of ``case_id`` if that case finished ``ok``."""
+        """The previous run's record of ``case_id`` if that case finished ``ok`` (never with ``fresh``)."""
+        if self.fresh:
+            return None
         rec = self.previous.get(case_id)
         return rec if rec is not None and rec.get("status") == "ok" else None
 

@@ -166,7 +166,11 @@ def test_results_log_appends_whole_lines_and_drops_a_torn_tail(tmp_path):
     assert read_results(path)["b"]["status"] == "ok"  # the last line of a case wins
     log.finish([{"case_id": "b", "status": "ok"}])
     assert [json.loads(line)["case_id"] for line in path.read_text().splitlines()] == ["b", "a"]
-    assert ResultsLog(path, fresh=True).previous == {} and path.read_text() == ""
+    fresh = ResultsLog(path, fresh=True)  # --fresh -m ONE: that method's cases are redone, the others' kept
+    assert fresh.done("b") is None and fresh.done("a") is None
+    fresh.finish([{"case_id": "a", "status": "ok", "metrics": {"psnr": 31.0}}])
+    assert read_results(path) == {"a": {"case_id": "a", "status": "ok", "metrics": {"psnr": 31.0}},
+                                  "b": {"case_id": "b", "status": "ok"}}
 
 
 def test_results_log_drops_superseded_records_of_the_same_case(tmp_path):

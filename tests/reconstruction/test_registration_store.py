@@ -10,41 +10,22 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from capssim.array_geometry import lr_homographies
-from capssim.capture import read_capture, write_capture
+from capssim.capture import read_capture
 from capssim.imageio import read_tiff, write_tiff
 from capssim.reconstruct.model import observation_model
-from capssim.reconstruct.registration import RegistrationResult
 from capssim.reconstruct.registration import store as registration_store
 from capssim.reconstruct.registry import RunContext, StageTimer
-from capssim.sensor import make_sensor
-from capssim.simulate import simulate_capture
 
 
 @pytest.fixture
-def capture_dir(tmp_path):
-    rng = np.random.default_rng(0)
-    gt = (0.2 + 0.5 * rng.random((12, 32, 32))).astype(np.float32)
-    path = tmp_path / "capture"
-    write_capture(path, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=1))
-    return path
+def capture_dir(small_capture_dir):
+    return small_capture_dir
 
 
 @pytest.fixture
-def estimator(monkeypatch):
-    """Replace the registration by a counting fake (a small shift of aperture 1)."""
-    calls = []
-
-    def fake(images, *, hr_shape, saturated=None, parameters=None, device="cpu"):
-        calls.append(parameters)
-        aperture = np.tile(np.eye(3), (4, 1, 1))
-        aperture[1, 0, 2] = 0.25
-        return RegistrationResult(lr_homographies(aperture), aperture,
-                                  {"luminance": "binomial", "time_s": 0.01, "warnings": ["a warning"],
-                                   "apertures": []})
-
-    monkeypatch.setattr(observation_model, "estimate_lr_homographies", fake)
-    return calls
+def estimator(fake_registration):
+    """The registration replaced by a counting fake (a 0.25 px shift of aperture 1)."""
+    return fake_registration(luminance="binomial", warnings=["a warning"])
 
 
 def _geometry(path, mode="local-correlation", *, reuse=True, true_warps=False):
