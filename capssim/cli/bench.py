@@ -131,7 +131,8 @@ def reconstruct(
 ) -> None:
     """Wall time and peak memory per stage of 'caps' (or each -m method) at its defaults, each run in a fresh process."""
     resolved = list(dict.fromkeys(_set_threads(threads, d, adaptive=True).type for d in devices))
-    from capssim.eval.benchmarks.reconstruct import format_tables, plot_scaling, run_benchmark
+    from capssim.eval.benchmarks.reconstruct import run_benchmark
+    from capssim.eval.benchmarks.reconstruct_report import format_tables, plot_scaling
 
     results = run_benchmark(sizes=sizes, devices=resolved, iterations=iterations, repeats=repeats, gt=gt,
                             true_warps=not estimated_warps, threads=threads, tile=tile, methods=methods,

@@ -55,7 +55,7 @@ def test_a_method_that_is_not_a_caps_method_gives_one_line(name, hint):
 def test_paired_ratios_divide_round_by_round_and_take_the_median():
     """Issue 35, linear time: each round's run is divided by the same round's reference run, so a machine that
     slows down between rounds moves both alike; the median of the rounds is kept."""
-    from capssim.eval.benchmarks.reconstruct import paired_ratios
+    from capssim.eval.benchmarks.reconstruct_report import paired_ratios
 
     ref = {"device": "cpu", "method": "caps", "tile": None, "hr_shape": [512, 512], "wall_s": 10.0,
            "all_wall_s": [10.0, 20.0, 12.0]}
