@@ -37,7 +37,7 @@ def paired_ratios(results: list[dict]) -> list[dict]:
 
 def _column_label(run: dict, *, with_method: bool = False) -> str:
     """``'WxH'`` of a run, with ``' t<side>'`` for a tiled one (and its method first, ``with_method``)."""
-    h, w = run.get("hr_shape") or (run["hr_size"], run["hr_size"])
+    h, w = _hr_shape(run)
     label = f"{w}x{h}" + (f" t{run['tile']}" if run.get("tile") else "")
     return f"{run.get('method', 'caps')} {label}" if with_method else label
 
@@ -121,9 +121,15 @@ def plot_scaling(results: list[dict], path: Path) -> Path:
     return Path(path)
 
 
-def _pixels(run: dict) -> int:
+def _hr_shape(run: dict) -> tuple[int, int]:
+    """``(height, width)`` of a run (older records carry a square ``hr_size`` only)."""
     h, w = run.get("hr_shape") or (run["hr_size"], run["hr_size"])
-    return int(h) * int(w)
+    return int(h), int(w)
+
+
+def _pixels(run: dict) -> int:
+    h, w = _hr_shape(run)
+    return h * w
 
 
 __all__ = ["STAGE_ORDER", "format_tables", "paired_ratios", "plot_scaling"]

@@ -132,7 +132,7 @@ class NonlocalSparseTensor:
         self.ref_y = reference_positions(h, b, params.stride).to(self.device)
         self.ref_x = reference_positions(w, b, params.stride).to(self.device)
         self.n_ref = int(self.ref_y.numel() * self.ref_x.numel())
-        self.strips = plan_strips(self.shape, params, self.ref_y, device=self.device)
+        self.strips = plan_strips(self.shape, params, self.ref_y)
         self.basis_tiles = plan_basis_tiles(self.shape, params, self.ref_y, self.ref_x, item_bytes=self.item_bytes)
         self.match_tiles = plan_match_tiles(self.strips, self.ref_y, self.ref_x, block=b, stride=params.stride,
                                             search_radius=params.search_radius, budget_bytes=params.strip_bytes,

@@ -43,7 +43,7 @@ def map_planes(block: int, channels: int) -> int:
     return block * (block + 1) + channels * (channels + 1) // 2
 
 
-def plan_strips(shape, params: NLSTRParameters, ref_y: torch.Tensor, *, device) -> list[Strip]:
+def plan_strips(shape, params: NLSTRParameters, ref_y: torch.Tensor) -> list[Strip]:
     """Group reference rows into strips whose blocks fit in ``strip_mb``. The budget per row still counts a
     whole-width row of Gram maps, as when the dictionaries were computed in strips: block matching's tiles follow
     these strips and must sum their rows as before, so the plan is kept as it was."""
@@ -56,7 +56,7 @@ def plan_strips(shape, params: NLSTRParameters, ref_y: torch.Tensor, *, device) 
     strips = []
     ny = ref_y.numel()
     for start in range(0, ny, n_rows):
-        rows = torch.arange(start, min(ny, start + n_rows), device=device)
+        rows = torch.arange(start, min(ny, start + n_rows), device=ref_y.device)
         ya, yb = int(ref_y[rows[0]]), int(ref_y[rows[-1]])
         strips.append(Strip(rows, max(0, ya - r), min(h - b, yb + r)))
     return strips

@@ -75,11 +75,6 @@ ROWS = [
 
 
 @pytest.fixture
-def capture_dir(small_capture_dir):
-    return small_capture_dir
-
-
-@pytest.fixture
 def estimator(fake_registration):
     """The registration replaced by a counting fake (a 0.25 px shift of aperture 1)."""
     return fake_registration()
@@ -92,8 +87,8 @@ def _geometry(path):
     return observation_model.method_geometry(capture, context, images=images, saturated=saturated)
 
 
-def _tamper(capture_dir, row) -> str:
-    files = sorted((capture_dir / "registration").glob("*.json"))
+def _tamper(capture, row) -> str:
+    files = sorted((capture / "registration").glob("*.json"))
     assert len(files) == 1
     content = json.loads(files[0].read_text())
     tampered = row.tamper(np.asarray(content["aperture_homographies"], dtype=np.float64))
@@ -104,26 +99,26 @@ def _tamper(capture_dir, row) -> str:
 
 
 @pytest.mark.parametrize("row", ROWS, ids=str)
-def test_tampered_stored_warps_are_recomputed_with_a_warning(row, capture_dir, estimator, caplog):
-    geometry, first = _geometry(capture_dir)
+def test_tampered_stored_warps_are_recomputed_with_a_warning(row, small_capture_dir, estimator, caplog):
+    geometry, first = _geometry(small_capture_dir)
     assert first["store"] == "computed" and warps_problem(geometry.aperture_homographies, (32, 32)) is None
-    name = _tamper(capture_dir, row)
+    name = _tamper(small_capture_dir, row)
     with caplog.at_level(logging.WARNING):
-        again, record = _geometry(capture_dir)
+        again, record = _geometry(small_capture_dir)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(estimator) == 2 and record["store"] == "computed", warnings
     assert any(name in w and "recomputed" in w and row.reason in w for w in warnings), warnings
     np.testing.assert_array_equal(again.aperture_homographies, geometry.aperture_homographies)
-    _, third = _geometry(capture_dir)  # the recomputed warps were stored again, valid
+    _, third = _geometry(small_capture_dir)  # the recomputed warps were stored again, valid
     assert len(estimator) == 2 and third["store"] == "reused"
 
 
-def test_cli_run_on_a_tampered_store_recomputes_and_succeeds(capture_dir, estimator):
-    outcome, text = invoke(["reconstruct", capture_dir, "-m", "caps", "--iterations", 1, "--no-progress"])
+def test_cli_run_on_a_tampered_store_recomputes_and_succeeds(small_capture_dir, estimator):
+    outcome, text = invoke(["reconstruct", small_capture_dir, "-m", "caps", "--iterations", 1, "--no-progress"])
     assert outcome == "ok", text
-    name = _tamper(capture_dir, ROWS[0])
-    outcome, text = invoke(["reconstruct", capture_dir, "-m", "caps", "--iterations", 1, "--no-progress"])
+    name = _tamper(small_capture_dir, ROWS[0])
+    outcome, text = invoke(["reconstruct", small_capture_dir, "-m", "caps", "--iterations", 1, "--no-progress"])
     assert outcome == "ok" and name in text and "recomputed" in text, text
     assert "Reduce dt" not in text and len(estimator) == 2
-    record = json.loads((capture_dir / "recon" / "caps.json").read_text())
+    record = json.loads((small_capture_dir / "recon" / "caps.json").read_text())
     assert record["registration"]["store"] == "computed"

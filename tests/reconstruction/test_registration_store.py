@@ -18,11 +18,6 @@ from capssim.reconstruct.registry import RunContext, StageTimer
 
 
 @pytest.fixture
-def capture_dir(small_capture_dir):
-    return small_capture_dir
-
-
-@pytest.fixture
 def estimator(fake_registration):
     """The registration replaced by a counting fake (a 0.25 px shift of aperture 1)."""
     return fake_registration(luminance="binomial", warnings=["a warning"])
@@ -36,15 +31,15 @@ def _geometry(path, mode="local-correlation", *, reuse=True, true_warps=False):
     return observation_model.method_geometry(capture, context, images=images, saturated=saturated)
 
 
-def test_second_call_reuses_the_stored_warps(capture_dir, estimator):
-    geometry, first = _geometry(capture_dir)
+def test_second_call_reuses_the_stored_warps(small_capture_dir, estimator):
+    geometry, first = _geometry(small_capture_dir)
     assert len(estimator) == 1 and first["store"] == "computed" and first["reused_from"] is None
-    stored = sorted((capture_dir / "registration").glob("*.json"))
+    stored = sorted((small_capture_dir / "registration").glob("*.json"))
     assert [p.name for p in stored] == [f"local-correlation-{first['key'][:16]}.json"]
     assert first["stored_in"] == str(stored[0])
     content = json.loads(stored[0].read_text())
     assert content["identity"]["mode"] == "local-correlation" and content["identity"]["parameters"]["model"]
-    again, second = _geometry(capture_dir)
+    again, second = _geometry(small_capture_dir)
     assert len(estimator) == 1, "the second call registered again"
     assert second["store"] == "reused" and second["reused_from"] == str(stored[0])
     np.testing.assert_array_equal(again.aperture_homographies, geometry.aperture_homographies)
@@ -52,63 +47,63 @@ def test_second_call_reuses_the_stored_warps(capture_dir, estimator):
     assert second["time_s"] == first["time_s"] and second["warnings"] == ["a warning"]
 
 
-def test_stored_warnings_are_logged_once_per_process(capture_dir, estimator, monkeypatch, caplog):
-    _geometry(capture_dir)  # computed: the registration logs its own warnings
+def test_stored_warnings_are_logged_once_per_process(small_capture_dir, estimator, monkeypatch, caplog):
+    _geometry(small_capture_dir)  # computed: the registration logs its own warnings
     with caplog.at_level(logging.WARNING):
-        _geometry(capture_dir)
+        _geometry(small_capture_dir)
     assert "a warning" not in caplog.text
     monkeypatch.setattr(registration_store, "_repeated_warnings", set())  # as in a later run
     with caplog.at_level(logging.WARNING):
         for _ in range(2):
-            _, record = _geometry(capture_dir)
+            _, record = _geometry(small_capture_dir)
     assert caplog.text.count("a warning (stored registration)") == 1 and record["warnings"] == ["a warning"]
 
 
-def test_changed_raw_file_in_place_invalidates(capture_dir, estimator):
-    _, first = _geometry(capture_dir)
-    raw = read_tiff(capture_dir / "caps_raw.tiff")
+def test_changed_raw_file_in_place_invalidates(small_capture_dir, estimator):
+    _, first = _geometry(small_capture_dir)
+    raw = read_tiff(small_capture_dir / "caps_raw.tiff")
     raw.flat[5] = raw.flat[5] + 3
-    write_tiff(capture_dir / "caps_raw.tiff", raw)
-    _, second = _geometry(capture_dir)
+    write_tiff(small_capture_dir / "caps_raw.tiff", raw)
+    _, second = _geometry(small_capture_dir)
     assert len(estimator) == 2 and second["key"] != first["key"]
-    assert len(list((capture_dir / "registration").glob("*.json"))) == 2
+    assert len(list((small_capture_dir / "registration").glob("*.json"))) == 2
 
 
-def test_other_mode_registers_again_and_both_are_kept(capture_dir, estimator):
-    _geometry(capture_dir, "local-correlation")
-    _, record = _geometry(capture_dir, "binomial-luminance")
+def test_other_mode_registers_again_and_both_are_kept(small_capture_dir, estimator):
+    _geometry(small_capture_dir, "local-correlation")
+    _, record = _geometry(small_capture_dir, "binomial-luminance")
     assert len(estimator) == 2 and record["store"] == "computed"
     assert estimator[1].luminance == "binomial"
-    _, record = _geometry(capture_dir, "local-correlation")
-    _, record2 = _geometry(capture_dir, "binomial-luminance")
+    _, record = _geometry(small_capture_dir, "local-correlation")
+    _, record2 = _geometry(small_capture_dir, "binomial-luminance")
     assert len(estimator) == 2 and record["store"] == record2["store"] == "reused"
 
 
-def test_true_warps_and_no_reuse(capture_dir, estimator):
-    _, record = _geometry(capture_dir, true_warps=True)
-    assert estimator == [] and "store" not in record and not (capture_dir / "registration").exists()
-    _geometry(capture_dir)
-    _, record = _geometry(capture_dir, reuse=False)
+def test_true_warps_and_no_reuse(small_capture_dir, estimator):
+    _, record = _geometry(small_capture_dir, true_warps=True)
+    assert estimator == [] and "store" not in record and not (small_capture_dir / "registration").exists()
+    _geometry(small_capture_dir)
+    _, record = _geometry(small_capture_dir, reuse=False)
     assert len(estimator) == 2 and record["store"] == "computed"
 
 
-def test_corrupt_or_foreign_store_file_is_replaced(capture_dir, estimator, caplog):
-    _, first = _geometry(capture_dir)
-    path = capture_dir / "registration" / f"local-correlation-{first['key'][:16]}.json"
+def test_corrupt_or_foreign_store_file_is_replaced(small_capture_dir, estimator, caplog):
+    _, first = _geometry(small_capture_dir)
+    path = small_capture_dir / "registration" / f"local-correlation-{first['key'][:16]}.json"
     path.write_text("{not json")
     with caplog.at_level(logging.WARNING):
-        _, record = _geometry(capture_dir)
+        _, record = _geometry(small_capture_dir)
     assert len(estimator) == 2 and record["store"] == "computed" and "ignoring" in caplog.text
     content = json.loads(path.read_text())
     content["identity"]["input_sha256"] = "0" * 64
     path.write_text(json.dumps(content))
-    _, record = _geometry(capture_dir)
+    _, record = _geometry(small_capture_dir)
     assert len(estimator) == 3 and record["store"] == "computed"
-    _, record = _geometry(capture_dir)
+    _, record = _geometry(small_capture_dir)
     assert len(estimator) == 3 and record["store"] == "reused"
 
 
-def test_read_only_capture_computes_without_storing(capture_dir, estimator, monkeypatch, caplog):
+def test_read_only_capture_computes_without_storing(small_capture_dir, estimator, monkeypatch, caplog):
     def refuse(path, obj):
         raise PermissionError(13, "Read-only file system", str(path))
 
@@ -116,14 +111,14 @@ def test_read_only_capture_computes_without_storing(capture_dir, estimator, monk
     monkeypatch.setattr(registration_store, "_warned_read_only", set())
     with caplog.at_level(logging.WARNING):
         for _ in range(3):
-            _, record = _geometry(capture_dir)
+            _, record = _geometry(small_capture_dir)
             assert record["store"] == "computed, not stored" and record["stored_in"] is None
     assert len(estimator) == 3
     assert caplog.text.count("cannot write in") == 1
 
 
-def test_in_memory_capture_computes(capture_dir, estimator):
-    capture = read_capture(capture_dir, load_gt=False)
+def test_in_memory_capture_computes(small_capture_dir, estimator):
+    capture = read_capture(small_capture_dir, load_gt=False)
     capture.path = None
     context = RunContext(device=torch.device("cpu"), timer=StageTimer())
     images, saturated = capture.lr_images()
@@ -158,15 +153,15 @@ def test_key_covers_input_mode_parameters_and_code():
     assert same == base
 
 
-def test_cli_two_methods_register_once(capture_dir, estimator):
+def test_cli_two_methods_register_once(small_capture_dir, estimator):
     from capssim.cli import app
 
-    result = CliRunner().invoke(app, ["reconstruct", str(capture_dir), "-m", "caps-no-nlstr", "-m", "caps",
+    result = CliRunner().invoke(app, ["reconstruct", str(small_capture_dir), "-m", "caps-no-nlstr", "-m", "caps",
                                       "--iterations", "1", "--no-progress", "--threads", "1"])
     assert result.exit_code == 0, result.output
     assert len(estimator) == 1
     assert result.output.count("registration (local-correlation): computed in") == 1
     assert result.output.count("registration (local-correlation): reused") == 1
-    records = [json.loads((capture_dir / "recon" / f"{m}.json").read_text()) for m in ("caps-no-nlstr", "caps")]
+    records = [json.loads((small_capture_dir / "recon" / f"{m}.json").read_text()) for m in ("caps-no-nlstr", "caps")]
     assert [r["registration"]["store"] for r in records] == ["computed", "reused"]
     assert records[1]["registration"]["reused_from"] == records[0]["registration"]["stored_in"]
