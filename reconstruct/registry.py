@@ -50,6 +50,9 @@ class MethodSpec:
     module: str
     #: for DoFP methods, the plain array function ``fn(mosaic, *, layout, device, timer)`` behind the method
     array_function: Callable | None = None
+    #: ``frame_options(capture, options) -> dict``: options the method derives from the whole frame, fixed once
+    #: before a tiled run cuts it (each tile then runs with them as if given); None: none
+    frame_options: Callable | None = None
 
 
 _METHODS: dict[str, MethodSpec] = {}
@@ -57,10 +60,11 @@ _LOADED = False
 
 
 def register_method(name: str, *, input_kind: str, description: str, reference: str,
-                    array_function: Callable | None = None):
+                    array_function: Callable | None = None, frame_options: Callable | None = None):
     """Decorator registering a reconstruction function under ``name``.
 
     ``array_function``: the method's plain array form, for ``capssim demosaic`` (DoFP mosaics).
+    ``frame_options``: see :class:`MethodSpec` (options a tiled run fixes over the whole frame).
     """
     if input_kind not in ("caps", "dofp"):
         raise ValueError(f"input_kind must be 'caps' or 'dofp', got {input_kind!r}")
@@ -68,7 +72,8 @@ def register_method(name: str, *, input_kind: str, description: str, reference: 
     def wrap(fn):
         if name in _METHODS and _METHODS[name].function is not fn:
             raise ValueError(f"method {name!r} is registered twice ({_METHODS[name].module} and {fn.__module__})")
-        _METHODS[name] = MethodSpec(name, fn, input_kind, description, reference, fn.__module__, array_function)
+        _METHODS[name] = MethodSpec(name, fn, input_kind, description, reference, fn.__module__, array_function,
+                                    frame_options)
         return fn
 
     return wrap

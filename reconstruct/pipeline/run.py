@@ -66,11 +66,17 @@ class PipelineConfig:
         ``{"c1": 0.001, "c2": 0.01}``; explicit ``-p`` options still win.
     front_end_options : mapping
         Options only the front end takes, with their defaults (e.g. ``{"bayer_method": "ri"}``).
+    schedule : callable, optional
+        ``schedule(front, options, given) -> CapsOptions``: the method's own choice of options from what
+        its front end measured (e.g. ``caps-plus``'s iteration count from the noise level), run after the
+        front end; ``given`` holds the option names set explicitly (``-p``, ``-`` read as ``_``), which
+        a schedule leaves as given. None (``caps``): the options as parsed.
     """
 
     front_end: Callable[..., FrontEnd] = caps_observations
     defaults: Mapping[str, object] = field(default_factory=dict)
     front_end_options: Mapping[str, object] = field(default_factory=dict)
+    schedule: Callable[..., CapsOptions] | None = None
 
 
 @dataclass
@@ -128,6 +134,9 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
     opts, front_options = parse_pipeline_options(context.options, config)
     opts.validated_parameters()
     front = config.front_end(capture, context, opts, **front_options)
+    if config.schedule is not None:
+        given = frozenset(str(key).replace("-", "_") for key in dict(context.options or {}))
+        opts = config.schedule(front, opts, given)
     defaults = CapsOptions.from_options({}, **config.defaults)
     priors: dict[tuple, object] = {}  # one prior per image shape, shared by the problems of that shape
     # the iterations allocate the same large temporaries again and again: keep freed memory for reuse

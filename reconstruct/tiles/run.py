@@ -6,8 +6,10 @@ each tile's capture (:mod:`.crop`), reconstructs it with the method as usual (``
 whole-frame warps), blends the tiles (:mod:`.blend`) and projects the frame onto physical intensities once.
 
 What the paper adapts is global already: the ADMM penalties follow the fixed schedule of eq. 27 (iteration
-count only), ``c1``, ``c2`` and CAGF's ``nu`` are constants, and the pipeline estimates no noise level; the
-NLSTR thresholds are per coefficient (local). So every tile solves the whole frame's problem restricted
+count only), ``c1``, ``c2`` and CAGF's ``nu`` are constants, and ``caps`` estimates no noise level; the
+NLSTR thresholds are per coefficient (local). A method that adapts options to the whole frame (``caps-plus``'s
+iteration count, from the raw noise level) declares them (``frame_options`` of its registration) and they
+are fixed once, before the frame is cut. So every tile solves the whole frame's problem restricted
 to its window. Finished tiles can be kept in a parts folder (``parts``) and are skipped on a rerun.
 """
 
@@ -249,9 +251,12 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     (MethodOutput, dict) or None
         ``image`` ``(12, 2H, 2W)`` float32 and the record (``tiles``: the layout and each tile's time).
     """
-    if get_method(method).input_kind != "caps":
+    spec = get_method(method)
+    if spec.input_kind != "caps":
         raise InputError("--tile", f"method {method}", "a CAPS-input method (DoFP methods run untiled)",
                          "Leave --tile and --memory-gb out for DoFP methods.")
+    if spec.frame_options is not None:  # what the method adapts to the whole frame is fixed once, for every tile
+        options = {**spec.frame_options(capture, options), **options}
     budget, source = memory_budget(memory_gb)
     if tile is None:
         if fits(capture.hr_shape, budget):

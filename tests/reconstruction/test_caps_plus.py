@@ -10,6 +10,7 @@ import torch
 from capssim.errors import CapssimError
 from capssim.eval.metrics import score
 from capssim.reconstruct import reconstruct
+from capssim.reconstruct.methods.caps_plus import frame_iterations, noise_adaptive_iterations, raw_noise_sigma
 from capssim.reconstruct.model.data_term import confidence_mix
 from capssim.reconstruct.model.polarization_split import angle_mean, split_confidence_mix
 from capssim.sensor import make_sensor
@@ -122,3 +123,38 @@ def test_the_naive_initialization_is_caps_naives_image(capture):
 def test_caps_plus_refuses_an_unknown_initialization(capture):
     with pytest.raises(CapssimError, match="init"):
         reconstruct(capture, "caps-plus", true_warps=True, init="zeros")
+
+
+# -- the noise-adaptive schedule ---------------------------------------------------------------------
+def test_the_iteration_count_grows_with_the_noise_and_is_clipped():
+    assert [noise_adaptive_iterations(s) for s in (0.0, 0.005, 0.01, 0.02, 0.5)] == [10, 15, 20, 30, 50]
+    assert noise_adaptive_iterations(float("nan")) == 50 and noise_adaptive_iterations(float("inf")) == 50
+
+
+def test_raw_noise_sigma_reads_white_noise_on_smooth_planes():
+    g = torch.Generator().manual_seed(0)
+    ramp = 0.2 + 0.5 * torch.linspace(0, 1, 64)[None, :, None] * torch.ones(16, 64, 64)
+    assert raw_noise_sigma(ramp) < 1e-5  # a linear ramp holds no noise
+    for sigma in (0.005, 0.01, 0.02):
+        assert raw_noise_sigma(ramp + sigma * torch.randn(16, 64, 64, generator=g)) == pytest.approx(sigma, rel=0.1)
+    assert raw_noise_sigma(torch.zeros(16, 2, 2)) == 0.0  # too small to estimate
+
+
+def test_caps_plus_takes_its_iterations_from_the_noise_unless_given(capture):
+    out, record = reconstruct(capture, "caps-plus", true_warps=True)
+    params = record["params"]
+    assert params["iterations_from"] == "noise" and 0.005 < params["noise_sigma_estimate"] < 0.03
+    assert params["iterations"] == noise_adaptive_iterations(params["noise_sigma_estimate"])
+    assert len(out.history) == params["iterations"]
+    assert params["iterations"] == frame_iterations(capture, {})["iterations"]  # what a tiled run fixes
+    for given, count in (({"iterations": 3}, 3), ({"preset": "fast"}, 7)):
+        out, record = reconstruct(capture, "caps-plus", true_warps=True, **given)
+        assert record["params"]["iterations_from"] == "options" and frame_iterations(capture, given) == {}
+        assert record["params"]["iterations"] == count and len(out.history) == count
+
+
+def test_a_clean_capture_gets_fewer_iterations_than_a_noisy_one(smooth_random_scene):
+    scene = smooth_random_scene(SIZE, seed=3)
+    sensors = (make_sensor("none"), make_sensor("gaussian", sigma=0.01), make_sensor("gaussian", sigma=0.03))
+    counts = [frame_iterations(simulate_capture(scene, sensor, seed=3), {})["iterations"] for sensor in sensors]
+    assert counts[0] < counts[1] < counts[2]

@@ -190,3 +190,27 @@ def test_coerce_option_is_public_and_typed(raw, kind, expected):
 def test_coerce_option_refuses_values_of_another_type(raw, kind):
     with pytest.raises(InputError, match="option x"):
         coerce_option("x", raw, kind)
+
+
+def test_a_method_schedule_sees_the_front_end_and_the_options_given(capture, monkeypatch):
+    """PipelineConfig.schedule runs after the front end, is told which options were given, and its options
+    are the ones the solver runs (caps-plus's noise-adaptive iteration count is such a schedule)."""
+    from dataclasses import replace
+
+    from capssim.reconstruct import registry
+    from capssim.reconstruct.pipeline import PipelineConfig, run_pipeline
+
+    seen = []
+
+    def two_iterations(front, options, given):
+        seen.append((tuple(front.problems[0].obs.images.shape), given))
+        return replace(options, admm=replace(options.admm, iterations=2))
+
+    config = PipelineConfig(schedule=two_iterations)
+    registry.available_methods()  # the registry is loaded before the test method is added
+    monkeypatch.setitem(registry._METHODS, "test-scheduled", registry.MethodSpec(
+        "test-scheduled", lambda cap, *, context: run_pipeline(cap, context, config), "caps", "a test", "none",
+        __name__))
+    out, record = reconstruct(capture, "test-scheduled", true_warps=True, iterations=5, mu0=0.4)
+    assert len(out.history) == 2 and record["params"]["iterations"] == 2 and record["params"]["mu0"] == 0.4
+    assert seen == [((16, SIZE // 4, SIZE // 4), frozenset({"iterations", "mu0"}))]

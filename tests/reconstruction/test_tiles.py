@@ -213,3 +213,23 @@ def test_warps_registered_on_a_window_are_the_whole_frames(capture128, monkeypat
     homs, record = tiles_run._registered_on_window(capture128, context, window)
     assert record["window"] == list(window)
     np.testing.assert_allclose(homs, truth, atol=1e-9)
+
+
+def test_a_tiled_caps_plus_fixes_its_noise_adaptive_iterations_once_for_the_frame(capture128):
+    """caps-plus derives its iteration count from the raw noise: a tiled run takes it from the whole frame, so
+    every tile runs the same schedule (a tile's own estimate could differ)."""
+    from capssim.reconstruct.methods.caps_plus import frame_iterations
+
+    frame = frame_iterations(capture128, {})["iterations"]
+    calls = []
+
+    def recording_runner(function, jobs):
+        for index, job in enumerate(jobs):
+            calls.append(job[3].get("iterations"))
+            yield index, function(*job)
+
+    _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, runner=recording_runner,
+                                  prior="none")
+    assert calls == [frame] * 4 and record["options"]["iterations"] == frame
+    _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, iterations=1)
+    assert record["options"]["iterations"] == 1 and record["params"]["iterations"] == 1
