@@ -42,7 +42,8 @@ def test_methods_are_timed_on_the_same_capture_each_at_its_own_iterations():
                                  "--device", "cpu", "--threads", "1", "--json"])
     assert r.exit_code == 0, r.output
     runs = json.loads(r.stdout)
-    assert [(run["method"], run["iterations"]) for run in runs] == [("caps", 25), ("caps-plus", 50)]
+    assert [run["method"] for run in runs] == ["caps", "caps-plus"] and runs[0]["iterations"] == 25
+    assert 10 <= runs[1]["iterations"] < 50  # caps-plus's count follows the capture's noise (sigma 0.01: about 20)
     assert all(run["hr_shape"] == [32, 32] and run["wall_s"] > 0 and run["peak_mb"] > 0 for run in runs)
 
 
