@@ -14,6 +14,7 @@ import os
 import shutil
 from pathlib import Path
 
+from capssim.allocator import held_free_bytes
 from capssim.errors import InputError, ResourceError
 
 #: environment variable that sets the memory limit explicitly, in GiB (``inf``: no limit)
@@ -23,18 +24,24 @@ MEMORY_FRACTION = 0.8
 
 
 def available_memory_bytes() -> int | None:
-    """Memory available to a new allocation now, in bytes (``None`` if the platform does not say)."""
+    """Memory available to a new allocation now, in bytes (``None`` if the platform does not say): the
+    system's (``MemAvailable``) plus the freed memory this process keeps for reuse
+    (:func:`capssim.allocator.held_free_bytes`), which the system counts as used."""
+    system = None
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:
             for line in fh:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    system = int(line.split()[1]) * 1024
+                    break
     except (OSError, ValueError, IndexError):
         pass
-    try:
-        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
-    except (AttributeError, ValueError, OSError):
-        return None
+    if system is None:
+        try:
+            system = int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+        except (AttributeError, ValueError, OSError):
+            return None
+    return system + held_free_bytes()
 
 
 def memory_limit() -> tuple[float, str]:

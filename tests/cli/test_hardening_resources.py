@@ -254,3 +254,30 @@ def test_dataset_refuses_more_local_workers_than_the_machine_can_start(tmp_path)
     assert isinstance(result.exception, ResourceError), result.output
     assert str(result.exception).startswith("--workers:") and "per core" in str(result.exception)
     assert not (tmp_path / "ds").exists()
+
+
+def test_freed_memory_the_process_keeps_counts_as_available(monkeypatch):
+    """Inside reuse_freed_memory a freed large block stays in the process's heap; the system no longer counts
+    it as available, the guard does (else NLSTR's re-check refuses mid-run what the process already holds)."""
+    import torch
+
+    import capssim.resources as resources
+    from capssim.allocator import _glibc, held_free_bytes, reuse_freed_memory
+
+    monkeypatch.setattr(resources, "held_free_bytes", lambda: 0)
+    system = available_memory_bytes()
+    if system is None:
+        pytest.skip("the platform does not report its available memory")
+    monkeypatch.setattr(resources, "held_free_bytes", lambda: 5 * 2**40)
+    assert available_memory_bytes() - system == pytest.approx(5 * 2**40, abs=2**30)  # the system moves a little
+
+    if _glibc() is None or not hasattr(_glibc(), "mallinfo2"):
+        return  # held_free_bytes is 0 off glibc 2.33+
+    block = 64 * 2**20
+    with reuse_freed_memory() as active:
+        if not active:
+            pytest.skip("CAPSSIM_REUSE_FREED_MEMORY=0")
+        before = held_free_bytes()
+        x = torch.ones(block // 4)
+        del x
+        assert held_free_bytes() - before >= block * 0.9
