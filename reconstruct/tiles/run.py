@@ -255,8 +255,8 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     if spec.input_kind != "caps":
         raise InputError("--tile", f"method {method}", "a CAPS-input method (DoFP methods run untiled)",
                          "Leave --tile and --memory-gb out for DoFP methods.")
-    if spec.frame_options is not None:  # what the method adapts to the whole frame is fixed once, for every tile
-        options = {**spec.frame_options(capture, options), **options}
+    frame = spec.frame_options(capture, options) if spec.frame_options is not None else {}
+    options = {**frame, **options}  # what the method adapts to the whole frame is fixed once, for every tile
     budget, source = memory_budget(memory_gb)
     if tile is None:
         if fits(capture.hr_shape, budget):
@@ -287,6 +287,7 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     first = records[layout.tiles[0].name]
     record = _record(method, options, device, true_warps, first, stages, time.perf_counter() - t0, reg_record,
                      projection, layout, records)
+    record["frame_options"] = frame  # the options above that the method derived from the whole frame
     unobserved_rec = unobserved_record(method, unobserved)
     if unobserved_rec is not None:
         record["unobserved"] = unobserved_rec
