@@ -17,6 +17,15 @@ REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CAPSSIM_SHARED_DATA", REPO.parent / "shared" / "data"))
 
 
+@pytest.fixture(scope="session", autouse=True)
+def private_render_store(tmp_path_factory):
+    """Suites rendered by the tests share their renders in a folder of this test session, not the user's
+    cache (``CAPSSIM_RENDER_CACHE``, :mod:`capssim.eval.benchmarks.captures`)."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("CAPSSIM_RENDER_CACHE", str(tmp_path_factory.mktemp("renders")))
+        yield
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """``../shared/data``; tests using it skip cleanly when it is absent."""

@@ -9,6 +9,11 @@ simulated by :func:`capssim.simulate.simulate_capture`. Captures are cached unde
 ``CACHE/captures/<sha256>``; the hash covers the scene spec, the source data's bytes, the noise,
 the seed and a fingerprint of capssim's capture code. All noise is drawn from the random streams
 of :func:`capssim.measurement.seed_streams` (paper section 5.2).
+
+Renders are also kept in one store shared by every suite and output folder (:func:`shared_render_dir`:
+``$CAPSSIM_RENDER_CACHE``, else ``$XDG_CACHE_HOME/capssim/renders`` or ``~/.cache/capssim/renders``;
+``CAPSSIM_RENDER_CACHE=off`` turns it off), under the same content hash: a scene that one suite rendered
+is not rendered again by another.
 """
 
 from __future__ import annotations
@@ -17,6 +22,9 @@ import copy
 import hashlib
 import json
 import logging
+import os
+import shutil
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,6 +55,40 @@ log = logging.getLogger(__name__)
 
 #: the source files whose change invalidates a cached render
 RENDER_CODE = ("capssim/render", "scenes", "capssim/operators", "capssim/simulate.py", "capssim/capture.py")
+
+
+#: where renders are shared across suites and output folders (a path, or ``off``)
+RENDER_CACHE_ENV = "CAPSSIM_RENDER_CACHE"
+
+
+def shared_render_dir() -> Path | None:
+    """The render store shared by every suite (module docstring), or None when ``CAPSSIM_RENDER_CACHE=off``."""
+    value = os.environ.get(RENDER_CACHE_ENV, "").strip()
+    if value.lower() == "off":
+        return None
+    if value:
+        return Path(value).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME", "").strip()
+    return (Path(base) if base else Path.home() / ".cache") / "capssim" / "renders"
+
+
+def _share_render(source: Path, shared: Path | None) -> None:
+    """Copy a written render folder into the shared store, whole or not at all (a temporary folder renamed
+    into place; a store that cannot be written, or a copy another process placed first, is left alone)."""
+    if shared is None or (shared / source.name / "meta.json").is_file():
+        return
+    tmp = None
+    try:
+        shared.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{source.name}-", dir=shared))
+        shutil.copytree(source, tmp, dirs_exist_ok=True)
+        os.replace(tmp, shared / source.name)
+        tmp = None
+    except OSError as exc:
+        log.info("render %s not shared in %s (%s)", source.name, shared, exc)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
 
 
 class Unavailable(Exception):
@@ -223,12 +265,14 @@ class CaptureFactory:
             params["rig"] = scene["rig"]
         key = content_hash({"render": params, "code": code_fingerprint(*RENDER_CODE)})[:20]
         path = self.cache_dir / "renders" / key
-        if (path / "meta.json").is_file():
-            try:
-                clean = read_capture(path, require_gt=True)
-                return clean, {"render": params, "render_cached": True, "render_variant": _variant_of(clean)}
-            except CapssimError:
-                log.warning("cached render %s is corrupt; re-rendering", path)
+        shared = shared_render_dir()
+        for where in (path, None if shared is None else shared / key):
+            if where is not None and (where / "meta.json").is_file():
+                try:
+                    clean = read_capture(where, require_gt=True)
+                    return clean, {"render": params, "render_cached": True, "render_variant": _variant_of(clean)}
+                except CapssimError:
+                    log.warning("cached render %s is corrupt; re-rendering", where)
         self.events("note", message=f"rendering {name} at {params['size']} px (cached afterwards)")
         t0 = time.perf_counter()
         extra = {"scene_params": scene["scene_params"]} if scene.get("scene_params") else {}
@@ -243,6 +287,7 @@ class CaptureFactory:
         if clean.gt is None:
             raise CapssimError(f"render of {name!r} returned no ground truth")
         write_capture(path, clean, overwrite=path.exists())
+        _share_render(path, shared)
         return clean, {"render": params, "render_cached": False, "render_time_s": elapsed,
                        "render_variant": _variant_of(clean)}
 
