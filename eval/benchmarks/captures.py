@@ -266,8 +266,8 @@ class CaptureFactory:
         key = content_hash({"render": params, "code": code_fingerprint(*RENDER_CODE)})[:20]
         path = self.cache_dir / "renders" / key
         shared = shared_render_dir()
-        for where in (path, None if shared is None else shared / key):
-            if where is not None and (where / "meta.json").is_file():
+        for where in [path] + ([] if shared is None else [shared / key]):
+            if (where / "meta.json").is_file():
                 try:
                     clean = read_capture(where, require_gt=True)
                     return clean, {"render": params, "render_cached": True, "render_variant": _variant_of(clean)}

@@ -39,15 +39,16 @@ from capssim.errors import InputError
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
 from ..model.rearrange import observations_from_capture
 from ..pipeline import PipelineConfig, caps_observations, run_pipeline
-from ..pipeline.options import CapsOptions
+from ..pipeline.options import CapsOptions, given_option_names
 from ..pipeline.problem import FrontEnd
 from ..registration.image_ops import noise_sigma
 from ..registry import MethodOutput, RunContext, register_method
 from .caps import REFERENCE as CAPS_REFERENCE
 from .caps_naive import bicubic_warp, demosaicked_frames
 
-__all__ = ["CAPS_PLUS", "INITIALIZATIONS", "NOISE_ITERATIONS", "caps_plus_observations", "demosaicked_initialization",
-           "frame_iterations", "noise_adaptive_iterations", "noise_adaptive_schedule", "raw_noise_sigma"]
+__all__ = ["CAPS_PLUS", "COUNT_OPTIONS", "INITIALIZATIONS", "NOISE_ITERATIONS", "caps_plus_observations",
+           "demosaicked_initialization", "frame_iterations", "noise_adaptive_iterations", "noise_adaptive_schedule",
+           "raw_noise_sigma"]
 
 #: ``-p init=NAME``: ``naive`` (demosaicked apertures, the default) or ``fusion`` (``caps``'s, eq. 24)
 INITIALIZATIONS = ("naive", "fusion")
@@ -89,6 +90,8 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
 #: the iteration count of :func:`noise_adaptive_iterations`: ``at_zero + per_sigma * sigma`` clipped to
 #: ``[fewest, most]`` (fitted to where the PSNR of caps-plus peaks on the kettle at sigma 0, 0.01 and 0.02)
 NOISE_ITERATIONS = {"at_zero": 10, "per_sigma": 1000.0, "fewest": 10, "most": 50}
+#: options that fix the iteration count themselves: given, the count does not follow the noise
+COUNT_OPTIONS = frozenset({"iterations", "preset"})
 
 
 def raw_noise_sigma(images: torch.Tensor) -> float:
@@ -115,7 +118,7 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
     or ``preset`` was given. Records ``noise_sigma_estimate`` and ``iterations_from`` in ``front.params``."""
     sigma = raw_noise_sigma(front.problems[0].obs.images)
     front.params["noise_sigma_estimate"] = sigma
-    if given & {"iterations", "preset"}:
+    if given & COUNT_OPTIONS:
         front.params["iterations_from"] = "options"
         return options
     front.params["iterations_from"] = "noise"
@@ -125,7 +128,7 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
 def frame_iterations(capture, options: dict) -> dict:
     """``{"iterations": N}`` of :func:`noise_adaptive_iterations` for the whole frame's raw noise (a tiled run
     fixes it once for every tile), or ``{}`` when ``iterations`` or ``preset`` is among ``options``."""
-    if {str(key).replace("-", "_") for key in options} & {"iterations", "preset"}:
+    if given_option_names(options) & COUNT_OPTIONS:
         return {}
     return {"iterations": noise_adaptive_iterations(raw_noise_sigma(observations_from_capture(capture).images))}
 

@@ -32,7 +32,13 @@ from .slots import (
     reserve_option_names,
 )
 
-__all__ = ["PRESETS", "CapsOptions", "caps_option_names", "coerce_option", "explain_divergence", "wants_ground_truth"]
+__all__ = ["PRESETS", "CapsOptions", "caps_option_names", "coerce_option", "explain_divergence", "given_option_names",
+           "wants_ground_truth"]
+
+
+def given_option_names(options) -> frozenset[str]:
+    """The names of the options given (``-p NAME=VALUE``, a mapping), as the pipeline reads them: ``-`` as ``_``."""
+    return frozenset(str(key).replace("-", "_") for key in dict(options or {}))
 
 
 def coerce_option(name: str, raw, kind: type):

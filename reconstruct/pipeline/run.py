@@ -44,7 +44,7 @@ from ..solvers.descent import steepest_descent
 from ..solvers.interfaces import DivergenceError
 from .diagnostics import mean_psnr, psnr_observer
 from .front_end import caps_observations
-from .options import CapsOptions, coerce_option, explain_divergence
+from .options import CapsOptions, coerce_option, explain_divergence, given_option_names
 from .problem import FrontEnd, Problem
 from .slots import get_data_term, get_prior
 
@@ -135,8 +135,7 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
     opts.validated_parameters()
     front = config.front_end(capture, context, opts, **front_options)
     if config.schedule is not None:
-        given = frozenset(str(key).replace("-", "_") for key in dict(context.options or {}))
-        opts = config.schedule(front, opts, given)
+        opts = config.schedule(front, opts, given_option_names(context.options))
     defaults = CapsOptions.from_options({}, **config.defaults)
     priors: dict[tuple, object] = {}  # one prior per image shape, shared by the problems of that shape
     # the iterations allocate the same large temporaries again and again: keep freed memory for reuse

@@ -255,8 +255,6 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     if spec.input_kind != "caps":
         raise InputError("--tile", f"method {method}", "a CAPS-input method (DoFP methods run untiled)",
                          "Leave --tile and --memory-gb out for DoFP methods.")
-    frame = spec.frame_options(capture, options) if spec.frame_options is not None else {}
-    options = {**frame, **options}  # what the method adapts to the whole frame is fixed once, for every tile
     budget, source = memory_budget(memory_gb)
     if tile is None:
         if fits(capture.hr_shape, budget):
@@ -271,6 +269,9 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
                            workers=workers, margin=margin)
     if layout is None:
         return None
+    # what the method adapts to the whole frame is fixed once, for every tile (not when the frame runs untiled)
+    frame = spec.frame_options(capture, options) if spec.frame_options is not None else {}
+    options = {**frame, **options}
     store = PartStore(parts, job_key(capture, method, layout, homographies, options, str(device)))
     blender, records = _run_tiles(capture, method, layout, homographies, store, str(device), options, runner,
                                   progress)
