@@ -244,10 +244,12 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
     """Time each method of ``methods`` (CAPS-input methods; ``caps`` by default) for each size (``N`` or
     ``(width, height)``) and device, on the same capture; returns the fastest run of each.
 
-    The ``repeats`` run in rounds: each round times every (size, device, tiling, method) once, so a drift of the
-    machine's speed between rounds touches every size alike. Each result carries ``all_wall_s`` (one per round),
+    The ``repeats`` run in rounds: each round times every (size, device, tiling, method) once, then the reference
+    run again (the first size's untiled run of each device and method), so a drift of the machine's speed between
+    or within rounds touches every size alike. Each result carries ``all_wall_s`` (one per round),
     ``median_wall_s`` and ``per_pixel_vs_reference``: the median over the rounds of its time per pixel over that of
-    the round's reference run (the first size's untiled run of the same device and method; :func:`paired_ratios`).
+    the round's reference, the geometric mean of the reference's opening and closing runs (``closing_wall_s``;
+    :func:`paired_ratios`).
 
     ``iterations``: the ADMM iterations of every method (None: each method's own default; ``caps``: 25).
     ``threads``: torch CPU threads of each run (None: torch's choice). ``tile``: also run in tiles of this HR
@@ -261,25 +263,40 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
                 for m in methods]
         jobs = list(dict.fromkeys(jobs))
         runs: dict[tuple, list[dict]] = {job: [] for job in jobs}
+        closing: dict[tuple, list[float]] = {job: [] for job in _reference_jobs(jobs)}
         for r in range(repeats):
-            for job in jobs:
+            round_jobs = jobs + (list(closing) if len(jobs) > len(closing) else [])
+            for i, job in enumerate(round_jobs):
                 label, dev, tiled, method = job
-                what = "untiled" if tiled is None else f"tiles of {tiled}"
+                what = ("untiled" if tiled is None else f"tiles of {tiled}") + (", closing" if i >= len(jobs) else "")
                 log(f"{method} {label} ({what}) on {dev}, round {r + 1}/{repeats} ...")
                 cmd = _worker_command(paths[label], dev, method, tiled, iterations=iterations,
                                       true_warps=true_warps, threads=threads)
                 proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
                 if proc.returncode != 0:
                     raise RuntimeError(f"benchmark worker failed:\n{proc.stderr[-2000:]}")
-                runs[job].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+                run = json.loads(proc.stdout.strip().splitlines()[-1])
+                (runs[job].append(run) if i < len(jobs) else closing[job].append(run["wall_s"]))
     results = []
     for job in jobs:
         best = dict(min(runs[job], key=lambda run: run["wall_s"]))
         best["repeats"] = repeats
         best["all_wall_s"] = [run["wall_s"] for run in runs[job]]
         best["median_wall_s"] = float(np.median(best["all_wall_s"]))
+        if closing.get(job):
+            best["closing_wall_s"] = closing[job]
         results.append(best)
     return paired_ratios(results)
+
+
+def _reference_jobs(jobs: list[tuple]) -> list[tuple]:
+    """The reference job of each (device, method): its first untiled job (:func:`paired_ratios`), which also
+    closes every round, so that each round's reference brackets the round's other runs."""
+    first: dict[tuple, tuple] = {}
+    for job in jobs:
+        if job[2] is None:
+            first.setdefault((job[1], job[3]), job)
+    return list(first.values())
 
 
 def _worker_main(argv=None) -> None:

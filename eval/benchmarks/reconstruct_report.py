@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +17,10 @@ STAGE_ORDER = ("rearrange", "registration", "operator", "cagf", "init", "nlstr_s
 def paired_ratios(results: list[dict]) -> list[dict]:
     """Add ``per_pixel_vs_reference`` to each run of ``results`` (in place; returned): the median over the rounds
     of ``(wall / pixels) / (reference wall / reference pixels)``, the reference being the first untiled run of the
-    same device and method in the list and round ``r`` of one paired with round ``r`` of the other. ``None`` where
-    there is no untiled reference. Pairing by round cancels the machine's drift over a long benchmark."""
+    same device and method in the list and round ``r`` of one paired with round ``r`` of the other. Where the
+    reference also closed each round (``closing_wall_s``), its wall in round ``r`` is the geometric mean of the
+    opening and closing runs. ``None`` where there is no untiled reference. Pairing by round cancels the
+    machine's drift over a long benchmark; bracketing the round, most of the drift within it."""
     references: dict[tuple, dict] = {}
     for run in results:
         key = (run["device"], run.get("method", "caps"))
@@ -28,9 +31,12 @@ def paired_ratios(results: list[dict]) -> list[dict]:
         if ref is None:
             run["per_pixel_vs_reference"], run["reference"] = None, None
             continue
-        pairs = zip(run.get("all_wall_s", [run["wall_s"]]), ref.get("all_wall_s", [ref["wall_s"]]))
+        ref_walls = ref.get("all_wall_s", [ref["wall_s"]])
+        if ref.get("closing_wall_s"):
+            ref_walls = [math.sqrt(a * b) for a, b in zip(ref_walls, ref["closing_wall_s"])]
+        pairs = zip(run.get("all_wall_s", [run["wall_s"]]), ref_walls)
         ratios = [(a / _pixels(run)) / (b / _pixels(ref)) for a, b in pairs]
-        run["per_pixel_vs_reference"] = float(np.median(ratios))
+        run["per_pixel_vs_reference"] = 1.0 if run is ref else float(np.median(ratios))
         run["reference"] = _column_label(ref)
     return results
 

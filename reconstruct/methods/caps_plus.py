@@ -37,10 +37,12 @@ import torch
 from capssim.errors import InputError
 
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
+from ..model.polarization_split import angle_mean
 from ..model.rearrange import observations_from_capture
 from ..pipeline import PipelineConfig, caps_observations, run_pipeline
 from ..pipeline.options import CapsOptions, given_option_names
 from ..pipeline.problem import FrontEnd
+from ..pipeline.run import fused_initialization
 from ..registration.image_ops import noise_sigma
 from ..registry import MethodOutput, RunContext, register_method
 from .caps import REFERENCE as CAPS_REFERENCE
@@ -50,8 +52,9 @@ __all__ = ["CAPS_PLUS", "COUNT_OPTIONS", "INITIALIZATIONS", "NOISE_ITERATIONS", 
            "demosaicked_initialization", "frame_iterations", "noise_adaptive_iterations", "noise_adaptive_schedule",
            "raw_noise_sigma"]
 
-#: ``-p init=NAME``: ``naive`` (demosaicked apertures, the default) or ``fusion`` (``caps``'s, eq. 24)
-INITIALIZATIONS = ("naive", "fusion")
+#: ``-p init=NAME``: ``naive`` (demosaicked apertures, the default), ``fusion`` (``caps``'s, eq. 24) or
+#: ``split`` (the analyzer mean of the fusion, the polarization part of the demosaicked apertures)
+INITIALIZATIONS = ("naive", "fusion", "split")
 #: the Bayer demosaicking of the initialization (``caps-naive``'s default)
 INIT_BAYER_METHOD = "menon2007"
 
@@ -74,15 +77,21 @@ def demosaicked_initialization(capture, context: RunContext, geometry) -> torch.
 
 def caps_plus_observations(capture, context: RunContext, options, *, init: str = "naive") -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
-    initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24)."""
+    initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
+    ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
+    polarization-split data term splits its residual)."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
-                         "Use -p init=naive (demosaicked apertures) or -p init=fusion (caps's).")
+                         "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's) or -p init=split.")
     front = caps_observations(capture, context, options)
-    if name == "naive":
+    if name != "fusion":
         with context.timer.stage("init_demosaic"):
-            front.problems[0].init = demosaicked_initialization(capture, context, front.geometry)
+            naive = demosaicked_initialization(capture, context, front.geometry)
+            if name == "split":
+                fusion = fused_initialization(front.problems[0])
+                naive = (angle_mean(fusion) + naive - angle_mean(naive)).clamp(0.0, 1.0).contiguous()
+            front.problems[0].init = naive
     front.params["init"] = name
     return front
 

@@ -48,7 +48,7 @@ from .options import CapsOptions, coerce_option, explain_divergence, given_optio
 from .problem import FrontEnd, Problem
 from .slots import get_data_term, get_prior
 
-__all__ = ["PipelineConfig", "parse_pipeline_options", "run_pipeline"]
+__all__ = ["PipelineConfig", "fused_initialization", "parse_pipeline_options", "run_pipeline"]
 
 
 @dataclass(frozen=True)
@@ -160,18 +160,23 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
                         extra=extra, unobserved=_unobserved(solved, capture.hr_shape))
 
 
+def fused_initialization(problem: Problem) -> torch.Tensor:
+    """The pipeline's initial estimate of ``problem`` ``(C, H, W)``: all its observations fused on the HR grid
+    (eq. 24, :func:`~capssim.reconstruct.model.init_fusion.fuse_initial_estimate`), unmixed per pixel by a
+    calibrated analyzer (``problem.unmix``)."""
+    init = fuse_initial_estimate(problem.seen, problem.homographies, problem.hr_shape)
+    if problem.unmix is not None:  # the fused channels see the calibrated analyzer: A x per pixel
+        init = unmix_analyzer(init, problem.unmix)
+    return init
+
+
 def _solve_problem(capture, context: RunContext, opts: CapsOptions, defaults: CapsOptions, problems: list[Problem],
                    index: int, priors: dict) -> _Solved:
     """Data term, initialization, prior and solver of ``problems[index]``."""
     problem, timer, admm_params = problems[index], context.timer, opts.admm
     data = get_data_term(opts.data_term).factory(problem, options=opts, stage=timer.stage)
     with timer.stage("init"):
-        if problem.init is not None:  # the front end's own estimate
-            init = problem.init
-        else:
-            init = fuse_initial_estimate(problem.seen, problem.homographies, problem.hr_shape)
-            if problem.unmix is not None:  # the fused channels see the calibrated analyzer: A x per pixel
-                init = unmix_analyzer(init, problem.unmix)
+        init = problem.init if problem.init is not None else fused_initialization(problem)  # or the front end's
     spec = get_prior(opts.prior)
     shape = problem.image_shape
     if spec.factory is not None and shape not in priors:

@@ -71,6 +71,20 @@ def test_paired_ratios_divide_round_by_round_and_take_the_median():
     assert out[3]["per_pixel_vs_reference"] is None
 
 
+def test_a_reference_that_closes_each_round_brackets_it():
+    """The reference runs again at the end of each round; the round's reference is the geometric mean of its
+    opening and closing runs, so a machine that slows down within a round moves the reference too."""
+    from capssim.eval.benchmarks.reconstruct_report import paired_ratios
+
+    ref = {"device": "cpu", "method": "caps", "tile": None, "hr_shape": [512, 512], "wall_s": 10.0,
+           "all_wall_s": [10.0, 10.0, 10.0], "closing_wall_s": [10.0, 40.0, 22.5]}
+    big = {"device": "cpu", "method": "caps", "tile": None, "hr_shape": [1024, 1024], "wall_s": 44.0,
+           "all_wall_s": [44.0, 80.0, 60.0]}
+    out = paired_ratios([ref, big])
+    assert out[0]["per_pixel_vs_reference"] == 1.0
+    assert out[1]["per_pixel_vs_reference"] == pytest.approx(1.0)  # rounds 1.1, 1.0 (ref 20), 1.0 (ref 15)
+
+
 @pytest.mark.slow
 def test_repeats_run_in_rounds_and_report_the_median_and_the_paired_ratio():
     r = CliRunner().invoke(app, ["bench", "reconstruct", "--size", "32", "--size", "64x32", "--repeats", "2",

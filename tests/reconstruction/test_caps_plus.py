@@ -120,6 +120,21 @@ def test_the_naive_initialization_is_caps_naives_image(capture):
                                                           iterations=0)[0].image[inner], atol=1e-3)
 
 
+def test_the_split_initialization_takes_the_fusions_mean_and_the_apertures_polarization(capture):
+    """-p init=split: the analyzer mean of each colour from caps's fused start, the rest from the demosaicked
+    apertures (read through 0 iterations of steepest descent, no physical projection; inside a 4 px border)."""
+    start = {"true_warps": True, "prior": "none", "iterations": 0, "physical_projection": False}
+    split, record = reconstruct(capture, "caps-plus", init="split", **start)
+    fusion, _ = reconstruct(capture, "caps-plus", init="fusion", **start)
+    naive, _ = reconstruct(capture, "caps-plus", init="naive", **start)
+    assert record["params"]["init"] == "split"
+    inner = (slice(None), slice(4, -4), slice(4, -4))
+    split, fusion, naive = (torch.from_numpy(x.image[inner]) for x in (split, fusion, naive))
+    assert torch.allclose(angle_mean(split), angle_mean(fusion), atol=1e-5)
+    assert torch.allclose(split - angle_mean(split), naive - angle_mean(naive), atol=1e-5)
+    assert not torch.allclose(split, naive, atol=1e-3) and not torch.allclose(split, fusion, atol=1e-3)
+
+
 def test_caps_plus_refuses_an_unknown_initialization(capture):
     with pytest.raises(CapssimError, match="init"):
         reconstruct(capture, "caps-plus", true_warps=True, init="zeros")
