@@ -263,20 +263,25 @@ def run_benchmark(*, sizes=(256, 512, 1024), devices=("cpu", "cuda"), iterations
                 for m in methods]
         jobs = list(dict.fromkeys(jobs))
         runs: dict[tuple, list[dict]] = {job: [] for job in jobs}
-        closing: dict[tuple, list[float]] = {job: [] for job in _reference_jobs(jobs)}
+        references = _reference_jobs(jobs)  # they close each round too, where it has other runs to bracket
+        closing: dict[tuple, list[float]] = {job: [] for job in references} if len(jobs) > len(references) else {}
+
+        def timed(job: tuple, r: int, note: str = "") -> dict:
+            label, dev, tiled, method = job
+            what = ("untiled" if tiled is None else f"tiles of {tiled}") + note
+            log(f"{method} {label} ({what}) on {dev}, round {r + 1}/{repeats} ...")
+            cmd = _worker_command(paths[label], dev, method, tiled, iterations=iterations,
+                                  true_warps=true_warps, threads=threads)
+            proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+            if proc.returncode != 0:
+                raise RuntimeError(f"benchmark worker failed:\n{proc.stderr[-2000:]}")
+            return json.loads(proc.stdout.strip().splitlines()[-1])
+
         for r in range(repeats):
-            round_jobs = jobs + (list(closing) if len(jobs) > len(closing) else [])
-            for i, job in enumerate(round_jobs):
-                label, dev, tiled, method = job
-                what = ("untiled" if tiled is None else f"tiles of {tiled}") + (", closing" if i >= len(jobs) else "")
-                log(f"{method} {label} ({what}) on {dev}, round {r + 1}/{repeats} ...")
-                cmd = _worker_command(paths[label], dev, method, tiled, iterations=iterations,
-                                      true_warps=true_warps, threads=threads)
-                proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
-                if proc.returncode != 0:
-                    raise RuntimeError(f"benchmark worker failed:\n{proc.stderr[-2000:]}")
-                run = json.loads(proc.stdout.strip().splitlines()[-1])
-                (runs[job].append(run) if i < len(jobs) else closing[job].append(run["wall_s"]))
+            for job in jobs:
+                runs[job].append(timed(job, r))
+            for job, walls in closing.items():
+                walls.append(timed(job, r, ", closing")["wall_s"])
     results = []
     for job in jobs:
         best = dict(min(runs[job], key=lambda run: run["wall_s"]))

@@ -87,11 +87,11 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     front = caps_observations(capture, context, options)
     if name != "fusion":
         with context.timer.stage("init_demosaic"):
-            naive = demosaicked_initialization(capture, context, front.geometry)
-            if name == "split":
+            start = demosaicked_initialization(capture, context, front.geometry)
+            if name == "split":  # the fusion's analyzer mean, the demosaicked apertures' polarization part
                 fusion = fused_initialization(front.problems[0])
-                naive = (angle_mean(fusion) + naive - angle_mean(naive)).clamp(0.0, 1.0).contiguous()
-            front.problems[0].init = naive
+                start = (angle_mean(fusion) + start - angle_mean(start)).clamp(0.0, 1.0).contiguous()
+            front.problems[0].init = start
     front.params["init"] = name
     return front
 
