@@ -277,7 +277,9 @@ def test_freed_memory_the_process_keeps_counts_as_available(monkeypatch):
     with reuse_freed_memory() as active:
         if not active:
             pytest.skip("CAPSSIM_REUSE_FREED_MEMORY=0")
-        before = held_free_bytes()
         x = torch.ones(block // 4)
+        # measured with the block held: a heap that already keeps more than the block free may serve it
+        # from there, so the free count before the allocation need not be below the count after the free
+        held = held_free_bytes()
         del x
-        assert held_free_bytes() - before >= block * 0.9
+        assert held_free_bytes() - held >= block * 0.9
