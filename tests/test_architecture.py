@@ -131,10 +131,10 @@ RECONSTRUCT_ROOMS = (
     ("registration",),
     ("model",),
     ("solvers",),
+    ("networks",),  # the learned networks: below the priors, which may hold one (nlstr-denoiser)
     ("priors",),
     ("pipeline",),
     ("registry",),
-    ("networks",),
     ("methods",),
     ("training",),
     ("tiles",),  # full frames in tiles: runs any registered method per tile

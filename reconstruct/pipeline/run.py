@@ -145,8 +145,8 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
     image = _assemble(solved, "image", capture.hr_shape)
     init = _assemble(solved, "init", capture.hr_shape)
     params = opts.to_dict()
-    params.update({"psf": front.psf, "use_cagf": opts.data_term == "cagf", "use_nlstr": opts.prior == "nlstr",
-                   **front.params})
+    params.update({"psf": front.psf, "use_cagf": opts.data_term == "cagf",
+                   "use_nlstr": opts.prior in ("nlstr", "nlstr-denoiser"), **front.params})
     for prior in priors.values():
         if callable(getattr(prior, "record", None)):
             params.update(prior.record())

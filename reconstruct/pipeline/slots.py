@@ -13,7 +13,8 @@ Built in:
   ``cagf-split``, CAGF with the residual's polarization part shared only within one analyzer (not the
   paper's; ``caps-plus``, :mod:`capssim.reconstruct.model.polarization_split`);
 * priors: ``nlstr``, the nonlocal sparse tensor of section 3.3 (``caps``); ``tikhonov``, a quadratic
-  smoothness prior (not the paper's; ``-p tikhonov_weight=W``); ``none``, the data term alone, solved
+  smoothness prior (not the paper's; ``-p tikhonov_weight=W``); ``nlstr-denoiser``, NLSTR with its analyzer
+  mean blended with a learned denoiser's (not the paper's; ``caps-plus-pnp``); ``none``, the data term alone, solved
   by steepest descent (eq. 16, ``caps-no-nlstr``).
 
 A prior's factory is called once per image shape of a run, as
@@ -35,6 +36,7 @@ from ..model.cagf import cagf_confidence
 from ..model.data_term import ConfidenceDataTerm
 from ..model.polarization_split import PolarizationSplitDataTerm
 from ..priors.nlstr import NonlocalSparseTensor
+from ..priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, denoiser_model
 from ..priors.nlstr_prior import NLSTRPrior
 from ..priors.tikhonov import TikhonovPrior
 from ..solvers.interfaces import DataFidelity, Prior, StageFactory
@@ -275,7 +277,24 @@ def tikhonov_prior(shape: tuple[int, int, int], *, parameters: TikhonovParameter
     return TikhonovPrior(parameters.tikhonov_weight)
 
 
+def nlstr_denoiser_prior(shape: tuple[int, int, int], *, parameters: DenoiserParameters, options,
+                         device: torch.device) -> NLSTRDenoiserPrior:
+    """NLSTR with its analyzer mean blended with the learned denoiser's (not the paper's; ``caps-plus-pnp``,
+    :mod:`capssim.reconstruct.priors.nlstr_denoiser`)."""
+    denoiser = denoiser_model(parameters.denoiser_weights, device)
+    channels = denoiser.body[0].in_channels - 1
+    if shape[0] != channels:
+        raise InputError("prior", f"nlstr-denoiser on {shape[0]}-channel images",
+                         f"{channels}-channel images, as its denoiser was trained (caps, caps-plus: 12)",
+                         "Use it with a 12-channel CAPS method, not caps-iccp; or -p prior=nlstr.")
+    return NLSTRDenoiserPrior(nlstr_prior(shape, parameters=None, options=options, device=device), denoiser,
+                              parameters, options.admm.iterations)
+
+
 register_prior("nlstr", nlstr_prior, description="nonlocal sparse tensor (paper section 3.3): the paper's prior")
 register_prior("tikhonov", tikhonov_prior, parameters=TikhonovParameters,
                description="quadratic smoothness lambda/2 ||grad X||^2 (not the paper's; -p tikhonov_weight=W)")
+register_prior("nlstr-denoiser", nlstr_denoiser_prior, parameters=DenoiserParameters,
+               description="NLSTR, its analyzer mean blended with a learned denoiser's (not the paper's; "
+                           "caps-plus-pnp; -p denoiser_blend=W)")
 register_prior("none", None, description="no prior: the data term alone, by steepest descent (eq. 16)")

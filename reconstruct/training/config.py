@@ -6,6 +6,7 @@
     seed: 0
     model: {network: cpdnet, features: 24}       # NETWORKS or jcpd-dictionary; other keys: its options
     input: dofp                                  # dofp (DoFP mosaic) | aperture (demosaicked LR images)
+                                                 # | noisy-gt (denoiser: ground truth + white noise)
                                                  # | gt-patches (jcpd-dictionary)
     data:
       dataset: dataset-train-textures.yaml       # a capssim dataset config, relative to this file
@@ -13,7 +14,7 @@
       validation: 8                              # the last N samples are held out for validation
       crop: 64                                   # crop side in input pixels (dofp: a multiple of 4)
       batch: 8
-    loss: {intermediate_weight: 0.5, stokes_weight: 0.5}   # cpdnet's multitask weights; aperture: masked L1
+    loss: {intermediate_weight: 0.5, stokes_weight: 0.5}   # cpdnet's multitask weights; aperture: masked L1; noisy-gt: MSE
     optimizer: {name: adam, lr: 0.001, weight_decay: 0}
     schedule: {steps: 2000, warmup: 50, decay: cosine, final_lr_fraction: 0.05}
     validate_every: 250
@@ -56,7 +57,7 @@ from .pairs import INPUT_KINDS
 
 OPTIMIZERS = ("adam", "adamw", "sgd")
 DECAYS = ("cosine", "constant", "step")
-LOSS_KEYS = {"dofp": ("intermediate_weight", "stokes_weight"), "aperture": (), "gt-patches": ()}
+LOSS_KEYS = {"dofp": ("intermediate_weight", "stokes_weight"), "aperture": (), "noisy-gt": (), "gt-patches": ()}
 #: the dictionary of dofp-jcpd, learned from ground-truth patches (schedule.steps: MOD iterations)
 DICTIONARY_MODEL, DICTIONARY_INPUT = "jcpd-dictionary", "gt-patches"
 DICTIONARY_DEFAULTS = {"patch": 8, "atoms": 256, "sparsity": 8, "patches": 8000}
@@ -109,6 +110,9 @@ MODEL_SPECS = {
                      "blocks": Integer(minimum=0), "residual_scale": Number(minimum=0, maximum=10),
                      "bicubic_skip": Boolean()},
                     what="an edsr model (network, channels, features, blocks, residual_scale, bicubic_skip)"),
+    "denoiser": Mapping({"network": _NETWORK, "channels": Integer(minimum=1, maximum=64), "features": Integer(minimum=1),
+                         "depth": Integer(minimum=2, maximum=64)},
+                        what="a denoiser model (network, channels, features, depth)"),
     DICTIONARY_MODEL: Mapping({"network": _NETWORK, "patch": Integer(minimum=4, maximum=16, multiple_of=2),
                                "atoms": Integer(minimum=1, maximum=4096), "sparsity": Integer(minimum=1, maximum=64),
                                "patches": Integer(minimum=1, maximum=10**6)},
@@ -116,7 +120,8 @@ MODEL_SPECS = {
 }
 #: the constructor defaults of each network, for the memory estimate (the config keeps only what it sets)
 NETWORK_DEFAULTS = {"cpdnet": {"features": 24, "colour_blocks": 2, "polarization_blocks": 2},
-                    "edsr": {"channels": 3, "features": 32, "blocks": 4}}
+                    "edsr": {"channels": 3, "features": 32, "blocks": 4},
+                    "denoiser": {"channels": 12, "features": 48, "depth": 7}}
 
 
 class UnknownConfigName(ConfigError, UnknownNameError):
@@ -232,6 +237,9 @@ def model_memory_bytes(network: str, params: dict, *, batch: int, crop: int, act
     if network == "cpdnet":
         weights = 9 * f * (9 + 3 + 8 + 4) + 18 * f * f * (p["colour_blocks"] + p["polarization_blocks"])
         maps = batch * crop ** 2 * f * (4 * (4 * p["colour_blocks"] + 3) + 3 * (4 * p["polarization_blocks"] + 3))
+    elif network == "denoiser":
+        weights = 9 * f * (2 * p["channels"] + 1) + 9 * f * f * (p["depth"] - 2)
+        maps = batch * crop ** 2 * (2 * f * (p["depth"] - 1) + 3 * p["channels"])
     else:
         weights = 18 * f * p["channels"] + 9 * f * f * (2 * p["blocks"] + 1 + 4)
         maps = batch * crop ** 2 * f * (4 * p["blocks"] + 3 + 4 * 4 + 4)

@@ -12,6 +12,9 @@ capssim dataset (:class:`capssim.dataset.torch.CaptureDataset`, whole captures):
   ``(3, 2h, 2w)`` (bicubic, through the inverse of the aperture's homography ``H_n``), which is
   where ``caps-sisr`` puts the network's output. Pixels whose source lies within
   :data:`BORDER_HR_PX` of the ground truth's border are masked out of the loss.
+* ``noisy-gt``: the ground truth ``(12, H, W)`` with white Gaussian noise added at every step, and the noise
+  level, as the denoiser of ``caps-plus-pnp`` reads them; target the ground truth
+  (:class:`NoisyGtPairs`).
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from capssim.errors import InputError
 from ..methods.caps_naive import bicubic_warp, demosaic_apertures, sampling_grid
 from ..networks.cpdnet import cpdnet_loss, dofp_network_input
 
-INPUT_KINDS = ("dofp", "aperture")
+INPUT_KINDS = ("dofp", "aperture", "noisy-gt")
 #: aperture targets read the ground truth at least this far (HR px) inside its border
 BORDER_HR_PX = 3.0
 
@@ -111,6 +114,61 @@ class AperturePairs(PairSet):
         return F.interpolate(inputs[0], scale_factor=2, mode="bicubic", align_corners=False)
 
 
+class NoisyGtPairs(PairSet):
+    """Denoising pairs drawn afresh at every step: a crop of the ground truth, brightened by a gain drawn
+    log-uniformly in :data:`GAIN_RANGE` (clipped to [0, 1]; the rendered training scenes are dim, the
+    benchmark scenes reach 1), randomly flipped and transposed, plus white noise of a std drawn uniformly in
+    ``[0, NOISE_SIGMA_MAX]`` per crop. Inputs ``(noisy, sigma)``, target the clean crop. Validation: each
+    whole sample with noise of :data:`VALIDATION_SIGMA` from a generator seeded by its index."""
+
+    kind, crop_step = "noisy-gt", 1
+    #: the noise levels of training (std on [0, 1]) and of validation
+    NOISE_SIGMA_MAX, VALIDATION_SIGMA = 0.06, 0.02
+    GAIN_RANGE = (1.0, 3.0)
+
+    @staticmethod
+    def predict(model, inputs):
+        return model(*inputs)
+
+    @staticmethod
+    def image(outputs):
+        return outputs
+
+    def loss(self, outputs, target, mask, loss_params: dict):
+        return F.mse_loss(outputs, target)
+
+    @staticmethod
+    def baseline(inputs):
+        """What the network refines: the noisy input itself."""
+        return inputs[0]
+
+    def draw(self, batch: int, size: int, generator: torch.Generator):
+        (clean,), _, mask = super().draw(batch, size, generator)
+        low, high = np.log(self.GAIN_RANGE[0]), np.log(self.GAIN_RANGE[1])
+        gain = torch.exp(low + (high - low) * torch.rand(batch, 1, 1, 1, generator=generator))
+        clean = (clean * gain.to(clean.device)).clamp(0.0, 1.0)
+        flips = torch.rand(3, generator=generator)
+        clean = clean.flip(-1) if flips[0] < 0.5 else clean
+        clean = clean.flip(-2) if flips[1] < 0.5 else clean
+        clean = clean.transpose(-1, -2) if flips[2] < 0.5 else clean
+        sigma = self.NOISE_SIGMA_MAX * torch.rand(batch, generator=generator)
+        noise = torch.randn(clean.shape, generator=generator).to(clean.device)
+        noisy = clean + sigma.to(clean.device).reshape(-1, 1, 1, 1) * noise
+        return (noisy, sigma.to(clean.device)), clean, mask
+
+    def full(self, i: int):
+        (clean,), target, mask = super().full(i)
+        noise = torch.randn(clean.shape, generator=torch.Generator().manual_seed(i)).to(clean.device)
+        sigma = torch.full((1,), self.VALIDATION_SIGMA, device=clean.device)
+        return (clean + self.VALIDATION_SIGMA * noise, sigma), target, mask
+
+
+def noisy_gt_pairs(items: list[dict]) -> NoisyGtPairs:
+    """:class:`NoisyGtPairs` of CaptureDataset items (their ground truths)."""
+    target = torch.stack([item["gt"].to(torch.float32) for item in items])
+    return NoisyGtPairs((target,), target, torch.ones_like(target[:, :1]), 1)
+
+
 def dofp_pairs(items: list[dict]) -> DofpPairs:
     """:class:`DofpPairs` of CaptureDataset items (whole captures with ``dofp_raw`` and ``gt``)."""
     sparse, bilinear = [], []
@@ -152,7 +210,7 @@ def aperture_pairs(items: list[dict]) -> AperturePairs:
 def build_pairs(kind: str, items: list[dict]) -> PairSet:
     if kind not in INPUT_KINDS:
         raise InputError("input", kind, " or ".join(INPUT_KINDS))
-    return dofp_pairs(items) if kind == "dofp" else aperture_pairs(items)
+    return {"dofp": dofp_pairs, "aperture": aperture_pairs, "noisy-gt": noisy_gt_pairs}[kind](items)
 
 
 def masked_psnr(image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> float:
@@ -162,4 +220,4 @@ def masked_psnr(image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
 
 
-__all__ = ["INPUT_KINDS", "PairSet", "build_pairs", "masked_psnr"]
+__all__ = ["INPUT_KINDS", "NoisyGtPairs", "PairSet", "build_pairs", "masked_psnr"]

@@ -80,7 +80,7 @@ def test_model_file_round_trip_and_bad_files(tmp_path):
             load_model(bad)
 
 
-@pytest.mark.parametrize("name", ["cpdnet-small", "edsr-small"])
+@pytest.mark.parametrize("name", ["cpdnet-small", "edsr-small", "denoiser"])
 def test_shipped_weights_are_small_and_load(name):
     path = WEIGHTS_DIR / f"{name}.pt"
     assert path.is_file(), f"shipped weights {path} missing"

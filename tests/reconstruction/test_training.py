@@ -49,14 +49,16 @@ def tmp_gt(tmp_path, write_png_gt, smooth_random_scene) -> Path:
 
 def tiny_config(tmp_path: Path, network: str = "cpdnet", steps: int = 12, **extra) -> Path:
     """A training config in ``tmp_path`` (the :func:`tmp_gt` folder) for a tiny network."""
-    model = ("{network: cpdnet, features: 6, colour_blocks: 1, polarization_blocks: 1}" if network == "cpdnet"
-             else "{network: edsr, channels: 3, features: 6, blocks: 1}")
-    crop = 16 if network == "cpdnet" else 8
+    model = {"cpdnet": "{network: cpdnet, features: 6, colour_blocks: 1, polarization_blocks: 1}",
+             "edsr": "{network: edsr, channels: 3, features: 6, blocks: 1}",
+             "denoiser": "{network: denoiser, channels: 12, features: 6, depth: 3}"}[network]
+    crop = {"cpdnet": 16, "edsr": 8, "denoiser": 16}[network]
+    kind = {"cpdnet": "dofp", "edsr": "aperture", "denoiser": "noisy-gt"}[network]
     text = f"""
     name: tiny-{network}
     seed: 1
     model: {model}
-    input: {"dofp" if network == "cpdnet" else "aperture"}
+    input: {kind}
     data: {{dataset: dataset.yaml, root: {tmp_path / "data"}, validation: 1, crop: {crop}, batch: 4}}
     optimizer: {{name: adam, lr: {extra.get("lr", 0.003)}}}
     schedule: {{steps: {steps}, warmup: 0, decay: constant}}
@@ -74,7 +76,7 @@ def weights_equal(a: Path, b: Path) -> bool:
     return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
-@pytest.mark.parametrize("network", ["cpdnet", "edsr"])
+@pytest.mark.parametrize("network", ["cpdnet", "edsr", "denoiser"])
 def test_loss_decreases_and_model_file_loads(tmp_path, network, tmp_gt):
     config = load_train_config(tiny_config(tmp_gt, network, steps=40))
     losses = []
@@ -87,6 +89,17 @@ def test_loss_decreases_and_model_file_loads(tmp_path, network, tmp_gt):
     assert record["training"]["validation_psnr_db"] == pytest.approx(result.validation_psnr)
     with pytest.raises(InputError, match="weights"):
         load_model(result.model, expect="cpdnet" if network == "edsr" else "edsr")
+
+
+def test_denoiser_retrains_to_the_same_weights(tmp_path, tmp_gt):
+    """The noisy pairs are drawn from the run's seeded generator: two runs of one config give equal weights,
+    and another seed gives other weights."""
+    config = load_train_config(tiny_config(tmp_gt, "denoiser", steps=6))
+    first, second = train(config, tmp_path / "first"), train(config, tmp_path / "second")
+    assert weights_equal(first.model, second.model)
+    other = load_train_config(tiny_config(tmp_gt, "denoiser", steps=6))
+    other.seed = 2
+    assert not weights_equal(first.model, train(other, tmp_path / "other").model)
 
 
 def test_resume_is_exact_in_process(tmp_path, tmp_gt):

@@ -1,0 +1,126 @@
+"""``caps-plus-pnp`` (issue 36): the learned denoiser, the ``nlstr-denoiser`` prior in the pipeline, its options
+and its errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from capssim.errors import CapssimError, InputError
+from capssim.reconstruct import reconstruct
+from capssim.reconstruct.model.polarization_split import angle_mean
+from capssim.reconstruct.networks import build_network, save_model
+from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, sigma_schedule
+from capssim.sensor import make_sensor
+from capssim.simulate import simulate_capture
+
+SIZE = 40
+
+
+@pytest.fixture(scope="module")
+def capture(smooth_random_scene):
+    return simulate_capture(smooth_random_scene(SIZE, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory):
+    """A small untrained denoiser's model file (the mechanics do not need a trained one)."""
+    torch.manual_seed(0)
+    params = {"channels": 12, "features": 4, "depth": 3}
+    path = tmp_path_factory.mktemp("denoiser") / "model.pt"
+    return save_model(path, "denoiser", params, build_network("denoiser", params))
+
+
+@pytest.mark.parametrize("shape", [(1, 12, 1, 1), (2, 12, 7, 5), (1, 12, 33, 18)])
+def test_denoiser_keeps_shape_and_starts_near_identity_on_tiny_and_odd_sizes(shape):
+    torch.manual_seed(0)
+    net = build_network("denoiser", {"features": 4, "depth": 3}).eval()
+    x = torch.rand(shape)
+    with torch.no_grad():
+        y = net(x, torch.full((shape[0],), 0.02))
+    assert y.shape == x.shape and torch.isfinite(y).all()
+    with pytest.raises(ValueError, match="depth"):
+        build_network("denoiser", {"depth": 1})
+
+
+def test_sigma_schedule_runs_log_linearly_from_start_to_end():
+    values = [sigma_schedule(i, 5, 0.05, 0.005) for i in range(7)]
+    assert values[0] == pytest.approx(0.05) and values[4] == pytest.approx(0.005) and values[6] == pytest.approx(0.005)
+    assert values[2] == pytest.approx((0.05 * 0.005) ** 0.5)
+    assert sigma_schedule(0, 1, 0.05, 0.005) == pytest.approx(0.05)
+
+
+class _Constant:
+    """A stand-in NLSTR (its estimate is ``z``) and a stand-in denoiser (its estimate is ``c``)."""
+
+    def begin(self):
+        pass
+
+    def estimate(self, z, *, mu, iteration, stage):
+        return z.clone(), {"n_similar": 1}
+
+    def after_step(self, *, iteration, change):
+        return {}
+
+
+def test_blend_replaces_only_the_analyzer_mean():
+    """X = X_nl + w (P X_dn - P X_nl): the polarization part (I - P) X is NLSTR's, the mean is the blend."""
+    g = torch.Generator().manual_seed(1)
+    z, c = torch.rand(12, 6, 5, generator=g), torch.rand(12, 6, 5, generator=g)
+    denoiser = lambda x, level: c[None].expand_as(x)  # noqa: E731
+    from contextlib import nullcontext
+    for w in (0.0, 0.3, 1.0):
+        prior = NLSTRDenoiserPrior(_Constant(), denoiser, DenoiserParameters(denoiser_blend=w), 4)
+        x, fields = prior.estimate(z, mu=0.5, iteration=0, stage=lambda name: nullcontext())
+        torch.testing.assert_close(x - angle_mean(x), z - angle_mean(z))
+        torch.testing.assert_close(angle_mean(x), (1 - w) * angle_mean(z) + w * angle_mean(c))
+        assert fields["denoiser_sigma"] == pytest.approx(0.05)
+
+
+def test_runs_through_the_pipeline_and_blend_zero_is_caps_plus(capture, tiny_weights):
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
+    zero, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4, denoiser_weights=str(tiny_weights),
+                          denoiser_blend=0.0)
+    np.testing.assert_array_equal(zero.image, plus.image)
+    out, record = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4,
+                              denoiser_weights=str(tiny_weights))
+    assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
+    assert not np.array_equal(out.image, plus.image)
+    params = record["params"]
+    assert params["prior"] == "nlstr-denoiser" and params["denoiser_blend"] == 0.5 and params["use_nlstr"]
+    assert [h["denoiser_sigma"] for h in record["history"]][0] == pytest.approx(0.05)
+
+
+def test_the_shipped_denoiser_runs_by_default(capture):
+    out, record = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=3)
+    assert np.isfinite(out.image).all() and record["params"]["prior"] == "nlstr-denoiser"
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"denoiser_blend": 2.0}, "denoiser_blend"),
+    ({"denoiser_sigma_start": 0.0}, "denoiser_sigma_start"),
+    ({"denoiser_sigma_end": float("nan")}, "denoiser_sigma_end"),
+    ({"denoiser_weights": "/nonexistent/model.pt"}, "denoiser_weights"),
+])
+def test_bad_options_name_themselves(capture, options, match):
+    with pytest.raises(InputError, match=match):
+        reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=2, **options)
+
+
+def test_other_networks_and_channel_counts_are_refused(capture, tmp_path, tiny_weights):
+    edsr = save_model(tmp_path / "edsr.pt", "edsr", {"channels": 3, "features": 4, "blocks": 1},
+                      build_network("edsr", {"channels": 3, "features": 4, "blocks": 1}))
+    with pytest.raises(InputError, match="denoiser"):
+        reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=2, denoiser_weights=str(edsr))
+    with pytest.raises(CapssimError, match="12-channel"):
+        reconstruct(capture, "caps-iccp", true_warps=True, iterations=2, prior="nlstr-denoiser",
+                    denoiser_weights=str(tiny_weights))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu(capture):
+    cpu, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=3)
+    gpu, record = reconstruct(capture, "caps-plus-pnp", device="cuda", true_warps=True, iterations=3)
+    assert record["device"].startswith("cuda")
+    assert np.abs(cpu.image - gpu.image).max() < 1e-2
