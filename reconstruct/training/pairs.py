@@ -44,6 +44,16 @@ class PairSet:
     def __len__(self) -> int:
         return self.target.shape[0]
 
+    @staticmethod
+    def predict(model, inputs):
+        """The network's outputs for a tuple of inputs."""
+        return model(*inputs)
+
+    @staticmethod
+    def image(outputs):
+        """The 12-channel (or RGB) image among the outputs."""
+        return outputs
+
     def crops(self, index: torch.Tensor, top: torch.Tensor, left: torch.Tensor, size: int):
         """Inputs, target and mask of the crops ``size`` (input pixels) at (``top``, ``left``) of samples ``index``."""
         s = self.scale
@@ -78,10 +88,6 @@ class DofpPairs(PairSet):
     kind, crop_step = "dofp", 4
 
     @staticmethod
-    def predict(model, inputs):
-        return model(*inputs)
-
-    @staticmethod
     def image(outputs):
         return outputs[0]
 
@@ -96,14 +102,6 @@ class DofpPairs(PairSet):
 
 class AperturePairs(PairSet):
     kind, crop_step = "aperture", 1
-
-    @staticmethod
-    def predict(model, inputs):
-        return model(*inputs)
-
-    @staticmethod
-    def image(outputs):
-        return outputs
 
     def loss(self, outputs, target, mask, loss_params: dict):
         return (torch.abs(outputs - target) * mask).sum() / (mask.sum() * target.shape[1]).clamp_min(1)
@@ -125,14 +123,6 @@ class NoisyGtPairs(PairSet):
     #: the noise levels of training (std on [0, 1]) and of validation
     NOISE_SIGMA_MAX, VALIDATION_SIGMA = 0.06, 0.02
     GAIN_RANGE = (1.0, 3.0)
-
-    @staticmethod
-    def predict(model, inputs):
-        return model(*inputs)
-
-    @staticmethod
-    def image(outputs):
-        return outputs
 
     def loss(self, outputs, target, mask, loss_params: dict):
         return F.mse_loss(outputs, target)
