@@ -153,7 +153,7 @@ def test_an_unknown_prior_is_a_one_line_input_error(capture):
         run(capture, prior="bm3d")
     message = str(info.value)
     assert info.value.argument == "prior" and "\n" not in message
-    assert "'bm3d'" in message and "nlstr, none, test-gaussian-blur, tikhonov" in message
+    assert "'bm3d'" in message and "nlstr, nlstr-denoiser, none, test-gaussian-blur, tikhonov" in message
     assert "-p prior=NAME" in message and "register_prior" in message
     with pytest.raises(InputError, match="data_term: got 'nope'"):
         run(capture, data_term="nope")
