@@ -71,15 +71,19 @@ class DenoiserParameters:
 
 
 @lru_cache(maxsize=4)
-def _cached_denoiser(path: str, device: str) -> torch.nn.Module:
+def _cached_denoiser(path: str, device: str, version: tuple) -> torch.nn.Module:
     model, _ = load_model(path, device=device, expect="denoiser", option="denoiser_weights")
     return model
 
 
 def denoiser_model(weights: str, device: torch.device) -> torch.nn.Module:
-    """The denoiser of the model file ``weights`` (empty: the shipped one) on ``device``, in eval mode."""
+    """The denoiser of the model file ``weights`` (empty: the shipped one) on ``device``, in eval mode; read
+    once per file version (path, size, modification time), so a file trained again is read again."""
     path = Path(weights).expanduser() if str(weights).strip() else shipped_weights(SHIPPED_DENOISER)
-    return _cached_denoiser(str(path.resolve()) if path.exists() else str(path), str(torch.device(device)))
+    if not path.is_file():  # load_model's error names the option and how to fix it
+        return _cached_denoiser.__wrapped__(str(path), str(torch.device(device)), ())
+    stat = path.stat()
+    return _cached_denoiser(str(path.resolve()), str(torch.device(device)), (stat.st_size, stat.st_mtime_ns))
 
 
 def sigma_schedule(iteration: int, iterations: int, start: float, end: float) -> float:

@@ -124,3 +124,23 @@ def test_cuda_matches_cpu(capture):
     gpu, record = reconstruct(capture, "caps-plus-pnp", device="cuda", true_warps=True, iterations=3)
     assert record["device"].startswith("cuda")
     assert np.abs(cpu.image - gpu.image).max() < 1e-2
+
+
+def test_a_model_file_trained_again_is_read_again(tmp_path):
+    """The loaded denoiser is cached per file version: rewriting the file gives the new weights."""
+    import os
+
+    from capssim.reconstruct.priors.nlstr_denoiser import denoiser_model
+
+    params = {"channels": 12, "features": 4, "depth": 3}
+    path = tmp_path / "model.pt"
+    torch.manual_seed(0)
+    save_model(path, "denoiser", params, build_network("denoiser", params))
+    first = denoiser_model(str(path), torch.device("cpu"))
+    assert denoiser_model(str(path), torch.device("cpu")) is first
+    torch.manual_seed(1)
+    save_model(path, "denoiser", params, build_network("denoiser", params))
+    os.utime(path, ns=(1, 1))  # a new version even within the file system's time resolution
+    second = denoiser_model(str(path), torch.device("cpu"))
+    assert second is not first
+    assert not torch.equal(first.body[0].weight, second.body[0].weight)
