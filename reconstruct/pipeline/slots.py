@@ -282,10 +282,9 @@ def nlstr_denoiser_prior(shape: tuple[int, int, int], *, parameters: DenoiserPar
     """NLSTR with its analyzer mean blended with the learned denoiser's (not the paper's; ``caps-plus-pnp``,
     :mod:`capssim.reconstruct.priors.nlstr_denoiser`)."""
     denoiser = denoiser_model(parameters.denoiser_weights, device)
-    channels = denoiser.body[0].in_channels - 1
-    if shape[0] != channels:
+    if shape[0] != denoiser.channels:
         raise InputError("prior", f"nlstr-denoiser on {shape[0]}-channel images",
-                         f"{channels}-channel images, as its denoiser was trained (caps, caps-plus: 12)",
+                         f"{denoiser.channels}-channel images, as its denoiser was trained (caps, caps-plus: 12)",
                          "Use it with a 12-channel CAPS method, not caps-iccp; or -p prior=nlstr.")
     return NLSTRDenoiserPrior(nlstr_prior(shape, parameters=None, options=options, device=device), denoiser,
                               parameters, options.admm.iterations)

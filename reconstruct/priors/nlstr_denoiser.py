@@ -80,10 +80,9 @@ def denoiser_model(weights: str, device: torch.device) -> torch.nn.Module:
     """The denoiser of the model file ``weights`` (empty: the shipped one) on ``device``, in eval mode; read
     once per file version (path, size, modification time), so a file trained again is read again."""
     path = Path(weights).expanduser() if str(weights).strip() else shipped_weights(SHIPPED_DENOISER)
-    if not path.is_file():  # load_model's error names the option and how to fix it
-        return _cached_denoiser.__wrapped__(str(path), str(torch.device(device)), ())
-    stat = path.stat()
-    return _cached_denoiser(str(path.resolve()), str(torch.device(device)), (stat.st_size, stat.st_mtime_ns))
+    # a missing file has no version: load_model raises its error (naming the option), which is never cached
+    version = (path.stat().st_size, path.stat().st_mtime_ns) if path.is_file() else ()
+    return _cached_denoiser(str(path.resolve()), str(torch.device(device)), version)
 
 
 def sigma_schedule(iteration: int, iterations: int, start: float, end: float) -> float:
@@ -127,15 +126,14 @@ class NLSTRDenoiserPrior:
         sigma = sigma_schedule(iteration, self.iterations, p.denoiser_sigma_start, p.denoiser_sigma_end)
         with stage("denoiser"):
             learned = self.denoise(z, sigma)
-            x = x + p.denoiser_blend * (angle_mean(learned) - angle_mean(x))
+            x = x + p.denoiser_blend * angle_mean(learned - x)  # P is linear: w (P X_dn - P X_nl)
         return x, {**fields, "denoiser_sigma": sigma}
 
     def after_step(self, *, iteration: int, change: float) -> dict:
         return self.nlstr.after_step(iteration=iteration, change=change)
 
     def record(self) -> dict:
-        own = self.nlstr.record() if hasattr(self.nlstr, "record") else {}
-        return {**own, "denoiser_blend": self.parameters.denoiser_blend}
+        return {**self.nlstr.record(), "denoiser_blend": self.parameters.denoiser_blend}
 
 
 __all__ = ["DenoiserParameters", "NLSTRDenoiserPrior", "SHIPPED_DENOISER", "denoiser_model", "sigma_schedule"]

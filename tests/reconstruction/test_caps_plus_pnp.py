@@ -52,7 +52,7 @@ def test_sigma_schedule_runs_log_linearly_from_start_to_end():
 
 
 class _Constant:
-    """A stand-in NLSTR (its estimate is ``z``) and a stand-in denoiser (its estimate is ``c``)."""
+    """A stand-in NLSTR: its estimate is ``z`` itself."""
 
     def begin(self):
         pass
