@@ -43,6 +43,7 @@ from ..pipeline import PipelineConfig, caps_observations, run_pipeline
 from ..pipeline.options import CapsOptions, given_option_names
 from ..pipeline.problem import FrontEnd
 from ..pipeline.run import fused_initialization
+from ..pipeline.slots import problem_agreement
 from ..registration.image_ops import noise_sigma
 from ..registry import MethodOutput, RunContext, register_method
 from .caps import REFERENCE as CAPS_REFERENCE
@@ -52,9 +53,10 @@ __all__ = ["CAPS_PLUS", "COUNT_OPTIONS", "INITIALIZATIONS", "NOISE_ITERATIONS", 
            "demosaicked_initialization", "frame_iterations", "noise_adaptive_iterations", "noise_adaptive_schedule",
            "raw_noise_sigma"]
 
-#: ``-p init=NAME``: ``naive`` (demosaicked apertures, the default), ``fusion`` (``caps``'s, eq. 24) or
-#: ``split`` (the analyzer mean of the fusion, the polarization part of the demosaicked apertures)
-INITIALIZATIONS = ("naive", "fusion", "split")
+#: ``-p init=NAME``: ``naive`` (demosaicked apertures, the default), ``fusion`` (``caps``'s, eq. 24),
+#: ``split`` (the analyzer mean of the fusion, the polarization part of the demosaicked apertures) or
+#: ``agree`` (``split`` with the fusion's polarization part where the analyzer images agree)
+INITIALIZATIONS = ("naive", "fusion", "split", "agree")
 #: the Bayer demosaicking of the initialization (``caps-naive``'s default)
 INIT_BAYER_METHOD = "menon2007"
 
@@ -79,17 +81,21 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
-    polarization-split data term splits its residual)."""
+    polarization-split data term splits its residual; ``agree``: ``P fusion + (I - P) (alpha fusion +
+    (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``)."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
-                         "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's) or -p init=split.")
+                         "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
     front = caps_observations(capture, context, options)
     if name != "fusion":
         with context.timer.stage("init_demosaic"):
             start = demosaicked_initialization(capture, context, front.geometry)
-            if name == "split":  # the fusion's analyzer mean, the demosaicked apertures' polarization part
+            if name in ("split", "agree"):  # the fusion's analyzer mean, the demosaicked apertures' polarization
                 fusion = fused_initialization(front.problems[0])
+                if name == "agree":  # ... the fusion's polarization where the analyzers agree
+                    alpha = problem_agreement(front.problems[0], options=options, stage=context.timer.stage)
+                    start = start + alpha * (fusion - start)
                 start = (angle_mean(fusion) + start - angle_mean(start)).clamp(0.0, 1.0).contiguous()
             front.problems[0].init = start
     front.params["init"] = name

@@ -11,7 +11,9 @@ Built in:
 * data terms: ``cagf``, the confidence-guided data term of eq. 15-16 / 25-26 (``caps``),
   ``plain``, the same observations with each channel's own only (``caps-no-cagf``), and
   ``cagf-split``, CAGF with the residual's polarization part shared only within one analyzer (not the
-  paper's; ``caps-plus``, :mod:`capssim.reconstruct.model.polarization_split`);
+  paper's; ``caps-plus``, :mod:`capssim.reconstruct.model.polarization_split`), and ``cagf-agree``, the split
+  coupled across analyzers where their images agree (not the paper's;
+  :mod:`capssim.reconstruct.model.analyzer_agreement`);
 * priors: ``nlstr``, the nonlocal sparse tensor of section 3.3 (``caps``); ``tikhonov``, a quadratic
   smoothness prior (not the paper's; ``-p tikhonov_weight=W``); ``nlstr-denoiser``, NLSTR with its analyzer
   mean blended with a learned denoiser's (not the paper's; ``caps-plus-pnp``); ``none``, the data term alone, solved
@@ -32,6 +34,7 @@ import torch
 
 from capssim.errors import InputError
 
+from ..model.analyzer_agreement import AgreementDataTerm, analyzer_agreement_map
 from ..model.cagf import cagf_confidence
 from ..model.data_term import ConfidenceDataTerm
 from ..model.polarization_split import PolarizationSplitDataTerm
@@ -239,6 +242,24 @@ def split_data_term(problem: Problem, *, options, stage: StageFactory) -> Polari
                                      confidence=problem_confidence(problem, options=options, stage=stage))
 
 
+def problem_agreement(problem: Problem, *, options, stage: StageFactory) -> torch.Tensor:
+    """The analyzers' agreement ``alpha`` ``(H, W)`` of ``problem``, over CAGF's window and ``eps``
+    (:func:`~capssim.reconstruct.model.analyzer_agreement.analyzer_agreement_map`)."""
+    obs = problem.obs
+    with stage("agreement"):
+        return analyzer_agreement_map(problem.seen.images, problem.homographies, obs.channel_of, obs.n_channels,
+                                      problem.hr_shape, weights=obs.weights, radius=options.cagf.radius,
+                                      eps=options.cagf.eps)
+
+
+def agreement_data_term(problem: Problem, *, options, stage: StageFactory) -> AgreementDataTerm:
+    """``alpha L^H B + (1 - alpha)`` the split direction, ``alpha`` the analyzers' agreement
+    (:mod:`capssim.reconstruct.model.analyzer_agreement`; not the paper's)."""
+    return AgreementDataTerm(problem.obs, problem.operator, mixing=problem.mixing,
+                             confidence=problem_confidence(problem, options=options, stage=stage),
+                             agreement=problem_agreement(problem, options=options, stage=stage))
+
+
 def plain_data_term(problem: Problem, *, options, stage: StageFactory) -> ConfidenceDataTerm:
     """Eq. 15 without CAGF: each channel sees its own observations only (the ``caps-no-cagf`` ablation)."""
     return ConfidenceDataTerm(problem.obs, problem.operator, confidence=None, mixing=problem.mixing)
@@ -249,6 +270,9 @@ register_data_term("cagf", confidence_data_term,
 register_data_term("cagf-split", split_data_term,
                    description="CAGF data term whose residual's polarization part is shared only within one "
                                "analyzer (not the paper's; caps-plus)")
+register_data_term("cagf-agree", agreement_data_term,
+                   description="cagf-split coupled across analyzers where their images agree (structure-aware "
+                               "coupling; not the paper's)")
 register_data_term("plain", plain_data_term,
                    description="data term of each channel's own observations (eq. 15, no CAGF)")
 

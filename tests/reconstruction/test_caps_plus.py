@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from support.confidence import random_confidence
 
 from capssim.errors import CapssimError
 from capssim.eval.metrics import score
@@ -17,16 +18,6 @@ from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 48
-
-
-def random_confidence(c, h, w, *, seed=0, dtype=torch.float64):
-    """A symmetric positive semi-definite (C, C, H, W) with unit diagonal, as CAGF's: ``G G^T`` normalized."""
-    g = torch.Generator().manual_seed(seed)
-    a = torch.rand(h, w, c, c, generator=g, dtype=dtype)
-    m = a @ a.transpose(-1, -2)
-    d = torch.diagonal(m, dim1=-2, dim2=-1).sqrt()
-    m = m / (d[..., :, None] * d[..., None, :])
-    return m.permute(2, 3, 0, 1).contiguous()
 
 
 def split_matrix(conf, n_angles=4):
