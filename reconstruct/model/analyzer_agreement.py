@@ -16,13 +16,17 @@ This data term mixes the two per HR pixel with an **agreement** ``alpha`` in [0,
     D = alpha L^H B + (1 - alpha) (P L^H P B + (I - P) L^H_angle (I - P) B)
 
 ``alpha`` is the smallest, over the colours and the analyzer pairs ``(p, q)``, of the local correlation of
-the two analyzers' aligned LR images, clipped to [0, 1]::
+the two analyzers' aligned LR images with the noise taken out, clipped to [0, 1]::
 
-    rho_pq = cov(I_p, I_q) / sqrt((var I_p + eps) (var I_q + eps))
+    rho_pq = (cov(I_p, I_q) + eps) / sqrt((var I_p - s_p^2)_+ + eps) ((var I_q - s_q^2)_+ + eps))
 
-over the CAGF window (radius and ``eps`` of eq. 12: ``cagf_radius``, ``cagf_eps``), resized to the HR grid
-as CAGF's confidence is. Opposite contrast gives ``rho < 0``, hence ``alpha = 0`` (the split direction);
-proportional images give ``rho`` near 1 (eq. 26); in flat, noisy windows ``eps`` shrinks ``rho`` toward 0.
+over the CAGF window (radius and ``eps`` of eq. 12: ``cagf_radius``, ``cagf_eps``), ``s_p`` the white-noise
+std of each aligned channel image (Immerkaer's estimate,
+:func:`~capssim.reconstruct.registration.image_ops.noise_sigma`), resized to the HR grid as CAGF's
+confidence is. Opposite contrast gives ``rho < 0``, hence ``alpha = 0`` (the split direction); images that
+are positive multiples of one another give ``rho`` near 1 (eq. 26); so does a window with no structure
+above the noise (``rho -> eps / eps``): where nothing says the analyzers differ, their residuals are shared.
+Without the noise correction, noise alone would read as disagreement, more the noisier the capture.
 
 For each pixel the matrix ``alpha L + (1 - alpha) S`` is a convex combination of two symmetric positive
 semi-definite matrices (``S`` is the split's; :mod:`.polarization_split`), so ``D`` stays a descent
@@ -37,6 +41,7 @@ import torch
 
 from capssim.errors import InputError
 
+from ..registration.image_ops import noise_sigma
 from .cagf import DEFAULT_EPS, DEFAULT_RADIUS, align_to_reference, box_mean, channel_images, resize_to_hr
 from .data_term import confidence_mix
 from .polarization_split import N_ANGLES, PolarizationSplitDataTerm, split_confidence_mix
@@ -45,23 +50,28 @@ __all__ = ["AgreementDataTerm", "agreement_confidence_mix", "analyzer_agreement"
 
 
 def analyzer_agreement(channels: torch.Tensor, *, radius: int = DEFAULT_RADIUS, eps: float = DEFAULT_EPS,
-                       n_angles: int = N_ANGLES) -> torch.Tensor:
+                       noise_std: torch.Tensor | None = None, n_angles: int = N_ANGLES) -> torch.Tensor:
     """``alpha`` ``(h, w)`` in [0, 1] of aligned channel images ``channels`` ``(C, h, w)`` (angle-major,
-    ``C = n_angles K``): per pixel the smallest local correlation between two analyzers of one colour,
-    clipped to [0, 1] (module docstring)."""
+    ``C = n_angles K``): per pixel the smallest noise-corrected local correlation between two analyzers of one
+    colour, clipped to [0, 1] (module docstring). ``noise_std`` ``(C,)``: each channel image's white-noise std
+    on its own scale (``None``: estimated from ``channels``)."""
     if channels.ndim != 3 or channels.shape[0] % n_angles:
         raise InputError("channels", f"shape {tuple(channels.shape)}",
                          f"(C, h, w) aligned channel images with C a multiple of the {n_angles} analyzers")
     if not (eps > 0 and np.isfinite(eps)):
         raise InputError("cagf_eps", eps, "a finite positive number (the guided filter's epsilon, eq. 12)")
-    x = channels.reshape(n_angles, channels.shape[0] // n_angles, *channels.shape[1:])
+    k = channels.shape[0] // n_angles
+    if noise_std is None:
+        noise_std = noise_sigma(channels)
+    noise_var = torch.as_tensor(noise_std, dtype=channels.dtype, device=channels.device).reshape(n_angles, k, 1, 1) ** 2
+    x = channels.reshape(n_angles, k, *channels.shape[1:])
     mean = box_mean(x, radius)
-    var = (box_mean(x * x, radius) - mean * mean).clamp(min=0) + eps
+    var = (box_mean(x * x, radius) - mean * mean - noise_var).clamp(min=0) + eps
     worst = None
     for p in range(n_angles):
         for q in range(p + 1, n_angles):
             cov = box_mean(x[p] * x[q], radius) - mean[p] * mean[q]
-            rho = cov / torch.sqrt(var[p] * var[q])
+            rho = (cov + eps) / torch.sqrt(var[p] * var[q])
             worst = rho if worst is None else torch.minimum(worst, rho)
     return worst.amin(dim=0).clamp(0.0, 1.0)
 

@@ -44,10 +44,25 @@ def test_opposite_contrast_gives_zero_agreement():
     assert float(alpha.max()) == 0.0
 
 
-def test_flat_noise_agrees_little():
-    g = torch.Generator().manual_seed(2)
-    noise = [0.5 + 0.01 * torch.randn(32, 32, generator=g, dtype=torch.float64) for _ in range(4)]
-    assert float(analyzer_agreement(analyzer_stack(noise)).mean()) < 0.2
+def noisy(images, sigma, seed):
+    g = torch.Generator().manual_seed(seed)
+    return [img + sigma * torch.randn(img.shape, generator=g, dtype=img.dtype) for img in images]
+
+
+def test_noise_alone_does_not_read_as_disagreement():
+    """A flat, noisy window carries no evidence that the analyzers differ: alpha near 1 (shared residuals)."""
+    flat = [0.5 + 0 * texture(32, 32)] * 4
+    assert float(analyzer_agreement(analyzer_stack(noisy(flat, 0.01, 2))).mean()) > 0.5  # uncorrected: about 0.1
+
+
+@pytest.mark.parametrize("sigma", [0.01, 0.03])
+def test_agreement_is_corrected_for_the_noise(sigma):
+    """Proportional analyzer images under noise still agree; opposite contrast under noise still does not."""
+    t = texture(32, 32, seed=3)
+    proportional = analyzer_agreement(analyzer_stack(noisy([0.9 * t, 0.6 * t, 0.3 * t, 0.5 * t], sigma, 4)))
+    assert float(proportional.median()) > 0.8
+    opposite = analyzer_agreement(analyzer_stack(noisy([t, 0.5 + 0 * t, 1 - t, 0.5 + 0 * t], sigma, 5)))
+    assert float(opposite.max()) == 0.0
 
 
 def test_agreement_is_in_zero_one_and_refuses_a_wrong_channel_count():
@@ -58,6 +73,8 @@ def test_agreement_is_in_zero_one_and_refuses_a_wrong_channel_count():
         analyzer_agreement(torch.rand(6, 10, 9))
     with pytest.raises(CapssimError, match="cagf_eps"):
         analyzer_agreement(torch.rand(12, 10, 9), eps=0.0)
+    given = analyzer_agreement(torch.rand(12, 10, 9, generator=g), noise_std=torch.zeros(12))
+    assert given.shape == (10, 9)
 
 
 def test_the_mix_is_eq26_at_one_and_the_split_at_zero():
