@@ -1,17 +1,22 @@
-"""``caps-plus``: the CAPS pipeline with a polarization-split data term, a demosaicked initialization and
-a longer ADMM schedule. Not the paper's method: capssim's own configuration beside it.
+"""``caps-plus``: the CAPS pipeline with a structure-aware data term, a start that takes the polarization
+differences from the demosaicked apertures where the analyzers disagree, and a noise-adaptive ADMM schedule.
+Not the paper's method: capssim's own configuration beside it.
 
 Each ingredient answers a loss of ``caps`` that the error budget measured (docs: notes/beyond-the-paper.md):
 
-1. **Polarization-split CAGF data term** (``data_term=cagf-split``,
-   :mod:`capssim.reconstruct.model.polarization_split`): the residual's mean over the four analyzers is
-   shared by every channel with CAGF's weights, as in eq. 26; its polarization part only between the
-   colours of one analyzer. ``caps`` shares all of it with positive weights and smears structure that
-   only some analyzers see (polarization-star, the cellphone cases).
-2. **Demosaicked initialization** (``-p init=naive``, the default; ``init=fusion`` is ``caps``'s): each
-   aperture's raw frame demosaicked on its own (Menon et al. 2007, as ``caps-naive``) and resampled
-   onto the HR grid through the same registration (bicubic), clipped to [0, 1]. ADMM starts from an
-   image whose polarization differences are already right, where the fusion of eq. 24 has averaged them.
+1. **Structure-aware CAGF data term** (``data_term=cagf-agree``,
+   :mod:`capssim.reconstruct.model.analyzer_agreement`): the residual's mean over the four analyzers is
+   shared by every channel with CAGF's weights, as in eq. 26; its polarization part is shared across
+   analyzers only where their aligned images agree (a noise-corrected local correlation ``alpha``), and
+   otherwise only between the colours of one analyzer (``data_term=cagf-split``,
+   :mod:`capssim.reconstruct.model.polarization_split`). ``caps`` shares all of it with positive weights and
+   smears structure that only some analyzers see (polarization-star, the cellphone cases).
+2. **Agreement initialization** (``-p init=agree``, the default): the analyzer mean of each colour from the
+   fusion of eq. 24 (``caps``'s start, ``init=fusion``); the polarization differences from the fusion where
+   the analyzers agree and from the demosaicked apertures where they do not (``init=naive``: each aperture's
+   raw frame demosaicked on its own, Menon et al. 2007 as ``caps-naive``, resampled onto the HR grid through
+   the same registration, bicubic; ``init=split``: all differences from them). The fusion averages the
+   analyzers' differences away, which is right only where they agree.
 3. **A noise-adaptive schedule**: ADMM from ``mu0 = 0.25`` with ``c2 = 0.01`` (``caps``: 0.5, 0.02; eq.
    27-28) for ``clip(10 + 1000 sigma, 10, 50)`` iterations (:func:`noise_adaptive_iterations`), ``sigma``
    the noise level of the raw frames on [0, 1] (:func:`raw_noise_sigma`): about 12 iterations for a
@@ -21,7 +26,8 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
 
 Everything else is ``caps``: the registration, the operator ``M``, CAGF's confidence (eq. 12-14), NLSTR
 (section 3.3) and ADMM (eq. 20-30); ``-p`` options of ``caps`` apply (e.g. ``-p iterations=25``,
-``-p data_term=cagf`` to drop ingredient 1, ``-p init=fusion`` to drop 2).
+``-p data_term=cagf`` to drop ingredient 1, ``-p init=fusion`` to drop 2; ``-p data_term=cagf-split -p init=naive``
+is ``caps-plus`` before 2026-11-28).
 
 With a calibration (``--calibration``) the initialization divides the flat field out before
 demosaicking and unmixes the registered images by the calibrated analyzer, as ``caps-naive`` does.
@@ -53,9 +59,9 @@ __all__ = ["CAPS_PLUS", "COUNT_OPTIONS", "INITIALIZATIONS", "NOISE_ITERATIONS", 
            "demosaicked_initialization", "frame_iterations", "noise_adaptive_iterations", "noise_adaptive_schedule",
            "raw_noise_sigma"]
 
-#: ``-p init=NAME``: ``naive`` (demosaicked apertures, the default), ``fusion`` (``caps``'s, eq. 24),
-#: ``split`` (the analyzer mean of the fusion, the polarization part of the demosaicked apertures) or
-#: ``agree`` (``split`` with the fusion's polarization part where the analyzer images agree)
+#: ``-p init=NAME``: ``agree`` (the default: ``split`` with the fusion's polarization part where the analyzer
+#: images agree), ``naive`` (demosaicked apertures), ``fusion`` (``caps``'s, eq. 24) or ``split`` (the analyzer
+#: mean of the fusion, the polarization part of the demosaicked apertures)
 INITIALIZATIONS = ("naive", "fusion", "split", "agree")
 #: the Bayer demosaicking of the initialization (``caps-naive``'s default)
 INIT_BAYER_METHOD = "menon2007"
@@ -77,7 +83,7 @@ def demosaicked_initialization(capture, context: RunContext, geometry) -> torch.
     return image.clamp(0.0, 1.0).contiguous()
 
 
-def caps_plus_observations(capture, context: RunContext, options, *, init: str = "naive") -> FrontEnd:
+def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree") -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
@@ -150,13 +156,13 @@ def frame_iterations(capture, options: dict) -> dict:
 
 #: caps-plus: the pipeline's slots and schedule (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
-                           defaults={"data_term": "cagf-split", "iterations": 50, "mu0": 0.25, "c2": 0.01},
-                           front_end_options={"init": "naive"}, schedule=noise_adaptive_schedule)
+                           defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
+                           front_end_options={"init": "agree"}, schedule=noise_adaptive_schedule)
 
 
 @register_method("caps-plus", input_kind="caps", frame_options=frame_iterations,
                  reference=CAPS_REFERENCE + " with capssim's changes (not the paper's)",
-                 description="CAPS pipeline, not the paper's: polarization-split CAGF data term, demosaicked "
+                 description="CAPS pipeline, not the paper's: structure-aware CAGF data term, agreement "
                              "initialization, ADMM from mu0 0.25 for 10-50 iterations by the raw noise level")
 def caps_plus(capture, *, context: RunContext) -> MethodOutput:
     return run_pipeline(capture, context, CAPS_PLUS)

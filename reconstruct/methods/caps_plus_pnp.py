@@ -1,7 +1,7 @@
 """``caps-plus-pnp``: ``caps-plus`` with a learned plug-and-play denoiser in its prior. Not the paper's method:
 capssim's own configuration beside it.
 
-Everything is ``caps-plus`` (:mod:`.caps_plus`: the polarization-split CAGF data term, the demosaicked
+Everything is ``caps-plus`` (:mod:`.caps_plus`: the structure-aware CAGF data term, the agreement
 initialization, ADMM from ``mu0 = 0.25`` with ``c2 = 0.01`` for ``clip(10 + 1000 sigma, 10, 50)`` iterations)
 except the prior: ``nlstr-denoiser`` (:mod:`capssim.reconstruct.priors.nlstr_denoiser`), NLSTR whose
 analyzer-mean (intensity) part is averaged with that of a small learned Gaussian denoiser at every ADMM

@@ -86,7 +86,7 @@ def test_caps_plus_runs_and_records_its_ingredients(capture):
     out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=6)
     assert out.image.shape == (12, SIZE, SIZE) and out.image.dtype == np.float32 and np.isfinite(out.image).all()
     params = record["params"]
-    assert params["data_term"] == "cagf-split" and params["init"] == "naive"
+    assert params["data_term"] == "cagf-agree" and params["init"] == "agree"
     assert params["mu0"] == 0.25 and params["c2"] == 0.01 and params["iterations"] == 6
     assert "init_demosaic" in record["stages_s"]
     assert score(out.image, capture.gt, with_ssim=False)["psnr_mean"] > 25
@@ -103,7 +103,7 @@ def test_caps_plus_is_caps_with_its_slots_changed(capture):
 def test_the_naive_initialization_is_caps_naives_image(capture):
     """-p prior=none with 0 iterations of steepest descent leaves the initialization: caps-naive's image
     (inside a 4 px border, where the two methods' unobserved pixels are filled differently)."""
-    plus, record = reconstruct(capture, "caps-plus", true_warps=True, prior="none", iterations=0)
+    plus, record = reconstruct(capture, "caps-plus", true_warps=True, prior="none", iterations=0, init="naive")
     naive, _ = reconstruct(capture, "caps-naive", true_warps=True)
     inner = (slice(None), slice(4, -4), slice(4, -4))
     assert np.allclose(plus.image[inner], naive.image[inner], atol=1e-5)
