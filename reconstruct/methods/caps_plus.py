@@ -27,7 +27,7 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
 Everything else is ``caps``: the registration, the operator ``M``, CAGF's confidence (eq. 12-14), NLSTR
 (section 3.3) and ADMM (eq. 20-30); ``-p`` options of ``caps`` apply (e.g. ``-p iterations=25``,
 ``-p data_term=cagf`` to drop ingredient 1, ``-p init=fusion`` to drop 2; ``-p data_term=cagf-split -p init=naive``
-is ``caps-plus`` before 2026-11-28).
+is ``caps-plus`` as first shipped).
 
 With a calibration (``--calibration``) the initialization divides the flat field out before
 demosaicking and unmixes the registered images by the calibrated analyzer, as ``caps-naive`` does.
