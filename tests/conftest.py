@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import datasets, registration, scenes
+from support import confidence, datasets, registration, scenes
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CAPSSIM_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -40,6 +40,13 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "shared_data" in getattr(item, "fixturenames", ()):
             item.add_marker(pytest.mark.shared_data)
+
+
+@pytest.fixture(scope="session")
+def random_confidence():
+    """:func:`support.confidence.random_confidence`: ``(C, H, W, *, seed=0) -> (C, C, H, W)`` symmetric PSD,
+    unit diagonal (a CAGF-like confidence)."""
+    return confidence.random_confidence
 
 
 @pytest.fixture(scope="session")

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from support.confidence import random_confidence
 
 from capssim.errors import CapssimError
 from capssim.reconstruct import reconstruct
@@ -77,7 +76,7 @@ def test_agreement_is_in_zero_one_and_refuses_a_wrong_channel_count():
     assert given.shape == (10, 9)
 
 
-def test_the_mix_is_eq26_at_one_and_the_split_at_zero():
+def test_the_mix_is_eq26_at_one_and_the_split_at_zero(random_confidence):
     conf = random_confidence(12, 4, 5, seed=4)
     b = torch.randn(12, 4, 5, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
     ones, zeros = torch.ones(4, 5, dtype=torch.float64), torch.zeros(4, 5, dtype=torch.float64)
@@ -85,7 +84,7 @@ def test_the_mix_is_eq26_at_one_and_the_split_at_zero():
     assert torch.allclose(agreement_confidence_mix(conf, b, zeros), split_confidence_mix(conf, b), atol=1e-12)
 
 
-def test_the_mixed_direction_is_symmetric_positive_semidefinite():
+def test_the_mixed_direction_is_symmetric_positive_semidefinite(random_confidence):
     """alpha L + (1 - alpha) T per pixel: a descent direction with the same fixed points, for any alpha in [0, 1]."""
     conf = random_confidence(12, 3, 4, seed=6)
     alpha = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))

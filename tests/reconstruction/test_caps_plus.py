@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from support.confidence import random_confidence
 
 from capssim.errors import CapssimError
 from capssim.eval.metrics import score
@@ -41,7 +40,7 @@ def test_angle_mean_is_the_mean_over_analyzers_of_each_colour():
 
 
 @pytest.mark.parametrize("channels", [12, 4])
-def test_split_direction_is_symmetric_positive_semidefinite(channels):
+def test_split_direction_is_symmetric_positive_semidefinite(channels, random_confidence):
     """T = P L P + (I-P) L_angle (I-P) is symmetric PSD: a descent direction with the same fixed points."""
     conf = random_confidence(channels, 3, 4, seed=channels)
     t = split_matrix(conf)
@@ -51,7 +50,7 @@ def test_split_direction_is_symmetric_positive_semidefinite(channels):
     assert float((b * split_confidence_mix(conf, b)).sum()) >= 0
 
 
-def test_split_direction_on_angle_means_is_the_projected_cagf_direction():
+def test_split_direction_on_angle_means_is_the_projected_cagf_direction(random_confidence):
     conf = random_confidence(12, 5, 5, seed=3)
     b = angle_mean(torch.randn(12, 5, 5, dtype=torch.float64))
     assert torch.allclose(split_confidence_mix(conf, b), angle_mean(confidence_mix(conf, b)), atol=1e-12)
