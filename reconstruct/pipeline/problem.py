@@ -34,7 +34,9 @@ class Problem:
     ``channels``: the output channels (of the 12, ``c = 3 p + k``) it reconstructs, in order;
     ``label``: its name in progress messages (``""`` for a single problem); ``history_fields``: what
     each of its history entries also records (e.g. ``{"colour": "R"}``); ``init``: the initial estimate
-    ``(C, H, W)`` the front end provides (``None``: the pipeline fuses the observations).
+    ``(C, H, W)`` the front end provides (``None``: the pipeline fuses the observations); ``derived``: maps
+    computed from the observations, kept by key so that the front end and the data term compute each once
+    (the analyzers' agreement of ``cagf-agree`` and ``init=agree``).
     """
 
     obs: Observations
@@ -47,6 +49,7 @@ class Problem:
     label: str = ""
     history_fields: dict = field(default_factory=dict)
     init: object = None
+    derived: dict = field(default_factory=dict)
 
     @property
     def hr_shape(self) -> tuple[int, int]:

@@ -244,12 +244,16 @@ def split_data_term(problem: Problem, *, options, stage: StageFactory) -> Polari
 
 def problem_agreement(problem: Problem, *, options, stage: StageFactory) -> torch.Tensor:
     """The analyzers' agreement ``alpha`` ``(H, W)`` of ``problem``, over CAGF's window and ``eps``
-    (:func:`~capssim.reconstruct.model.analyzer_agreement.analyzer_agreement_map`)."""
-    obs = problem.obs
-    with stage("agreement"):
-        return analyzer_agreement_map(problem.seen.images, problem.homographies, obs.channel_of, obs.n_channels,
-                                      problem.hr_shape, weights=obs.weights, radius=options.cagf.radius,
-                                      eps=options.cagf.eps)
+    (:func:`~capssim.reconstruct.model.analyzer_agreement.analyzer_agreement_map`); computed once per problem
+    and window (``caps-plus``'s start and data term both use it), kept in ``problem.derived``."""
+    key = ("agreement", options.cagf.radius, options.cagf.eps)
+    if key not in problem.derived:
+        obs = problem.obs
+        with stage("agreement"):
+            problem.derived[key] = analyzer_agreement_map(
+                problem.seen.images, problem.homographies, obs.channel_of, obs.n_channels, problem.hr_shape,
+                weights=obs.weights, radius=options.cagf.radius, eps=options.cagf.eps)
+    return problem.derived[key]
 
 
 def agreement_data_term(problem: Problem, *, options, stage: StageFactory) -> AgreementDataTerm:

@@ -131,3 +131,14 @@ def test_the_agree_initialization_lies_between_split_and_fusion(capture):
 def test_an_unknown_initialization_lists_agree(capture):
     with pytest.raises(CapssimError, match="agree"):
         reconstruct(capture, "caps-plus", true_warps=True, init="zeros")
+
+
+def test_the_start_and_the_data_term_share_one_agreement_map(capture, monkeypatch):
+    """caps-plus's defaults use alpha twice (init=agree, data_term=cagf-agree): it is computed once per problem."""
+    import capssim.reconstruct.pipeline.slots as slots
+
+    computed = []
+    original = slots.analyzer_agreement_map
+    monkeypatch.setattr(slots, "analyzer_agreement_map", lambda *a, **k: computed.append(1) or original(*a, **k))
+    reconstruct(capture, "caps-plus", true_warps=True, iterations=2)
+    assert len(computed) == 1
