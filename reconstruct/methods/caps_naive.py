@@ -53,6 +53,7 @@ from capssim.conventions import flip_to_rggb
 from capssim.errors import InputError, UnknownNameError
 
 from ..dofp.residual_interpolation import ri_bayer_demosaic_frames
+from ..model.holdout import fill_held_out
 from ..model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
 from ..pipeline import caps_option_names, coerce_option, mean_psnr
 from ..registry import MethodOutput, RunContext, register_method
@@ -187,10 +188,14 @@ def bicubic_warp(images: torch.Tensor, homographies: np.ndarray, out_hw: tuple[i
     return F.grid_sample(images, grid, mode="bicubic", padding_mode="border", align_corners=True)
 
 
-def demosaicked_frames(capture, context: RunContext, bayer_method: str) -> torch.Tensor:
+def demosaicked_frames(capture, context: RunContext, bayer_method: str, *, held_out=None) -> torch.Tensor:
     """Step 1: ``(4, 3, H, W)`` float32 on the context device, each aperture's raw frame (flat field divided
-    out with a calibration, :func:`flat_corrected_raw`) demosaicked on its own (:func:`demosaic_apertures`)."""
+    out with a calibration, :func:`flat_corrected_raw`) demosaicked on its own (:func:`demosaic_apertures`).
+    ``held_out`` ``(4, H, W)`` bool (optional): raw pixels replaced by their same-colour neighbours first
+    (:func:`~capssim.reconstruct.model.holdout.fill_held_out`)."""
     raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
+    if held_out is not None:
+        raw = fill_held_out(raw, held_out)
     rgb = demosaic_apertures(raw, bayer_method=bayer_method, clip_max=clip_max, cfa=capture.cfa)
     return torch.from_numpy(rgb).to(context.device)
 

@@ -42,6 +42,7 @@ import torch
 
 from capssim.errors import InputError
 
+from ..model.holdout import HoldoutValidation, holdout_mask, split_held_out
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
 from ..model.polarization_split import angle_mean
 from ..model.rearrange import observations_from_capture
@@ -67,15 +68,16 @@ INITIALIZATIONS = ("naive", "fusion", "split", "agree")
 INIT_BAYER_METHOD = "menon2007"
 
 
-def demosaicked_initialization(capture, context: RunContext, geometry) -> torch.Tensor:
+def demosaicked_initialization(capture, context: RunContext, geometry, *, held_out=None) -> torch.Tensor:
     """``(12, H, W)`` float32 on the context device: ``caps-naive``'s image under ``geometry``.
 
     Each aperture's raw frame (flat field divided out with a calibration) is demosaicked on its own
     (:func:`~capssim.reconstruct.methods.caps_naive.demosaicked_frames`, Menon 2007) and resampled onto the
     HR reference grid by one bicubic warp through ``geometry.raw_homographies``; channel ``c = 3 p + k``;
-    unmixed by a calibrated analyzer; clipped to [0, 1].
+    unmixed by a calibrated analyzer; clipped to [0, 1]. ``held_out`` ``(4, H, W)`` bool: raw pixels the
+    start must not see, filled from their same-colour neighbours first (:func:`~capssim.reconstruct.model.holdout.fill_held_out`).
     """
-    rgb = demosaicked_frames(capture, context, INIT_BAYER_METHOD)
+    rgb = demosaicked_frames(capture, context, INIT_BAYER_METHOD, held_out=held_out)
     image = bicubic_warp(rgb, geometry.raw_homographies, geometry.hr_shape).reshape(12, *geometry.hr_shape)
     analyzer = calibrated_analyzer(context)
     if analyzer is not None:
@@ -83,29 +85,84 @@ def demosaicked_initialization(capture, context: RunContext, geometry) -> torch.
     return image.clamp(0.0, 1.0).contiguous()
 
 
-def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree") -> FrontEnd:
+def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "noise",
+                           holdout_fraction: float = 0.05, patience: int = 5) -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
     polarization-split data term splits its residual; ``agree``: ``P fusion + (I - P) (alpha fusion +
-    (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``)."""
+    (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``).
+    ``stopping="holdout"`` holds out ``holdout_fraction`` of the raw pixels for the solver's stopping rule
+    (:func:`hold_out_pixels`)."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
                          "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
     front = caps_observations(capture, context, options)
+    full = front.problems[0]
+    held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience)
     if name != "fusion":
-        with context.timer.stage("init_demosaic"):
-            start = demosaicked_initialization(capture, context, front.geometry)
-            if name in ("split", "agree"):  # the fusion's analyzer mean, the demosaicked apertures' polarization
-                fusion = fused_initialization(front.problems[0])
-                if name == "agree":  # ... the fusion's polarization where the analyzers agree
-                    alpha = problem_agreement(front.problems[0], options=options, stage=context.timer.stage)
-                    start = start + alpha * (fusion - start)
-                start = (angle_mean(fusion) + start - angle_mean(start)).clamp(0.0, 1.0).contiguous()
-            front.problems[0].init = start
+        for problem, mask in ((front.problems[0], held_out), (full, None))[:1 if held_out is None else 2]:
+            problem.init = agreement_initialization(capture, context, front, problem, options, name, held_out=mask)
     front.params["init"] = name
     return front
+
+
+def agreement_initialization(capture, context: RunContext, front: FrontEnd, problem, options, name: str, *,
+                             held_out=None) -> torch.Tensor:
+    """The start ``(C, H, W)`` of ``init=name`` (not ``fusion``) for ``problem`` (:func:`caps_plus_observations`);
+    ``held_out``: raw pixels the demosaicked apertures must not see."""
+    with context.timer.stage("init_demosaic"):
+        start = demosaicked_initialization(capture, context, front.geometry, held_out=held_out)
+        if name in ("split", "agree"):  # the fusion's analyzer mean, the demosaicked apertures' polarization
+            fusion = fused_initialization(problem)
+            if name == "agree":  # ... the fusion's polarization where the analyzers agree
+                alpha = problem_agreement(problem, options=options, stage=context.timer.stage)
+                start = start + alpha * (fusion - start)
+            start = (angle_mean(fusion) + start - angle_mean(start)).clamp(0.0, 1.0)
+        return start.contiguous()
+
+
+#: ``-p stopping=NAME``: ``noise`` (the default: the count of :func:`noise_adaptive_iterations`) or ``holdout``
+#: (until the held-out pixels' prediction error stops falling, :mod:`capssim.reconstruct.model.holdout`)
+STOPPING_RULES = ("noise", "holdout")
+#: the most iterations ``stopping=holdout`` runs when ``iterations`` is not given
+HOLDOUT_MAX_ITERATIONS = 100
+
+
+def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int):
+    """For ``stopping="holdout"``: replace the front end's single problem by a copy without ``fraction`` of the
+    raw pixels (data weights and the fused start), whose
+    :class:`~capssim.reconstruct.model.holdout.HoldoutValidation` rule predicts them and names the whole
+    problem for the final solve (the pipeline solves it again with all the data for the chosen count); the raw
+    mask ``(4, H, W)`` (for the demosaicked start), or ``None``."""
+    rule = str(stopping).strip()
+    if rule not in STOPPING_RULES:
+        raise InputError("option stopping", repr(stopping), "one of " + ", ".join(STOPPING_RULES),
+                         "Use -p stopping=noise (the count from the noise level) or -p stopping=holdout.")
+    front.params["stopping"] = rule
+    if rule == "noise":
+        return None
+    full = front.problems[0]
+    held_out = holdout_mask(capture.caps_raw.shape, fraction)
+    kept, held = split_held_out(full.obs.weights, held_out)
+    obs = replace(full.obs, weights=kept)
+    seen = obs if full.seen is full.obs else replace(full.seen, weights=kept)
+    validation = replace(full, obs=obs, seen=seen, derived={}, init=None)
+    validation.stopping = HoldoutValidation(lambda image: observed(validation, image), obs.images, held,
+                                            patience=patience, refit=full)
+    front.problems[0] = validation
+    front.params.update({"holdout_fraction": float(fraction), "patience": int(patience)})
+    return held_out
+
+
+def observed(problem, image: torch.Tensor) -> torch.Tensor:
+    """``M I`` ``(N, h, w)``: what ``problem``'s observations record of ``image`` (eq. 15, its analyzer mixing too)."""
+    mixing = problem.mixing
+    if mixing is None:
+        return problem.operator.forward(image.index_select(0, problem.obs.channel_of))
+    mixing = torch.as_tensor(mixing, dtype=image.dtype, device=image.device)
+    return problem.operator.forward(torch.einsum("mc,chw->mhw", mixing, image))
 
 
 #: the iteration count of :func:`noise_adaptive_iterations`: ``at_zero + per_sigma * sigma`` clipped to
@@ -142,6 +199,9 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
     if given & COUNT_OPTIONS:
         front.params["iterations_from"] = "options"
         return options
+    if front.params.get("stopping") == "holdout":
+        front.params["iterations_from"] = "holdout"
+        return replace(options, admm=replace(options.admm, iterations=HOLDOUT_MAX_ITERATIONS))
     front.params["iterations_from"] = "noise"
     return replace(options, admm=replace(options.admm, iterations=noise_adaptive_iterations(sigma)))
 
@@ -149,7 +209,7 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
 def frame_iterations(capture, options: dict) -> dict:
     """``{"iterations": N}`` of :func:`noise_adaptive_iterations` for the whole frame's raw noise (a tiled run
     fixes it once for every tile), or ``{}`` when ``iterations`` or ``preset`` is among ``options``."""
-    if given_option_names(options) & COUNT_OPTIONS:
+    if given_option_names(options) & COUNT_OPTIONS or str(options.get("stopping", "")).strip() == "holdout":
         return {}
     return {"iterations": noise_adaptive_iterations(raw_noise_sigma(observations_from_capture(capture).images))}
 
@@ -157,7 +217,9 @@ def frame_iterations(capture, options: dict) -> dict:
 #: caps-plus: the pipeline's slots and schedule (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
                            defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
-                           front_end_options={"init": "agree"}, schedule=noise_adaptive_schedule)
+                           front_end_options={"init": "agree", "stopping": "noise", "holdout_fraction": 0.05,
+                                              "patience": 5},
+                           schedule=noise_adaptive_schedule)
 
 
 @register_method("caps-plus", input_kind="caps", frame_options=frame_iterations,

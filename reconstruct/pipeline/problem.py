@@ -36,7 +36,8 @@ class Problem:
     each of its history entries also records (e.g. ``{"colour": "R"}``); ``init``: the initial estimate
     ``(C, H, W)`` the front end provides (``None``: the pipeline fuses the observations); ``derived``: maps
     computed from the observations, kept by key so that the front end and the data term compute each once
-    (the analyzers' agreement of ``cagf-agree`` and ``init=agree``).
+    (the analyzers' agreement of ``cagf-agree`` and ``init=agree``); ``stopping``: the solver's
+    :class:`~capssim.reconstruct.solvers.interfaces.StoppingRule` (``None``: the iteration count).
     """
 
     obs: Observations
@@ -50,6 +51,7 @@ class Problem:
     history_fields: dict = field(default_factory=dict)
     init: object = None
     derived: dict = field(default_factory=dict)
+    stopping: object = None
 
     @property
     def hr_shape(self) -> tuple[int, int]:

@@ -27,7 +27,7 @@ The solver sees only the data-fidelity and prior protocols
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping
 
 import numpy as np
@@ -86,6 +86,7 @@ class _Solved:
     init: torch.Tensor
     image: torch.Tensor
     history: list[dict]
+    stopping: object = None
 
 
 def parse_pipeline_options(options: dict, config: PipelineConfig) -> tuple[CapsOptions, dict]:
@@ -147,9 +148,9 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
     params = opts.to_dict()
     params.update({"psf": front.psf, "use_cagf": opts.data_term == "cagf",
                    "use_nlstr": opts.prior in ("nlstr", "nlstr-denoiser"), **front.params})
-    for prior in priors.values():
-        if callable(getattr(prior, "record", None)):
-            params.update(prior.record())
+    for owner in [*priors.values(), *(s.stopping for s in solved)]:
+        if callable(getattr(owner, "record", None)):
+            params.update(owner.record())
     extra = {"registration": front.registration, **front.extra}
     init_psnr = mean_psnr(capture, init)
     if init_psnr is not None:
@@ -193,14 +194,28 @@ def _solve_problem(capture, context: RunContext, opts: CapsOptions, defaults: Ca
             context.report(index * iterations + done, count * iterations, f"{label}: {message}" if label else message)
 
     hooks = {"stage": timer.stage, "progress": progress, "observer": observer}
+    image, history = _run_solver(data, init, prior, admm_params, opts, defaults, stopping=problem.stopping, **hooks)
+    refit = getattr(problem.stopping, "refit", None)
+    if refit is None:
+        return _Solved(problem, data, init, image, history, problem.stopping)
+    # the rule chose the iteration count on part of the data: solve again with all of it, for that count
+    count = int(problem.stopping.best_iteration)
+    data = get_data_term(opts.data_term).factory(refit, options=opts, stage=timer.stage)
+    with timer.stage("init"):
+        init = refit.init if refit.init is not None else fused_initialization(refit)
+    image, final = _run_solver(data, init, prior, replace(admm_params, iterations=count), opts, defaults, **hooks)
+    history = [{**h, "pass": "validation"} for h in history] + [{**h, "pass": "final"} for h in final]
+    return _Solved(refit, data, init, image, history, problem.stopping)
+
+
+def _run_solver(data, init, prior, admm_params, opts: CapsOptions, defaults: CapsOptions, **hooks):
+    """ADMM with ``prior``, steepest descent on the data term (eq. 16) without one; a divergence explained."""
     try:
         if prior is None:  # the data term alone (eq. 16)
-            image, history = steepest_descent(data, init, admm_params, **hooks)
-        else:
-            image, history = admm(data, init, prior, admm_params, **hooks)
+            return steepest_descent(data, init, admm_params, **hooks)
+        return admm(data, init, prior, admm_params, **hooks)
     except DivergenceError as exc:
         raise explain_divergence(exc, opts, defaults) from None
-    return _Solved(problem, data, init, image, history)
 
 
 def _assemble(solved: list[_Solved], name: str, hr_shape) -> torch.Tensor:

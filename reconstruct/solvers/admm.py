@@ -39,6 +39,7 @@ from .interfaces import (
     Prior,
     Progress,
     StageFactory,
+    StoppingRule,
     check_finite,
     check_initial_estimate,
     close_entry,
@@ -88,7 +89,7 @@ def mu_schedule(i: int, params: ADMMParameters) -> float:
 
 def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParameters = ADMMParameters(), *,
          stage: StageFactory | None = None, progress: Progress | None = None,
-         observer: Observer | None = None) -> tuple[torch.Tensor, list[dict]]:
+         observer: Observer | None = None, stopping: StoppingRule | None = None) -> tuple[torch.Tensor, list[dict]]:
     """Run the ADMM of section 4 from ``init`` (``data.image_shape``); return the image and the history.
 
     ``stage(name)`` is an optional context-manager factory timing each step
@@ -112,6 +113,10 @@ def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParam
 
     ``observer(i, image)`` may return extra fields for entry ``i`` (e.g. a PSNR when the
     ground truth is known; diagnostics only, never used by the algorithm).
+
+    ``stopping`` (a :class:`~capssim.reconstruct.solvers.interfaces.StoppingRule`, optional) may end the run
+    before ``params.iterations`` and chooses the iterate returned (e.g. the best by held-out validation);
+    its fields join the history entries.
     """
     params.validate()
     check_initial_estimate(data, init)
@@ -124,6 +129,7 @@ def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParam
     mu_prev = None
     xs_prev = x  # X^0 = I^0: ADMM starts at consensus
     n = x.numel()
+    first_fields = stopping.begin(init) if stopping is not None else {}
     for i in range(params.iterations):
         mu = mu_schedule(i, params)
         if mu_prev is not None and mu != mu_prev:
@@ -154,9 +160,13 @@ def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParam
             entry.update(prior.after_step(iteration=i, change=change))
             x = x_new
             mu_prev = mu
+        if stopping is not None:
+            entry.update({**(first_fields if i == 0 else {}), **stopping.update(i + 1, x)})
         close_entry(entry, x, history=history, iterations=params.iterations, solver="ADMM",
                     observer=observer, progress=progress)
-    return x, history
+        if stopping is not None and stopping.should_stop:
+            break
+    return (x if stopping is None else stopping.final(x)), history
 
 
 __all__ = ["ADMMParameters", "admm", "mu_schedule"]

@@ -17,6 +17,7 @@ from .interfaces import (
     Observer,
     Progress,
     StageFactory,
+    StoppingRule,
     check_finite,
     check_initial_estimate,
     close_entry,
@@ -28,7 +29,8 @@ from .interfaces import (
 
 def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParameters = ADMMParameters(), *,
                      stage: StageFactory | None = None, progress: Progress | None = None,
-                     observer: Observer | None = None) -> tuple[torch.Tensor, list[dict]]:
+                     observer: Observer | None = None, stopping: StoppingRule | None = None
+                     ) -> tuple[torch.Tensor, list[dict]]:
     """``params.iterations`` steps of eq. 16 from ``init``; return the image and the history.
 
     Only ``iterations`` and ``dt`` of ``params`` act. History entry ``i`` holds, for
@@ -36,7 +38,7 @@ def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParamet
     ADMM's), ``data`` ``f(I^{i+1})``, ``change`` ``||I^{i+1} - I^i|| / ||I^i||``,
     ``energy_before`` ``f(I^i)``, ``energy_after`` and ``objective`` ``f(I^{i+1})``, then the
     ``observer``'s fields. The steps are timed as ``data_term`` and ``admm_update``, the
-    stages of :func:`~capssim.reconstruct.solvers.admm.admm`.
+    stages of :func:`~capssim.reconstruct.solvers.admm.admm`. ``stopping`` acts as in ADMM.
     """
     params.validate()
     check_initial_estimate(data, init)
@@ -44,6 +46,7 @@ def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParamet
     x = init.clone()
     bound = divergence_bound(init)
     history: list[dict] = []
+    first_fields = stopping.begin(init) if stopping is not None else {}
     for i in range(params.iterations):
         entry: dict = {"iteration": i + 1, "mu": mu_schedule(i, params)}
         with timed("data_term"):
@@ -57,9 +60,13 @@ def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParamet
         entry.update({"data": f_new, "change": change, "energy_before": f_old, "energy_after": f_new,
                       "objective": f_new})
         x = x_new
+        if stopping is not None:
+            entry.update({**(first_fields if i == 0 else {}), **stopping.update(i + 1, x)})
         close_entry(entry, x, history=history, iterations=params.iterations, solver="steepest descent",
                     observer=observer, progress=progress)
-    return x, history
+        if stopping is not None and stopping.should_stop:
+            break
+    return (x if stopping is None else stopping.final(x)), history
 
 
 __all__ = ["steepest_descent"]

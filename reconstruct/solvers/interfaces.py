@@ -82,6 +82,29 @@ class Prior(Protocol):
         ...
 
 
+class StoppingRule(Protocol):
+    """When an iterative solver stops, and which iterate it returns (e.g. the held-out validation of
+    :class:`capssim.reconstruct.model.holdout.HoldoutValidation`). Without one a solver runs its iteration
+    count and returns the last iterate."""
+
+    def begin(self, init: torch.Tensor) -> dict:
+        """Start a run from ``init``; fields for the first history entry."""
+        ...
+
+    def update(self, iteration: int, image: torch.Tensor) -> dict:
+        """After iteration ``iteration`` (1-based) produced ``image``; fields for its history entry."""
+        ...
+
+    @property
+    def should_stop(self) -> bool:
+        """True when the solver should stop after the iteration just reported."""
+        ...
+
+    def final(self, image: torch.Tensor) -> torch.Tensor:
+        """The image the solver returns, given its last iterate ``image``."""
+        ...
+
+
 def no_stage(name: str) -> AbstractContextManager:
     """A :data:`StageFactory` that times nothing."""
     return nullcontext()
@@ -146,5 +169,5 @@ def close_entry(entry: dict, image: torch.Tensor, *, history: list[dict], iterat
         progress(step, iterations, f"objective {entry['objective']:.4g}")
 
 
-__all__ = ["DIVERGENCE_FACTOR", "DataFidelity", "DivergenceError", "Observer", "Prior", "Progress", "StageFactory", "check_finite",
+__all__ = ["DIVERGENCE_FACTOR", "DataFidelity", "DivergenceError", "Observer", "Prior", "Progress", "StageFactory", "StoppingRule", "check_finite",
            "check_initial_estimate", "close_entry", "divergence_bound", "no_stage", "relative_change"]

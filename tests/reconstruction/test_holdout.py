@@ -1,0 +1,160 @@
+"""Held-out validation as a stopping rule (``caps-plus -p stopping=holdout``): the mask, the filled raw frames,
+the rule's choice of iterate, the solvers' use of it and the pipeline's final solve with all the data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from capssim.conventions import split_bayer
+from capssim.errors import InputError
+from capssim.reconstruct import reconstruct
+from capssim.reconstruct.model.holdout import HoldoutValidation, fill_held_out, holdout_mask, split_held_out
+from capssim.reconstruct.solvers.admm import ADMMParameters, admm
+from capssim.reconstruct.solvers.descent import steepest_descent
+from capssim.sensor import make_sensor
+from capssim.simulate import simulate_capture
+
+SIZE = 48
+
+
+@pytest.fixture(scope="module")
+def capture(smooth_random_scene):
+    return simulate_capture(smooth_random_scene(SIZE, seed=11), make_sensor("gaussian", sigma=0.01), seed=11)
+
+
+def test_the_mask_holds_out_the_fraction_asked_for_reproducibly():
+    mask = holdout_mask((4, 64, 64), 0.1)
+    assert mask.dtype == bool and mask.shape == (4, 64, 64)
+    assert 0.08 < mask.mean() < 0.12
+    assert np.array_equal(mask, holdout_mask((4, 64, 64), 0.1))
+    assert not holdout_mask((4, 8, 8), 0.0).any()
+
+
+@pytest.mark.parametrize("fraction", [-0.1, 0.6, float("nan")])
+def test_a_bad_fraction_is_refused_with_the_option_named(fraction):
+    with pytest.raises(InputError, match="holdout_fraction"):
+        holdout_mask((4, 8, 8), fraction)
+
+
+def test_filled_pixels_come_from_unheld_same_colour_neighbours():
+    """A raw frame constant per Bayer site is filled exactly, and the held values themselves never leak."""
+    site = np.array([[0.1, 0.4], [0.5, 0.9]], dtype=np.float32)
+    raw = np.tile(site, (4, 8, 8))
+    mask = holdout_mask(raw.shape, 0.3)
+    poisoned = np.where(mask, 1e6, raw).astype(np.float32)
+    filled = fill_held_out(poisoned, mask)
+    assert np.allclose(filled, raw, atol=1e-6)
+    assert np.array_equal(filled[~mask], raw[~mask])
+
+
+def test_split_weights_sum_to_the_data_weights():
+    weights = torch.rand(16, 6, 5, generator=torch.Generator().manual_seed(0))
+    mask = holdout_mask((4, 12, 10), 0.2)
+    kept, held = split_held_out(weights, mask)
+    lr = torch.as_tensor(split_bayer(mask), dtype=weights.dtype)
+    assert torch.allclose(kept + held, weights)
+    assert torch.equal(held, weights * lr) and float((kept * lr).abs().sum()) == 0.0
+
+
+def test_the_rule_keeps_the_best_iterate_and_stops_after_its_patience():
+    target = torch.zeros(2, 3, 3)
+    rule = HoldoutValidation(lambda x: x, target, torch.ones_like(target), patience=3, min_iterations=0)
+    errors = [0.9, 0.5, 0.2, 0.3, 0.4, 0.5, 0.6]  # best after iteration 3
+    assert rule.begin(torch.full_like(target, 1.0))["holdout_error_init"] == pytest.approx(1.0)
+    stopped_at = None
+    for i, e in enumerate(errors, start=1):
+        rule.update(i, torch.full_like(target, e ** 0.5))
+        if rule.should_stop:
+            stopped_at = i
+            break
+    assert stopped_at == 6 and rule.best_iteration == 3
+    assert torch.allclose(rule.final(torch.zeros_like(target)), torch.full_like(target, 0.2 ** 0.5))
+    assert rule.record()["iterations"] == 3 and rule.record()["holdout_iterations_run"] == 6
+
+
+def test_the_rule_refuses_no_held_out_sample_and_a_zero_patience():
+    t = torch.zeros(1, 2, 2)
+    with pytest.raises(InputError, match="holdout_fraction"):
+        HoldoutValidation(lambda x: x, t, torch.zeros_like(t))
+    with pytest.raises(InputError, match="patience"):
+        HoldoutValidation(lambda x: x, t, torch.ones_like(t), patience=0)
+
+
+class _Quadratic:
+    """f(x) = ||x - y||^2 / 2: a data term whose steepest descent walks from the start to y."""
+
+    def __init__(self, y):
+        self.y, self.image_shape = y, tuple(y.shape)
+
+    def value(self, x):
+        return 0.5 * float((x - self.y).square().sum())
+
+    def descent_direction(self, x):
+        return self.y - x, self.value(x)
+
+
+class _Shrink:
+    """A prior pulling towards 0: the iterates overshoot a held-out target between start and y."""
+
+    def begin(self):
+        pass
+
+    def estimate(self, z, *, mu, iteration, stage):
+        return 0.5 * z, {}
+
+    def after_step(self, *, iteration, change):
+        return {}
+
+
+@pytest.mark.parametrize("solver", ["admm", "descent"])
+def test_both_solvers_stop_early_and_return_the_rules_iterate(solver):
+    y = torch.ones(1, 4, 4)
+    held_target = torch.full((1, 4, 4), 0.5)  # the iterates pass 0.5 on their way from 0 to y
+    rule = HoldoutValidation(lambda x: x, held_target, torch.ones_like(y), patience=2, min_iterations=0)
+    params = ADMMParameters(iterations=50, mu0=0.5, dt=0.3)
+    if solver == "admm":
+        image, history = admm(_Quadratic(y), torch.zeros_like(y), _Shrink(), params, stopping=rule)
+    else:
+        image, history = steepest_descent(_Quadratic(y), torch.zeros_like(y), params, stopping=rule)
+    assert len(history) == rule.best_iteration + 2 < 50
+    assert "holdout_error_init" in history[0] and history[-1]["holdout_best_iteration"] == rule.best_iteration
+    assert torch.equal(image, rule.best_image)
+    assert abs(float(image.mean()) - 0.5) < 0.2
+
+
+def test_caps_plus_holdout_solves_again_with_all_the_data_for_the_chosen_count(capture):
+    """The final image is caps-plus with every pixel for the count the held-out pixels chose."""
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, stopping="holdout", patience=3)
+    params = record["params"]
+    count = params["iterations"]
+    assert params["stopping"] == "holdout" and params["iterations_from"] == "holdout"
+    assert count == params["holdout_best_iteration"] <= params["holdout_iterations_run"] - 3
+    passes = [h["pass"] for h in record["history"]]
+    assert passes.count("final") == count and passes.count("validation") == params["holdout_iterations_run"]
+    same, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=count)
+    assert np.allclose(out.image, same.image, atol=1e-6)
+
+
+def test_the_held_out_start_does_not_see_the_held_out_pixels(capture, monkeypatch):
+    """The validation run's start is built from raw frames whose held-out pixels were replaced."""
+    import capssim.reconstruct.methods.caps_plus as caps_plus
+
+    seen = []
+    real = caps_plus.demosaicked_frames
+
+    def spy(cap, context, method, *, held_out=None):
+        seen.append(held_out)
+        return real(cap, context, method, held_out=held_out)
+
+    monkeypatch.setattr(caps_plus, "demosaicked_frames", spy)
+    reconstruct(capture, "caps-plus", true_warps=True, stopping="holdout", iterations=2)
+    assert len(seen) == 2 and seen[0] is not None and seen[0].mean() > 0.02 and seen[1] is None
+
+
+@pytest.mark.parametrize("option, value", [("stopping", "sometimes"), ("holdout_fraction", "0.9"),
+                                           ("patience", "0")])
+def test_caps_plus_refuses_bad_stopping_options(capture, option, value):
+    with pytest.raises(InputError, match=option):
+        reconstruct(capture, "caps-plus", true_warps=True, iterations=2, **{"stopping": "holdout", option: value})
