@@ -85,19 +85,22 @@ def demosaicked_initialization(capture, context: RunContext, geometry, *, held_o
     return image.clamp(0.0, 1.0).contiguous()
 
 
-def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "noise",
+def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "holdout",
                            holdout_fraction: float = 0.05, patience: int = 5) -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
     polarization-split data term splits its residual; ``agree``: ``P fusion + (I - P) (alpha fusion +
     (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``).
-    ``stopping="holdout"`` holds out ``holdout_fraction`` of the raw pixels for the solver's stopping rule
-    (:func:`hold_out_pixels`)."""
+    ``stopping="holdout"`` (the default unless ``iterations`` or ``preset`` is given) holds out
+    ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`)."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
                          "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
+    given = given_option_names(context.options)
+    if given & COUNT_OPTIONS and "stopping" not in given:  # a count given fixes the count: nothing to validate
+        stopping = "noise"
     front = caps_observations(capture, context, options)
     full = front.problems[0]
     held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience)
@@ -127,7 +130,7 @@ def agreement_initialization(capture, context: RunContext, front: FrontEnd, prob
 #: (until the held-out pixels' prediction error stops falling, :mod:`capssim.reconstruct.model.holdout`)
 STOPPING_RULES = ("noise", "holdout")
 #: the most iterations ``stopping=holdout`` runs when ``iterations`` is not given
-HOLDOUT_MAX_ITERATIONS = 100
+HOLDOUT_MAX_ITERATIONS = 60
 
 
 def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int):
@@ -207,17 +210,20 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
 
 
 def frame_iterations(capture, options: dict) -> dict:
-    """``{"iterations": N}`` of :func:`noise_adaptive_iterations` for the whole frame's raw noise (a tiled run
-    fixes it once for every tile), or ``{}`` when ``iterations`` or ``preset`` is among ``options``."""
-    if given_option_names(options) & COUNT_OPTIONS or str(options.get("stopping", "")).strip() == "holdout":
+    """What a tiled run fixes once for the whole frame: ``{"stopping": "noise", "iterations": N}``, ``N`` of
+    :func:`noise_adaptive_iterations` for the whole frame's raw noise, so that every tile runs the same
+    schedule (held-out validation per tile could choose a different count in each); ``{}`` when
+    ``iterations``, ``preset`` or ``stopping`` is among ``options`` (``-p stopping=holdout`` validates each tile)."""
+    if given_option_names(options) & (COUNT_OPTIONS | {"stopping"}):
         return {}
-    return {"iterations": noise_adaptive_iterations(raw_noise_sigma(observations_from_capture(capture).images))}
+    return {"stopping": "noise",
+            "iterations": noise_adaptive_iterations(raw_noise_sigma(observations_from_capture(capture).images))}
 
 
 #: caps-plus: the pipeline's slots and schedule (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
                            defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
-                           front_end_options={"init": "agree", "stopping": "noise", "holdout_fraction": 0.05,
+                           front_end_options={"init": "agree", "stopping": "holdout", "holdout_fraction": 0.05,
                                               "patience": 5},
                            schedule=noise_adaptive_schedule)
 

@@ -26,8 +26,10 @@ from .caps_plus import CAPS_PLUS, frame_iterations
 
 __all__ = ["CAPS_PLUS_PNP"]
 
-#: caps-plus with the ``nlstr-denoiser`` prior
-CAPS_PLUS_PNP = replace(CAPS_PLUS, defaults={**CAPS_PLUS.defaults, "prior": "nlstr-denoiser"})
+#: caps-plus with the ``nlstr-denoiser`` prior, its count from the noise level (the denoiser's noise level falls
+#: over the whole run, so a run's iteration ``k`` is not a ``k``-iteration run, which held-out stopping assumes)
+CAPS_PLUS_PNP = replace(CAPS_PLUS, defaults={**CAPS_PLUS.defaults, "prior": "nlstr-denoiser"},
+                        front_end_options={**CAPS_PLUS.front_end_options, "stopping": "noise"})
 
 
 @register_method("caps-plus-pnp", input_kind="caps", frame_options=frame_iterations,

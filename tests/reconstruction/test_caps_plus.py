@@ -146,12 +146,13 @@ def test_raw_noise_sigma_reads_white_noise_on_smooth_planes():
 
 
 def test_caps_plus_takes_its_iterations_from_the_noise_unless_given(capture):
-    out, record = reconstruct(capture, "caps-plus", true_warps=True)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, stopping="noise")
     params = record["params"]
     assert params["iterations_from"] == "noise" and 0.005 < params["noise_sigma_estimate"] < 0.03
     assert params["iterations"] == noise_adaptive_iterations(params["noise_sigma_estimate"])
     assert len(out.history) == params["iterations"]
-    assert params["iterations"] == frame_iterations(capture, {})["iterations"]  # what a tiled run fixes
+    assert frame_iterations(capture, {}) == {"stopping": "noise", "iterations": params["iterations"]}  # a tiled run
+    assert frame_iterations(capture, {"stopping": "holdout"}) == {}
     for given, count in (({"iterations": 3}, 3), ({"preset": "fast"}, 7)):
         out, record = reconstruct(capture, "caps-plus", true_warps=True, **given)
         assert record["params"]["iterations_from"] == "options" and frame_iterations(capture, given) == {}

@@ -158,3 +158,12 @@ def test_the_held_out_start_does_not_see_the_held_out_pixels(capture, monkeypatc
 def test_caps_plus_refuses_bad_stopping_options(capture, option, value):
     with pytest.raises(InputError, match=option):
         reconstruct(capture, "caps-plus", true_warps=True, iterations=2, **{"stopping": "holdout", option: value})
+
+
+def test_held_out_stopping_is_caps_plus_default_and_a_given_count_turns_it_off(capture):
+    _, record = reconstruct(capture, "caps-plus", true_warps=True)
+    assert record["params"]["stopping"] == "holdout" and record["params"]["iterations_from"] == "holdout"
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
+    assert record["params"]["stopping"] == "noise" and record["params"]["iterations"] == 4 and len(out.history) == 4
+    _, record = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=2)
+    assert record["params"]["stopping"] == "noise"
