@@ -53,6 +53,7 @@ from ..pipeline.run import fused_initialization
 from ..pipeline.slots import problem_agreement
 from ..registration.image_ops import noise_sigma
 from ..registry import MethodOutput, RunContext, register_method
+from ..run_context import StageTimer
 from .caps import REFERENCE as CAPS_REFERENCE
 from .caps_naive import bicubic_warp, demosaicked_frames
 
@@ -86,14 +87,16 @@ def demosaicked_initialization(capture, context: RunContext, geometry, *, held_o
 
 
 def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "holdout",
-                           holdout_fraction: float = 0.05, patience: int = 5) -> FrontEnd:
+                           holdout_fraction: float = 0.05, patience: int = 5, holdout_refit: bool = True) -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
     polarization-split data term splits its residual; ``agree``: ``P fusion + (I - P) (alpha fusion +
     (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``).
     ``stopping="holdout"`` (the default unless ``iterations`` or ``preset`` is given) holds out
-    ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`)."""
+    ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`; a frame
+    larger than :data:`HOLDOUT_WINDOW` is validated on its central window, :func:`window_validation`).
+    ``holdout_refit=False`` keeps the best validation iterate instead of solving again with all the data."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
@@ -103,7 +106,9 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
         stopping = "noise"
     front = caps_observations(capture, context, options)
     full = front.problems[0]
-    held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience)
+    if stopping == "holdout" and window_validation(capture, context, front, options):
+        stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
+    held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience, refit=holdout_refit)
     if name != "fusion":
         for problem, mask in ((front.problems[0], held_out), (full, None))[:1 if held_out is None else 2]:
             problem.init = agreement_initialization(capture, context, front, problem, options, name, held_out=mask)
@@ -129,17 +134,21 @@ def agreement_initialization(capture, context: RunContext, front: FrontEnd, prob
 #: ``-p stopping=NAME``: ``noise`` (the default: the count of :func:`noise_adaptive_iterations`) or ``holdout``
 #: (until the held-out pixels' prediction error stops falling, :mod:`capssim.reconstruct.model.holdout`)
 STOPPING_RULES = ("noise", "holdout")
+#: what ``front.params["stopping"]`` records: a rule, or ``window`` (held out on the central window)
 #: the most iterations ``stopping=holdout`` runs when ``iterations`` is not given
 HOLDOUT_MAX_ITERATIONS = 60
 
 
-def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int):
+def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int, *, refit: bool = True):
     """For ``stopping="holdout"``: replace the front end's single problem by a copy without ``fraction`` of the
     raw pixels (data weights and the fused start), whose
     :class:`~capssim.reconstruct.model.holdout.HoldoutValidation` rule predicts them and names the whole
     problem for the final solve (the pipeline solves it again with all the data for the chosen count); the raw
     mask ``(4, H, W)`` (for the demosaicked start), or ``None``."""
     rule = str(stopping).strip()
+    if rule == "window":
+        front.params["stopping"] = rule
+        return None
     if rule not in STOPPING_RULES:
         raise InputError("option stopping", repr(stopping), "one of " + ", ".join(STOPPING_RULES),
                          "Use -p stopping=noise (the count from the noise level) or -p stopping=holdout.")
@@ -153,10 +162,42 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
     seen = obs if full.seen is full.obs else replace(full.seen, weights=kept)
     validation = replace(full, obs=obs, seen=seen, derived={}, init=None)
     validation.stopping = HoldoutValidation(lambda image: observed(validation, image), obs.images, held,
-                                            patience=patience, refit=full)
+                                            patience=patience, refit=full if refit else None)
     front.problems[0] = validation
     front.params.update({"holdout_fraction": float(fraction), "patience": int(patience)})
     return held_out
+
+
+#: frames larger than this (HR pixels, either side) choose their count by held-out validation on the central
+#: window of this side (a quarter of the pixels of a 512 px frame) and run it once with every pixel
+HOLDOUT_WINDOW = 256
+
+
+def window_validation(capture, context: RunContext, front: FrontEnd, options) -> bool:
+    """For a frame larger than :data:`HOLDOUT_WINDOW` on either side (uncalibrated): run ``caps-plus`` with
+    ``stopping=holdout`` and no final solve on the central window's capture
+    (:func:`~capssim.reconstruct.tiles.crop.crop_capture`, the front end's warps re-based to it), and record
+    the count it chose in ``front.params`` (``holdout_count``, with the window and the validation's record).
+    False (nothing done) for a smaller frame or a calibrated run, which validate on the whole frame."""
+    from ..tiles.crop import crop_capture
+    from ..tiles.geometry import TILE_ALIGN, Tile
+
+    h, w = capture.hr_shape
+    if max(h, w) <= HOLDOUT_WINDOW or context.calibration is not None:
+        return False
+    rows, cols = min(h, HOLDOUT_WINDOW), min(w, HOLDOUT_WINDOW)
+    top, left = (h - rows) // 2 // TILE_ALIGN * TILE_ALIGN, (w - cols) // 2 // TILE_ALIGN * TILE_ALIGN
+    window = (top, left, top + rows, left + cols)
+    crop = crop_capture(capture, Tile((0, 0), window, window), front.geometry.aperture_homographies)
+    sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
+                     options={**context.options, "stopping": "holdout", "holdout_refit": False,
+                              "prior": options.prior, "data_term": options.data_term})
+    with context.timer.stage("holdout_validation"):
+        params = run_pipeline(crop, sub, CAPS_PLUS).params
+    front.params.update({"holdout_count": int(params["holdout_best_iteration"]), "holdout_window": list(window),
+                         **{k: params[k] for k in ("holdout_best_iteration", "holdout_error", "holdout_iterations_run",
+                                                   "holdout_fraction", "patience")}})
+    return True
 
 
 def observed(problem, image: torch.Tensor) -> torch.Tensor:
@@ -202,9 +243,10 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
     if given & COUNT_OPTIONS:
         front.params["iterations_from"] = "options"
         return options
-    if front.params.get("stopping") == "holdout":
+    if front.params.get("stopping") in ("holdout", "window"):
         front.params["iterations_from"] = "holdout"
-        return replace(options, admm=replace(options.admm, iterations=HOLDOUT_MAX_ITERATIONS))
+        count = front.params.get("holdout_count", HOLDOUT_MAX_ITERATIONS)  # the window's choice, or the most
+        return replace(options, admm=replace(options.admm, iterations=count))
     front.params["iterations_from"] = "noise"
     return replace(options, admm=replace(options.admm, iterations=noise_adaptive_iterations(sigma)))
 
@@ -224,7 +266,7 @@ def frame_iterations(capture, options: dict) -> dict:
 CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
                            defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
                            front_end_options={"init": "agree", "stopping": "holdout", "holdout_fraction": 0.05,
-                                              "patience": 5},
+                                              "patience": 5, "holdout_refit": True},
                            schedule=noise_adaptive_schedule)
 
 

@@ -167,3 +167,21 @@ def test_held_out_stopping_is_caps_plus_default_and_a_given_count_turns_it_off(c
     assert record["params"]["stopping"] == "noise" and record["params"]["iterations"] == 4 and len(out.history) == 4
     _, record = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=2)
     assert record["params"]["stopping"] == "noise"
+
+
+def test_a_larger_frame_is_validated_on_its_central_window(smooth_random_scene, monkeypatch):
+    """Above HOLDOUT_WINDOW the count comes from a held-out run on the central window's crop, and the whole
+    frame runs it once with all its pixels: the result is caps-plus with that count."""
+    import capssim.reconstruct.methods.caps_plus as caps_plus
+
+    monkeypatch.setattr(caps_plus, "HOLDOUT_WINDOW", 32)
+    capture = simulate_capture(smooth_random_scene(64, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, patience=2)
+    params = record["params"]
+    assert params["stopping"] == "window" and params["iterations_from"] == "holdout"
+    assert params["holdout_window"] == [16, 16, 48, 48]
+    assert params["iterations"] == params["holdout_count"] == params["holdout_best_iteration"]
+    assert "pass" not in record["history"][0] and len(record["history"]) == params["iterations"]
+    assert "holdout_validation" in record["stages_s"]
+    same, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=params["iterations"])
+    assert np.allclose(out.image, same.image, atol=1e-6)
