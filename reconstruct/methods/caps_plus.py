@@ -1,5 +1,6 @@
 """``caps-plus``: the CAPS pipeline with a structure-aware data term, a start that takes the polarization
-differences from the demosaicked apertures where the analyzers disagree, and a noise-adaptive ADMM schedule.
+differences from the demosaicked apertures where the analyzers disagree, and an ADMM iteration count chosen by
+held-out raw pixels.
 Not the paper's method: capssim's own configuration beside it.
 
 Each ingredient answers a loss of ``caps`` that the error budget measured (docs: notes/beyond-the-paper.md):
@@ -17,12 +18,16 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
    raw frame demosaicked on its own, Menon et al. 2007 as ``caps-naive``, resampled onto the HR grid through
    the same registration, bicubic; ``init=split``: all differences from them). The fusion averages the
    analyzers' differences away, which is right only where they agree.
-3. **A noise-adaptive schedule**: ADMM from ``mu0 = 0.25`` with ``c2 = 0.01`` (``caps``: 0.5, 0.02; eq.
-   27-28) for ``clip(10 + 1000 sigma, 10, 50)`` iterations (:func:`noise_adaptive_iterations`), ``sigma``
-   the noise level of the raw frames on [0, 1] (:func:`raw_noise_sigma`): about 12 iterations for a
-   clean capture, 21 at ``sigma = 0.01``, 31 at 0.02. Past its best iteration the PSNR of ``caps-plus``
-   falls as the prior keeps smoothing, and that best iteration comes later the noisier the capture;
-   ``-p iterations=N`` (or a ``preset``) fixes the count instead.
+3. **Held-out stopping** (``-p stopping=holdout``, the default; :mod:`capssim.reconstruct.model.holdout`): ADMM
+   from ``mu0 = 0.25`` with ``c2 = 0.01`` (``caps``: 0.5, 0.02; eq. 27-28). Past its best iteration the PSNR
+   falls as the prior keeps smoothing, and where that iteration lies depends on the scene and the noise. A
+   fixed 5 % of the raw pixels is left out of a validation run, which predicts them through ``M`` (eq. 15)
+   after every iteration and stops 5 iterations after their prediction error stopped falling (60 at most);
+   the whole problem is then solved again, with every pixel, for the best iteration's count. A frame larger
+   than 256 px validates on its central 256 px window (:data:`HOLDOUT_WINDOW`), so that the validation costs
+   a quarter of a run at 512 px. ``-p stopping=noise`` takes the count from the raw frames' noise level
+   instead, ``clip(10 + 1000 sigma, 10, 50)`` (:func:`noise_adaptive_iterations`; ``caps-plus``'s rule before
+   2026-11-27, and what a tiled run uses for every tile); ``-p iterations=N`` (or a ``preset``) fixes the count.
 
 Everything else is ``caps``: the registration, the operator ``M``, CAGF's confidence (eq. 12-14), NLSTR
 (section 3.3) and ADMM (eq. 20-30); ``-p`` options of ``caps`` apply (e.g. ``-p iterations=25``,
@@ -135,6 +140,8 @@ def agreement_initialization(capture, context: RunContext, front: FrontEnd, prob
 #: (until the held-out pixels' prediction error stops falling, :mod:`capssim.reconstruct.model.holdout`)
 STOPPING_RULES = ("noise", "holdout")
 #: what ``front.params["stopping"]`` records: a rule, or ``window`` (held out on the central window)
+#: the fewest usable held-out samples a validation runs on; below, the noise rule chooses the count
+MIN_HELD_OUT = 32
 #: the most iterations ``stopping=holdout`` runs when ``iterations`` is not given
 HOLDOUT_MAX_ITERATIONS = 60
 
@@ -158,6 +165,10 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
     full = front.problems[0]
     held_out = holdout_mask(capture.caps_raw.shape, fraction)
     kept, held = split_held_out(full.obs.weights, held_out)
+    if float(held.sum()) < MIN_HELD_OUT:  # too few usable pixels to validate on (a tiny or saturated frame)
+        front.params.update({"stopping": "noise", "stopping_note": f"fewer than {MIN_HELD_OUT} usable held-out "
+                             "pixels: the count from the noise level"})
+        return None
     obs = replace(full.obs, weights=kept)
     seen = obs if full.seen is full.obs else replace(full.seen, weights=kept)
     validation = replace(full, obs=obs, seen=seen, derived={}, init=None)
@@ -273,6 +284,6 @@ CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
 @register_method("caps-plus", input_kind="caps", frame_options=frame_iterations,
                  reference=CAPS_REFERENCE + " with capssim's changes (not the paper's)",
                  description="CAPS pipeline, not the paper's: structure-aware CAGF data term, agreement "
-                             "initialization, ADMM from mu0 0.25 for 10-50 iterations by the raw noise level")
+                             "initialization, ADMM from mu0 0.25 for the count chosen by held-out raw pixels")
 def caps_plus(capture, *, context: RunContext) -> MethodOutput:
     return run_pipeline(capture, context, CAPS_PLUS)

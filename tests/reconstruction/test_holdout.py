@@ -185,3 +185,12 @@ def test_a_larger_frame_is_validated_on_its_central_window(smooth_random_scene, 
     assert "holdout_validation" in record["stages_s"]
     same, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=params["iterations"])
     assert np.allclose(out.image, same.image, atol=1e-6)
+
+
+def test_a_tiny_frame_falls_back_to_the_noise_count(smooth_random_scene):
+    """Too few usable pixels to hold out (16 px: 3 held-out raw pixels expected): the noise rule, said so."""
+    tiny = simulate_capture(smooth_random_scene(16, seed=2), make_sensor("gaussian", sigma=0.01), seed=2)
+    out, record = reconstruct(tiny, "caps-plus", true_warps=True)
+    params = record["params"]
+    assert params["stopping"] == "noise" and "fewer than" in params["stopping_note"]
+    assert params["iterations_from"] == "noise" and np.isfinite(out.image).all()
