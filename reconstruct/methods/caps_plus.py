@@ -51,6 +51,7 @@ from ..model.holdout import HoldoutValidation, holdout_mask, split_held_out
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
 from ..model.polarization_split import angle_mean
 from ..model.rearrange import observations_from_capture
+from ..model.window_capture import WINDOW_ALIGN, crop_window
 from ..pipeline import PipelineConfig, caps_observations, run_pipeline
 from ..pipeline.options import CapsOptions, given_option_names
 from ..pipeline.problem import FrontEnd
@@ -187,19 +188,16 @@ HOLDOUT_WINDOW = 256
 def window_validation(capture, context: RunContext, front: FrontEnd, options) -> bool:
     """For a frame larger than :data:`HOLDOUT_WINDOW` on either side (uncalibrated): run ``caps-plus`` with
     ``stopping=holdout`` and no final solve on the central window's capture
-    (:func:`~capssim.reconstruct.tiles.crop.crop_capture`, the front end's warps re-based to it), and record
+    (:func:`~capssim.reconstruct.model.window_capture.crop_window`, the front end's warps re-based to it), and record
     the count it chose in ``front.params`` (``holdout_count``, with the window and the validation's record).
     False (nothing done) for a smaller frame or a calibrated run, which validate on the whole frame."""
-    from ..tiles.crop import crop_capture
-    from ..tiles.geometry import TILE_ALIGN, Tile
-
     h, w = capture.hr_shape
     if max(h, w) <= HOLDOUT_WINDOW or context.calibration is not None:
         return False
     rows, cols = min(h, HOLDOUT_WINDOW), min(w, HOLDOUT_WINDOW)
-    top, left = (h - rows) // 2 // TILE_ALIGN * TILE_ALIGN, (w - cols) // 2 // TILE_ALIGN * TILE_ALIGN
+    top, left = (h - rows) // 2 // WINDOW_ALIGN * WINDOW_ALIGN, (w - cols) // 2 // WINDOW_ALIGN * WINDOW_ALIGN
     window = (top, left, top + rows, left + cols)
-    crop = crop_capture(capture, Tile((0, 0), window, window), front.geometry.aperture_homographies)
+    crop = crop_window(capture, window, front.geometry.aperture_homographies, name="holdout-window")
     sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
                      options={**context.options, "stopping": "holdout", "holdout_refit": False,
                               "prior": options.prior, "data_term": options.data_term})

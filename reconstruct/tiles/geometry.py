@@ -14,10 +14,12 @@ from dataclasses import dataclass
 
 from capssim.errors import InputError
 
+from ..model.window_capture import WINDOW_ALIGN
+
 __all__ = ["TILE_ALIGN", "MIN_TILE", "Tile", "TileLayout", "default_margin", "plan_tiles", "split_axis"]
 
 #: alignment of every tile edge, HR pixels (one Bayer cell of every aperture; the NLSTR stride)
-TILE_ALIGN = 4
+TILE_ALIGN = WINDOW_ALIGN
 #: the smallest tile core side, HR pixels (below it the margins cost more than the core)
 MIN_TILE = 64
 
