@@ -107,6 +107,7 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
                          "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
+    stopping = check_stopping(stopping, holdout_fraction, patience)
     given = given_option_names(context.options)
     if given & COUNT_OPTIONS and "stopping" not in given:  # a count given fixes the count: nothing to validate
         stopping = "noise"
@@ -147,6 +148,21 @@ MIN_HELD_OUT = 32
 HOLDOUT_MAX_ITERATIONS = 60
 
 
+def check_stopping(stopping: str, fraction: float, patience: int) -> str:
+    """The stopping rule's name, with its options checked before any work (:class:`InputError` naming the
+    option otherwise)."""
+    rule = str(stopping).strip()
+    if rule not in STOPPING_RULES:
+        raise InputError("option stopping", repr(stopping), "one of " + ", ".join(STOPPING_RULES),
+                         "Use -p stopping=noise (the count from the noise level) or -p stopping=holdout.")
+    if not 0.0 < float(fraction) <= 0.5:
+        raise InputError("option holdout_fraction", fraction, "a number in (0, 0.5] (the share of raw pixels left out)",
+                         "Use -p holdout_fraction=0.05.")
+    if int(patience) < 1:
+        raise InputError("option patience", patience, "an integer >= 1", "Use -p patience=5.")
+    return rule
+
+
 def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int, *, refit: bool = True):
     """For ``stopping="holdout"``: replace the front end's single problem by a copy without ``fraction`` of the
     raw pixels (data weights and the fused start), whose
@@ -154,14 +170,8 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
     problem for the final solve (the pipeline solves it again with all the data for the chosen count); the raw
     mask ``(4, H, W)`` (for the demosaicked start), or ``None``."""
     rule = str(stopping).strip()
-    if rule == "window":
-        front.params["stopping"] = rule
-        return None
-    if rule not in STOPPING_RULES:
-        raise InputError("option stopping", repr(stopping), "one of " + ", ".join(STOPPING_RULES),
-                         "Use -p stopping=noise (the count from the noise level) or -p stopping=holdout.")
     front.params["stopping"] = rule
-    if rule == "noise":
+    if rule in ("noise", "window"):  # the count from the noise level, or already chosen on the central window
         return None
     full = front.problems[0]
     held_out = holdout_mask(capture.caps_raw.shape, fraction)

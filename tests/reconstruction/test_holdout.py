@@ -155,7 +155,11 @@ def test_the_held_out_start_does_not_see_the_held_out_pixels(capture, monkeypatc
 
 @pytest.mark.parametrize("option, value", [("stopping", "sometimes"), ("holdout_fraction", "0.9"),
                                            ("patience", "0")])
-def test_caps_plus_refuses_bad_stopping_options(capture, option, value):
+def test_caps_plus_refuses_bad_stopping_options(capture, option, value, monkeypatch):
+    """Refused before any work: the front end (registration, operator) never runs."""
+    import capssim.reconstruct.methods.caps_plus as caps_plus
+
+    monkeypatch.setattr(caps_plus, "caps_observations", lambda *a, **k: pytest.fail("the front end ran"))
     with pytest.raises(InputError, match=option):
         reconstruct(capture, "caps-plus", true_warps=True, iterations=2, **{"stopping": "holdout", option: value})
 
