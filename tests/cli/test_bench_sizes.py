@@ -43,7 +43,7 @@ def test_methods_are_timed_on_the_same_capture_each_at_its_own_iterations():
     assert r.exit_code == 0, r.output
     runs = json.loads(r.stdout)
     assert [run["method"] for run in runs] == ["caps", "caps-plus"] and runs[0]["iterations"] == 25
-    assert 10 <= runs[1]["iterations"] < 50  # caps-plus's count follows the capture's noise (sigma 0.01: about 20)
+    assert 0 <= runs[1]["iterations"] <= 60  # caps-plus's count is chosen by held-out validation (60 at most)
     assert all(run["hr_shape"] == [32, 32] and run["wall_s"] > 0 and run["peak_mb"] > 0 for run in runs)
 
 
