@@ -114,6 +114,7 @@ class HoldoutValidation:
         self.patience, self.min_iterations, self.refit = int(patience), int(min_iterations), refit
         self.best_image: torch.Tensor | None = None
         self.best_error, self.best_iteration, self.last_iteration = math.inf, 0, 0
+        self.init_error = math.inf
 
     def error(self, image: torch.Tensor) -> float:
         """``e(image)``: the weighted mean squared prediction error at the held-out samples."""
@@ -121,19 +122,24 @@ class HoldoutValidation:
         return float((self.weights * residual.square()).sum()) / self.total
 
     def begin(self, init: torch.Tensor) -> dict:
-        """Start a run from ``init`` (iteration 0, a candidate itself); its record fields."""
+        """Start a run from ``init`` (iteration 0, a candidate itself); its error, which the first
+        :meth:`update` reports too."""
         self.best_error, self.best_iteration, self.last_iteration = self.error(init), 0, 0
         self.best_image = init.detach().clone()
-        return {"holdout_error_init": self.best_error}
+        self.init_error = self.best_error
+        return {"holdout_error_init": self.init_error}
 
     def update(self, iteration: int, image: torch.Tensor) -> dict:
-        """After iteration ``iteration`` (1-based) produced ``image``: its error, kept if the best so far."""
+        """After iteration ``iteration`` (1-based) produced ``image``: its error, kept if the best so far (the
+        first iteration's fields also hold the start's error)."""
         e = self.error(image)
+        first = self.last_iteration == 0
         self.last_iteration = int(iteration)
         if e < self.best_error:
             self.best_error, self.best_iteration = e, int(iteration)
             self.best_image = image.detach().clone()
-        return {"holdout_error": e, "holdout_best_iteration": self.best_iteration}
+        fields = {"holdout_error": e, "holdout_best_iteration": self.best_iteration}
+        return {"holdout_error_init": self.init_error, **fields} if first else fields
 
     @property
     def should_stop(self) -> bool:

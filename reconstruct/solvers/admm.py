@@ -129,7 +129,8 @@ def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParam
     mu_prev = None
     xs_prev = x  # X^0 = I^0: ADMM starts at consensus
     n = x.numel()
-    first_fields = stopping.begin(init) if stopping is not None else {}
+    if stopping is not None:
+        stopping.begin(init)
     for i in range(params.iterations):
         mu = mu_schedule(i, params)
         if mu_prev is not None and mu != mu_prev:
@@ -160,11 +161,8 @@ def admm(data: DataFidelity, init: torch.Tensor, prior: Prior, params: ADMMParam
             entry.update(prior.after_step(iteration=i, change=change))
             x = x_new
             mu_prev = mu
-        if stopping is not None:
-            entry.update({**(first_fields if i == 0 else {}), **stopping.update(i + 1, x)})
-        close_entry(entry, x, history=history, iterations=params.iterations, solver="ADMM",
-                    observer=observer, progress=progress)
-        if stopping is not None and stopping.should_stop:
+        if close_entry(entry, x, history=history, iterations=params.iterations, solver="ADMM",
+                       observer=observer, progress=progress, stopping=stopping):
             break
     return (x if stopping is None else stopping.final(x)), history
 

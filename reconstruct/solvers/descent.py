@@ -46,7 +46,8 @@ def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParamet
     x = init.clone()
     bound = divergence_bound(init)
     history: list[dict] = []
-    first_fields = stopping.begin(init) if stopping is not None else {}
+    if stopping is not None:
+        stopping.begin(init)
     for i in range(params.iterations):
         entry: dict = {"iteration": i + 1, "mu": mu_schedule(i, params)}
         with timed("data_term"):
@@ -60,11 +61,8 @@ def steepest_descent(data: DataFidelity, init: torch.Tensor, params: ADMMParamet
         entry.update({"data": f_new, "change": change, "energy_before": f_old, "energy_after": f_new,
                       "objective": f_new})
         x = x_new
-        if stopping is not None:
-            entry.update({**(first_fields if i == 0 else {}), **stopping.update(i + 1, x)})
-        close_entry(entry, x, history=history, iterations=params.iterations, solver="steepest descent",
-                    observer=observer, progress=progress)
-        if stopping is not None and stopping.should_stop:
+        if close_entry(entry, x, history=history, iterations=params.iterations, solver="steepest descent",
+                       observer=observer, progress=progress, stopping=stopping):
             break
     return (x if stopping is None else stopping.final(x)), history
 

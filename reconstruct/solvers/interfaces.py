@@ -88,11 +88,12 @@ class StoppingRule(Protocol):
     count and returns the last iterate."""
 
     def begin(self, init: torch.Tensor) -> dict:
-        """Start a run from ``init``; fields for the first history entry."""
+        """Start a run from ``init``; what it measured of ``init`` (reported again by the first :meth:`update`)."""
         ...
 
     def update(self, iteration: int, image: torch.Tensor) -> dict:
-        """After iteration ``iteration`` (1-based) produced ``image``; fields for its history entry."""
+        """After iteration ``iteration`` (1-based) produced ``image``; fields for its history entry
+        (:func:`close_entry` adds them)."""
         ...
 
     @property
@@ -158,15 +159,19 @@ def relative_change(new: torch.Tensor, old: torch.Tensor) -> float:
 
 
 def close_entry(entry: dict, image: torch.Tensor, *, history: list[dict], iterations: int, solver: str,
-                observer: Observer | None, progress: Progress | None) -> None:
-    """Add the observer's fields to ``entry``, append it to ``history``, log and report progress."""
+                observer: Observer | None, progress: Progress | None, stopping: StoppingRule | None = None) -> bool:
+    """Add the stopping rule's and the observer's fields to ``entry``, append it to ``history``, log and report
+    progress; True when ``stopping`` says the solver should stop after this iteration."""
     step = entry["iteration"]
+    if stopping is not None:
+        entry.update(stopping.update(step, image) or {})
     if observer is not None:
         entry.update(observer(step, image) or {})
     history.append(entry)
     log.debug("%s %d/%d %s", solver, step, iterations, entry)
     if progress is not None:
         progress(step, iterations, f"objective {entry['objective']:.4g}")
+    return stopping is not None and stopping.should_stop
 
 
 __all__ = ["DIVERGENCE_FACTOR", "DataFidelity", "DivergenceError", "Observer", "Prior", "Progress", "StageFactory", "StoppingRule", "check_finite",
