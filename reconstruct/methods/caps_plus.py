@@ -47,6 +47,7 @@ import torch
 
 from capssim.errors import InputError
 
+from ..model.data_term import ConfidenceDataTerm
 from ..model.holdout import HoldoutValidation, holdout_mask, split_held_out
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
 from ..model.polarization_split import angle_mean
@@ -138,10 +139,10 @@ def agreement_initialization(capture, context: RunContext, front: FrontEnd, prob
         return start.contiguous()
 
 
-#: ``-p stopping=NAME``: ``noise`` (the default: the count of :func:`noise_adaptive_iterations`) or ``holdout``
-#: (until the held-out pixels' prediction error stops falling, :mod:`capssim.reconstruct.model.holdout`)
+#: ``-p stopping=NAME``: ``holdout`` (the default: until the held-out pixels' prediction error stops falling,
+#: :mod:`capssim.reconstruct.model.holdout`) or ``noise`` (the count of :func:`noise_adaptive_iterations`);
+#: ``front.params["stopping"]`` records the rule used, or ``window`` (held out on the central window)
 STOPPING_RULES = ("noise", "holdout")
-#: what ``front.params["stopping"]`` records: a rule, or ``window`` (held out on the central window)
 #: the fewest usable held-out samples a validation runs on; below, the noise rule chooses the count
 MIN_HELD_OUT = 32
 #: the most iterations ``stopping=holdout`` runs when ``iterations`` is not given
@@ -169,8 +170,7 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
     :class:`~capssim.reconstruct.model.holdout.HoldoutValidation` rule predicts them and names the whole
     problem for the final solve (the pipeline solves it again with all the data for the chosen count); the raw
     mask ``(4, H, W)`` (for the demosaicked start), or ``None``."""
-    rule = str(stopping).strip()
-    front.params["stopping"] = rule
+    front.params["stopping"] = rule = stopping
     if rule in ("noise", "window"):  # the count from the noise level, or already chosen on the central window
         return None
     full = front.problems[0]
@@ -183,8 +183,9 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
     obs = replace(full.obs, weights=kept)
     seen = obs if full.seen is full.obs else replace(full.seen, weights=kept)
     validation = replace(full, obs=obs, seen=seen, derived={}, init=None)
-    validation.stopping = HoldoutValidation(lambda image: observed(validation, image), obs.images, held,
-                                            patience=patience, refit=full if refit else None)
+    predict = ConfidenceDataTerm(obs, validation.operator, mixing=validation.mixing).forward  # M I, eq. 15
+    validation.stopping = HoldoutValidation(predict, obs.images, held, patience=patience,
+                                            refit=full if refit else None)
     front.problems[0] = validation
     front.params.update({"holdout_fraction": float(fraction), "patience": int(patience)})
     return held_out
@@ -213,19 +214,12 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options) ->
                               "prior": options.prior, "data_term": options.data_term})
     with context.timer.stage("holdout_validation"):
         params = run_pipeline(crop, sub, CAPS_PLUS).params
+    if params.get("stopping") != "holdout":  # too few usable pixels in the window: validate the whole frame
+        return False
     front.params.update({"holdout_count": int(params["holdout_best_iteration"]), "holdout_window": list(window),
                          **{k: params[k] for k in ("holdout_best_iteration", "holdout_error", "holdout_iterations_run",
                                                    "holdout_fraction", "patience")}})
     return True
-
-
-def observed(problem, image: torch.Tensor) -> torch.Tensor:
-    """``M I`` ``(N, h, w)``: what ``problem``'s observations record of ``image`` (eq. 15, its analyzer mixing too)."""
-    mixing = problem.mixing
-    if mixing is None:
-        return problem.operator.forward(image.index_select(0, problem.obs.channel_of))
-    mixing = torch.as_tensor(mixing, dtype=image.dtype, device=image.device)
-    return problem.operator.forward(torch.einsum("mc,chw->mhw", mixing, image))
 
 
 #: the iteration count of :func:`noise_adaptive_iterations`: ``at_zero + per_sigma * sigma`` clipped to

@@ -198,3 +198,16 @@ def test_a_tiny_frame_falls_back_to_the_noise_count(smooth_random_scene):
     params = record["params"]
     assert params["stopping"] == "noise" and "fewer than" in params["stopping_note"]
     assert params["iterations_from"] == "noise" and np.isfinite(out.image).all()
+
+
+def test_a_window_with_too_few_usable_pixels_falls_back_without_an_error(smooth_random_scene, monkeypatch):
+    """The central window falls back to the noise rule (too few usable held-out pixels): the whole frame is
+    then validated itself, and here falls back too, said in the record."""
+    import capssim.reconstruct.methods.caps_plus as caps_plus
+
+    monkeypatch.setattr(caps_plus, "HOLDOUT_WINDOW", 32)
+    monkeypatch.setattr(caps_plus, "MIN_HELD_OUT", 10 ** 9)
+    capture = simulate_capture(smooth_random_scene(64, seed=6), make_sensor("gaussian", sigma=0.01), seed=6)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True)
+    assert record["params"]["stopping"] == "noise" and "fewer than" in record["params"]["stopping_note"]
+    assert "holdout_window" not in record["params"] and np.isfinite(out.image).all()
