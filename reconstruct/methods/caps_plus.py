@@ -56,8 +56,8 @@ from ..model.window_capture import WINDOW_ALIGN, crop_window
 from ..pipeline import PipelineConfig, caps_observations, run_pipeline
 from ..pipeline.options import CapsOptions, given_option_names
 from ..pipeline.problem import FrontEnd
+from ..pipeline.slots import parameter_defaults_of, problem_agreement
 from ..pipeline.run import fused_initialization
-from ..pipeline.slots import problem_agreement
 from ..registration.image_ops import noise_sigma
 from ..registry import MethodOutput, RunContext, register_method
 from ..run_context import StageTimer
@@ -94,7 +94,8 @@ def demosaicked_initialization(capture, context: RunContext, geometry, *, held_o
 
 
 def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "holdout",
-                           holdout_fraction: float = 0.05, patience: int = 5, holdout_refit: bool = True) -> FrontEnd:
+                           holdout_fraction: float = 0.05, patience: int = 5, holdout_refit: bool = True,
+                           blend_candidates: str = "") -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
@@ -103,7 +104,10 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     ``stopping="holdout"`` (the default unless ``iterations`` or ``preset`` is given) holds out
     ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`; a frame
     larger than :data:`HOLDOUT_WINDOW` is validated on its central window, :func:`window_validation`).
-    ``holdout_refit=False`` keeps the best validation iterate instead of solving again with all the data."""
+    ``holdout_refit=False`` keeps the best validation iterate instead of solving again with all the data.
+    ``blend_candidates`` (``"0,0.5"``; prior ``nlstr-denoiser``, ``caps-plus-cv``): the held-out validation runs once
+    per ``denoiser_blend`` listed, on the central window or the whole frame, and the final solve takes the one whose
+    held-out prediction error is lowest (:func:`window_validation`)."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
@@ -112,9 +116,10 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     given = given_option_names(context.options)
     if given & COUNT_OPTIONS and "stopping" not in given:  # a count given fixes the count: nothing to validate
         stopping = "noise"
+    candidates = blend_choices(blend_candidates, options, given)
     front = caps_observations(capture, context, options)
     full = front.problems[0]
-    if stopping == "holdout" and window_validation(capture, context, front, options):
+    if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates):
         stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
     held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience, refit=holdout_refit)
     if name != "fusion":
@@ -196,29 +201,62 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
 HOLDOUT_WINDOW = 256
 
 
-def window_validation(capture, context: RunContext, front: FrontEnd, options) -> bool:
-    """For a frame larger than :data:`HOLDOUT_WINDOW` on either side (uncalibrated): run ``caps-plus`` with
-    ``stopping=holdout`` and no final solve on the central window's capture
-    (:func:`~capssim.reconstruct.model.window_capture.crop_window`, the front end's warps re-based to it), and record
-    the count it chose in ``front.params`` (``holdout_count``, with the window and the validation's record).
-    False (nothing done) for a smaller frame or a calibrated run, which validate on the whole frame."""
+def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
+    """The prior overrides :func:`window_validation` chooses among: ``({"denoiser_blend": w}, ...)`` for each
+    ``w`` of the comma list ``text``; ``()`` (no choice) when ``text`` is empty or ``denoiser_blend`` was given.
+    :class:`InputError` naming ``blend_candidates`` for a bad list, or for a prior without a blend."""
+    if not str(text).strip() or "denoiser_blend" in given:
+        return ()
+    try:
+        blends = [float(item) for item in str(text).split(",")]
+    except ValueError:
+        blends = []
+    if len(blends) < 2 or not all(0.0 <= w <= 1.0 for w in blends):
+        raise InputError("option blend_candidates", repr(text), "two or more numbers in [0, 1], comma-separated",
+                         "Use -p blend_candidates=0,0.5 (0: NLSTR alone).")
+    if not hasattr(options.prior_parameters, "denoiser_blend"):
+        raise InputError("option blend_candidates", f"prior {options.prior!r}", "prior 'nlstr-denoiser'",
+                         "Add -p prior=nlstr-denoiser, or leave blend_candidates out.")
+    return tuple({"denoiser_blend": w} for w in blends)
+
+
+def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
+                      candidates: tuple[dict, ...] = ()) -> bool:
+    """For a frame larger than :data:`HOLDOUT_WINDOW` on either side, or any frame when ``candidates`` are given
+    (uncalibrated): run ``caps-plus`` with ``stopping=holdout`` and no final solve on the central window's
+    capture (:func:`~capssim.reconstruct.model.window_capture.crop_window`, the front end's warps re-based to
+    it; the whole frame when it is no larger), once per candidate (prior option overrides, e.g.
+    ``{"denoiser_blend": 0.5}``; none: once as configured), and record the count of the run with the lowest
+    held-out error in ``front.params`` (``holdout_count``, ``holdout_choice``, with the window and the
+    validation's record). False (nothing done) for a smaller frame without candidates or a calibrated run,
+    which validate on the whole frame."""
     h, w = capture.hr_shape
-    if max(h, w) <= HOLDOUT_WINDOW or context.calibration is not None:
+    if (max(h, w) <= HOLDOUT_WINDOW and not candidates) or context.calibration is not None:
         return False
     rows, cols = min(h, HOLDOUT_WINDOW), min(w, HOLDOUT_WINDOW)
     top, left = (h - rows) // 2 // WINDOW_ALIGN * WINDOW_ALIGN, (w - cols) // 2 // WINDOW_ALIGN * WINDOW_ALIGN
     window = (top, left, top + rows, left + cols)
     crop = crop_window(capture, window, front.geometry.aperture_homographies, name="holdout-window")
-    sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
-                     options={**context.options, "stopping": "holdout", "holdout_refit": False,
-                              "prior": options.prior, "data_term": options.data_term})
-    with context.timer.stage("holdout_validation"):
-        params = run_pipeline(crop, sub, CAPS_PLUS).params
-    if params.get("stopping") != "holdout":  # too few usable pixels in the window: validate the whole frame
-        return False
+    own = {} if options.prior_parameters is None else \
+        {f: getattr(options.prior_parameters, f) for f in parameter_defaults_of(type(options.prior_parameters))}
+    runs = []
+    for overrides in candidates or ({},):
+        sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
+                         options={**context.options, "stopping": "holdout", "holdout_refit": False,
+                                  "prior": options.prior, "data_term": options.data_term, **own, **overrides})
+        with context.timer.stage("holdout_validation"):
+            params = run_pipeline(crop, sub, CAPS_PLUS).params
+        if params.get("stopping") != "holdout":  # too few usable pixels in the window: validate the whole frame
+            return False
+        runs.append((float(params["holdout_error"]), overrides, params))
+    error, chosen, params = min(runs, key=lambda run: run[0])
     front.params.update({"holdout_count": int(params["holdout_best_iteration"]), "holdout_window": list(window),
                          **{k: params[k] for k in ("holdout_best_iteration", "holdout_error", "holdout_iterations_run",
                                                    "holdout_fraction", "patience")}})
+    if candidates:
+        front.params.update({"holdout_choice": chosen,
+                             "holdout_candidates": [{**o, "holdout_error": e, "iterations": p["holdout_best_iteration"]}
+                                                    for e, o, p in runs]})
     return True
 
 
@@ -259,6 +297,9 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
     if front.params.get("stopping") in ("holdout", "window"):
         front.params["iterations_from"] = "holdout"
         count = front.params.get("holdout_count", HOLDOUT_MAX_ITERATIONS)  # the window's choice, or the most
+        chosen = front.params.get("holdout_choice") or {}  # the candidate prior options with the lowest error
+        if chosen:
+            options = replace(options, prior_parameters=replace(options.prior_parameters, **chosen))
         return replace(options, admm=replace(options.admm, iterations=count))
     front.params["iterations_from"] = "noise"
     return replace(options, admm=replace(options.admm, iterations=noise_adaptive_iterations(sigma)))

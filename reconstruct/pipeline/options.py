@@ -163,6 +163,8 @@ class CapsOptions:
             if name in own:
                 own_values.setdefault(name, value)
                 continue
+            if name not in _OPTIONS and name not in options and name in prior_option_names():
+                continue  # a method's default for its own prior, which -p prior=NAME replaced
             if name not in _OPTIONS:
                 raise UnknownNameError("option", name, [*_OPTIONS, *own])
             group, attr = _OPTIONS[name]

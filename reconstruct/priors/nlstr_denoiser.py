@@ -51,13 +51,16 @@ class DenoiserParameters:
 
     ``denoiser_weights``: a model file of ``capssim train`` (network ``denoiser``), empty for the shipped one;
     ``denoiser_blend``: ``w`` in [0, 1]; ``denoiser_sigma_start`` / ``denoiser_sigma_end``: the denoiser's noise
-    level (std on [0, 1]) at the first and the last ADMM iteration.
+    level (std on [0, 1]) at the first and the last ADMM iteration; ``denoiser_sigma_steps``: ``0`` spreads the fall
+    over the run's iterations, ``N > 0`` over the first ``N`` (then ``denoiser_sigma_end``), so that iteration ``k``
+    does not depend on the run's length (what held-out stopping needs).
     """
 
     denoiser_weights: str = ""
     denoiser_blend: float = 0.5
     denoiser_sigma_start: float = 0.05
     denoiser_sigma_end: float = 0.005
+    denoiser_sigma_steps: int = 0
 
     def validate(self) -> None:
         if not 0.0 <= self.denoiser_blend <= 1.0:
@@ -68,6 +71,11 @@ class DenoiserParameters:
             if not (0.0 < value <= 1.0 and math.isfinite(value)):
                 raise InputError(name, value, "a noise level in (0, 1] (std on the [0, 1] scale)",
                                  "Try -p denoiser_sigma_start=0.05 -p denoiser_sigma_end=0.005.")
+        if isinstance(self.denoiser_sigma_steps, bool) or not isinstance(self.denoiser_sigma_steps, int) \
+                or self.denoiser_sigma_steps < 0:
+            raise InputError("denoiser_sigma_steps", self.denoiser_sigma_steps,
+                             "an integer >= 0 (0: the noise level falls over the whole run)",
+                             "Try -p denoiser_sigma_steps=15, or 0.")
 
 
 @lru_cache(maxsize=4)
@@ -123,7 +131,10 @@ class NLSTRDenoiserPrior:
                  stage: StageFactory) -> tuple[torch.Tensor, dict]:
         x, fields = self.nlstr.estimate(z, mu=mu, iteration=iteration, stage=stage)
         p = self.parameters
-        sigma = sigma_schedule(iteration, self.iterations, p.denoiser_sigma_start, p.denoiser_sigma_end)
+        length = p.denoiser_sigma_steps or self.iterations
+        sigma = sigma_schedule(iteration, length, p.denoiser_sigma_start, p.denoiser_sigma_end)
+        if p.denoiser_blend == 0.0:  # NLSTR alone: the denoiser's share is nothing, it is not run
+            return x, {**fields, "denoiser_sigma": sigma}
         with stage("denoiser"):
             learned = self.denoise(z, sigma)
             x = x + p.denoiser_blend * angle_mean(learned - x)  # P is linear: w (P X_dn - P X_nl)

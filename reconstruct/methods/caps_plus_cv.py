@@ -1,0 +1,51 @@
+"""``caps-plus-cv``: ``caps-plus`` whose prior is chosen for each capture by held-out raw pixels, between NLSTR
+alone and NLSTR blended with a learned denoiser. Not the paper's method: capssim's own configuration beside it.
+
+``caps-plus`` (:mod:`.caps_plus`) and ``caps-plus-pnp`` (:mod:`.caps_plus_pnp`) each win on some kinds of scene:
+the learned denoiser restores fine rendered and synthetic texture, NLSTR alone keeps the real photographs, the
+3-D scenes and polarization-only structure (docs: results/caps-plus.md). ``caps-plus-cv`` runs ``caps-plus``'s
+held-out validation (:mod:`capssim.reconstruct.model.holdout`: 5 % of the raw pixels left out, predicted through
+``M``, eq. 15, after every iteration) once for each candidate of the ``nlstr-denoiser`` prior's blend
+``w`` (``-p blend_candidates=0,0.5``; ``w = 0`` is NLSTR alone, exactly ``caps-plus``'s prior), on the central
+256 px window of a larger frame or on the whole of a smaller one, and solves the whole problem with every pixel
+once, with the ``w`` and the iteration count of the lowest held-out error. This is model selection by
+hold-out validation (cross-validation with one fold; Stone, "Cross-validatory choice and assessment of
+statistical predictions", J. R. Stat. Soc. B 36(2) 1974).
+
+The denoiser's noise level falls from 0.05 to 0.005 over the first 15 iterations and then stays
+(``denoiser_sigma_steps=15``), so that iteration ``k`` of a validation run is a ``k``-iteration run, which
+held-out stopping assumes (``caps-plus-pnp`` spreads it over the whole run instead). ``-p`` options of
+``caps-plus-pnp`` apply; ``-p denoiser_blend=W``, ``-p iterations=N`` or ``-p stopping=noise`` fix what they
+name and turn the choice off. The record keeps every candidate's held-out error (``holdout_candidates``) and
+the choice (``holdout_choice``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+from ..pipeline import run_pipeline
+from ..registry import MethodOutput, RunContext, register_method
+from .caps import REFERENCE as CAPS_REFERENCE
+from .caps_plus import CAPS_PLUS, frame_iterations
+
+__all__ = ["BLEND_CANDIDATES", "CAPS_PLUS_CV", "DENOISER_SIGMA_STEPS"]
+
+#: the ``nlstr-denoiser`` blends validated: NLSTR alone, and ``caps-plus-pnp``'s half share of the intensity
+BLEND_CANDIDATES = "0,0.5"
+#: iterations over which the denoiser's noise level falls (then it stays at its end level)
+DENOISER_SIGMA_STEPS = 15
+
+#: caps-plus with the ``nlstr-denoiser`` prior, whose blend and count the held-out pixels choose
+CAPS_PLUS_CV = replace(CAPS_PLUS,
+                       defaults={**CAPS_PLUS.defaults, "prior": "nlstr-denoiser",
+                                 "denoiser_sigma_steps": DENOISER_SIGMA_STEPS},
+                       front_end_options={**CAPS_PLUS.front_end_options, "blend_candidates": BLEND_CANDIDATES})
+
+
+@register_method("caps-plus-cv", input_kind="caps", frame_options=frame_iterations,
+                 reference=CAPS_REFERENCE + " with capssim's changes and a learned denoiser (not the paper's)",
+                 description="caps-plus whose prior (NLSTR alone, or blended with a learned denoiser) and iteration "
+                             "count are chosen per capture by held-out raw pixels (not the paper's)")
+def caps_plus_cv(capture, *, context: RunContext) -> MethodOutput:
+    return run_pipeline(capture, context, CAPS_PLUS_CV)

@@ -1,0 +1,120 @@
+"""``caps-plus-cv`` (issue 36): the prior's blend and the iteration count chosen per capture by held-out raw
+pixels, the denoiser's per-iteration noise schedule, and the options' errors."""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import numpy as np
+import pytest
+import torch
+
+from capssim.errors import CapssimError, InputError
+from capssim.reconstruct import reconstruct
+from capssim.reconstruct.networks import build_network, save_model
+from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior
+from capssim.sensor import make_sensor
+from capssim.simulate import simulate_capture
+
+SIZE = 40
+
+
+@pytest.fixture(scope="module")
+def capture(smooth_random_scene):
+    return simulate_capture(smooth_random_scene(SIZE, seed=7), make_sensor("gaussian", sigma=0.01), seed=7)
+
+
+@pytest.fixture(scope="module")
+def tiny_weights(tmp_path_factory):
+    """A small untrained denoiser (the mechanics do not need a trained one)."""
+    torch.manual_seed(0)
+    params = {"channels": 12, "features": 4, "depth": 3}
+    return save_model(tmp_path_factory.mktemp("cv") / "model.pt", "denoiser", params, build_network("denoiser", params))
+
+
+@pytest.fixture(scope="module")
+def chosen(capture, tiny_weights):
+    return reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_weights))
+
+
+def test_every_candidate_is_validated_and_the_lowest_held_out_error_wins(chosen):
+    out, record = chosen
+    params = record["params"]
+    candidates = params["holdout_candidates"]
+    assert [c["denoiser_blend"] for c in candidates] == [0.0, 0.5]
+    best = min(candidates, key=lambda c: c["holdout_error"])
+    assert params["holdout_choice"] == {"denoiser_blend": best["denoiser_blend"]}
+    assert params["denoiser_blend"] == best["denoiser_blend"] and params["iterations"] == best["iterations"]
+    assert params["holdout_error"] == pytest.approx(best["holdout_error"])
+    assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
+
+
+def test_the_final_image_is_the_chosen_blend_and_count_run_with_every_pixel(capture, tiny_weights, chosen):
+    out, record = chosen
+    params = record["params"]
+    fixed, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_weights),
+                           denoiser_sigma_steps=15, denoiser_blend=params["denoiser_blend"],
+                           iterations=params["iterations"])
+    np.testing.assert_allclose(out.image, fixed.image, atol=1e-6)
+
+
+def test_a_candidate_validation_is_the_same_as_that_blend_validated_alone(capture, tiny_weights, chosen):
+    """The whole-frame validation of each candidate is caps-plus-pnp's own held-out stopping at that blend."""
+    _, record = chosen
+    for candidate in record["params"]["holdout_candidates"]:
+        _, alone = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_weights),
+                               denoiser_sigma_steps=15, denoiser_blend=candidate["denoiser_blend"],
+                               stopping="holdout")
+        assert alone["params"]["holdout_error"] == pytest.approx(candidate["holdout_error"], rel=1e-5)
+        assert alone["params"]["iterations"] == candidate["iterations"]
+
+
+def test_blend_zero_is_caps_plus_exactly(capture, tiny_weights):
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5)
+    zero, _ = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=5, denoiser_blend=0.0,
+                          denoiser_weights=str(tiny_weights))
+    np.testing.assert_array_equal(zero.image, plus.image)
+
+
+@pytest.mark.parametrize("options", [{"denoiser_blend": 0.5}, {"iterations": 4}, {"stopping": "noise"}])
+def test_a_fixed_blend_count_or_rule_turns_the_choice_off(capture, tiny_weights, options):
+    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_weights), **options)
+    assert "holdout_candidates" not in record["params"]
+
+
+def test_the_per_iteration_schedule_does_not_depend_on_the_run_length():
+    """denoiser_sigma_steps=N: iteration k has the same noise level in a run of any length (held-out stopping)."""
+    class _Identity:
+        def begin(self):
+            pass
+
+        def estimate(self, z, *, mu, iteration, stage):
+            return z.clone(), {}
+
+    z = torch.rand(12, 4, 4)
+    levels = {}
+    for length in (10, 40):
+        prior = NLSTRDenoiserPrior(_Identity(), lambda x, level: x, DenoiserParameters(denoiser_sigma_steps=15), length)
+        levels[length] = [prior.estimate(z, mu=1.0, iteration=k, stage=lambda n: nullcontext())[1]["denoiser_sigma"]
+                          for k in (0, 7, 14, 30)]
+    assert levels[10] == levels[40]
+    assert levels[10][0] == pytest.approx(0.05) and levels[10][2] == pytest.approx(0.005)
+    assert levels[10][3] == pytest.approx(0.005)
+
+
+@pytest.mark.parametrize("options, match", [
+    ({"blend_candidates": "0.5"}, "blend_candidates"),
+    ({"blend_candidates": "0,2"}, "blend_candidates"),
+    ({"blend_candidates": "a,b"}, "blend_candidates"),
+    ({"blend_candidates": "0,0.5", "prior": "nlstr"}, "blend_candidates"),
+    ({"denoiser_sigma_steps": -1}, "denoiser_sigma_steps"),
+])
+def test_bad_options_name_themselves(capture, tiny_weights, options, match):
+    extra = {} if options.get("prior") == "nlstr" else {"denoiser_weights": str(tiny_weights)}
+    with pytest.raises(InputError, match=match):
+        reconstruct(capture, "caps-plus-cv", true_warps=True, **extra, **options)
+
+
+def test_caps_plus_does_not_take_the_candidates(capture):
+    with pytest.raises(CapssimError, match="blend_candidates"):
+        reconstruct(capture, "caps-plus", true_warps=True, iterations=2, blend_candidates="0,0.5")
