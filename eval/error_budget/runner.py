@@ -31,9 +31,10 @@ from ..metrics import get_convention
 from .ladder import run_ladder
 
 #: the methods of the results page (issue 32): the paper's method, its cascade ablation, the
-#: camera-array baseline, the best classical and the learned DoFP method, and capssim's caps-plus and
-#: caps-plus-pnp (issue 36)
-BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet", "caps-plus", "caps-plus-pnp")
+#: camera-array baseline, the best classical and the learned DoFP method, and capssim's caps-plus,
+#: caps-plus-pnp and caps-plus-cv (issue 36)
+BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet", "caps-plus", "caps-plus-pnp",
+                  "caps-plus-cv")
 #: the code whose change redoes a case (the report, plots and command do not change a number)
 BUDGET_CODE = ("eval/error_budget/ladder.py", "eval/error_budget/oracles.py")
 RESULTS_NAME = "budget.jsonl"
@@ -171,7 +172,7 @@ def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, dev
     output : str or pathlib.Path
         The run's folder: ``budget.jsonl`` (one line per case), the captures' cache (``cache/``).
     methods : sequence of str, optional
-        Method labels or names (default: the suite's methods; :data:`BUDGET_METHODS` are the seven of the
+        Method labels or names (default: the suite's methods; :data:`BUDGET_METHODS` are the eight of the
         results page); a name not in the suite runs with its defaults.
     scenes : sequence of str, optional
         Only these scenes of the suite.

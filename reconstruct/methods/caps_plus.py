@@ -226,9 +226,10 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     (uncalibrated): run ``caps-plus`` with ``stopping=holdout`` and no final solve on the central window's
     capture (:func:`~capssim.reconstruct.model.window_capture.crop_window`, the front end's warps re-based to
     it; the whole frame when it is no larger), once per candidate (prior option overrides, e.g.
-    ``{"denoiser_blend": 0.5}``; none: once as configured), and record the count of the run with the lowest
-    held-out error in ``front.params`` (``holdout_count``, ``holdout_choice``, with the window and the
-    validation's record). False (nothing done) for a smaller frame without candidates or a calibrated run,
+    ``{"denoiser_blend": 0.5}``; none: once as configured) in their order until the held-out error rises (the
+    error is taken to be unimodal along the candidates: one past the lowest is not worth validating), and
+    record the count of the run with the lowest held-out error in ``front.params`` (``holdout_count``,
+    ``holdout_choice``, with the window and the validation's record). False (nothing done) for a smaller frame without candidates or a calibrated run,
     which validate on the whole frame."""
     h, w = capture.hr_shape
     if (max(h, w) <= HOLDOUT_WINDOW and not candidates) or context.calibration is not None:
@@ -239,16 +240,19 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     crop = crop_window(capture, window, front.geometry.aperture_homographies, name="holdout-window")
     own = {} if options.prior_parameters is None else \
         {f: getattr(options.prior_parameters, f) for f in parameter_defaults_of(type(options.prior_parameters))}
+    given = {k: v for k, v in context.options.items() if str(k).replace("-", "_") != "blend_candidates"}
     runs = []
     for overrides in candidates or ({},):
         sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
-                         options={**context.options, "stopping": "holdout", "holdout_refit": False,
+                         options={**given, "stopping": "holdout", "holdout_refit": False,
                                   "prior": options.prior, "data_term": options.data_term, **own, **overrides})
         with context.timer.stage("holdout_validation"):
             params = run_pipeline(crop, sub, CAPS_PLUS).params
         if params.get("stopping") != "holdout":  # too few usable pixels in the window: validate the whole frame
             return False
         runs.append((float(params["holdout_error"]), overrides, params))
+        if len(runs) > 1 and runs[-1][0] > runs[-2][0]:  # past the lowest error (unimodal along the candidates)
+            break
     error, chosen, params = min(runs, key=lambda run: run[0])
     front.params.update({"holdout_count": int(params["holdout_best_iteration"]), "holdout_window": list(window),
                          **{k: params[k] for k in ("holdout_best_iteration", "holdout_error", "holdout_iterations_run",

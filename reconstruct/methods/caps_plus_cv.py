@@ -32,7 +32,7 @@ from .caps_plus import CAPS_PLUS, frame_iterations
 __all__ = ["BLEND_CANDIDATES", "CAPS_PLUS_CV", "DENOISER_SIGMA_STEPS"]
 
 #: the ``nlstr-denoiser`` blends validated: NLSTR alone, and ``caps-plus-pnp``'s half share of the intensity
-BLEND_CANDIDATES = "0,0.5"
+BLEND_CANDIDATES = "0,0.5,0.75"
 #: iterations over which the denoiser's noise level falls (then it stays at its end level)
 DENOISER_SIGMA_STEPS = 15
 

@@ -41,7 +41,11 @@ def test_every_candidate_is_validated_and_the_lowest_held_out_error_wins(chosen)
     out, record = chosen
     params = record["params"]
     candidates = params["holdout_candidates"]
-    assert [c["denoiser_blend"] for c in candidates] == [0.0, 0.5]
+    blends, errors = [c["denoiser_blend"] for c in candidates], [c["holdout_error"] for c in candidates]
+    assert len(blends) >= 2 and blends == [0.0, 0.5, 0.75][:len(blends)]
+    # the walk stops one past the lowest error: every error but the last falls
+    assert all(a >= b for a, b in zip(errors[:-2], errors[1:-1]))
+    assert len(blends) == 3 or errors[-1] > errors[-2]
     best = min(candidates, key=lambda c: c["holdout_error"])
     assert params["holdout_choice"] == {"denoiser_blend": best["denoiser_blend"]}
     assert params["denoiser_blend"] == best["denoiser_blend"] and params["iterations"] == best["iterations"]
@@ -108,6 +112,7 @@ def test_the_per_iteration_schedule_does_not_depend_on_the_run_length():
     ({"blend_candidates": "a,b"}, "blend_candidates"),
     ({"blend_candidates": "0,0.5", "prior": "nlstr"}, "blend_candidates"),
     ({"denoiser_sigma_steps": -1}, "denoiser_sigma_steps"),
+    ({"denoiser_precision": "float16"}, "denoiser_precision"),
 ])
 def test_bad_options_name_themselves(capture, tiny_weights, options, match):
     extra = {} if options.get("prior") == "nlstr" else {"denoiser_weights": str(tiny_weights)}
@@ -118,3 +123,23 @@ def test_bad_options_name_themselves(capture, tiny_weights, options, match):
 def test_caps_plus_does_not_take_the_candidates(capture):
     with pytest.raises(CapssimError, match="blend_candidates"):
         reconstruct(capture, "caps-plus", true_warps=True, iterations=2, blend_candidates="0,0.5")
+
+
+def test_the_walk_stops_once_the_held_out_error_rises(capture, tiny_weights):
+    """Candidates ordered 1, 0.5, 0: with the untrained network the largest blend validates worst, so the walk
+    stops at the second candidate unless its error fell."""
+    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_weights),
+                            blend_candidates="0,1,0.5")
+    candidates = record["params"]["holdout_candidates"]
+    assert [c["denoiser_blend"] for c in candidates][:2] == [0.0, 1.0]
+    if candidates[1]["holdout_error"] > candidates[0]["holdout_error"]:
+        assert len(candidates) == 2 and record["params"]["denoiser_blend"] == 0.0
+
+
+def test_bfloat16_denoising_stays_close_to_float32(capture):
+    """The shipped network in bfloat16 (the default where the CPU computes it natively) against float32."""
+    full, r32 = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4, denoiser_precision="float32")
+    half, r16 = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4, denoiser_precision="bfloat16")
+    assert r32["params"]["denoiser_dtype"] == "float32" and r16["params"]["denoiser_dtype"] == "bfloat16"
+    assert np.abs(full.image - half.image).max() < 5e-3
+    assert np.sqrt(np.mean((full.image - half.image) ** 2)) < 1e-3
