@@ -56,8 +56,8 @@ from ..model.window_capture import WINDOW_ALIGN, crop_window
 from ..pipeline import PipelineConfig, caps_observations, run_pipeline
 from ..pipeline.options import CapsOptions, given_option_names
 from ..pipeline.problem import FrontEnd
-from ..pipeline.slots import parameter_defaults_of, problem_agreement
 from ..pipeline.run import fused_initialization
+from ..pipeline.slots import parameter_defaults_of, problem_agreement
 from ..registration.image_ops import noise_sigma
 from ..registry import MethodOutput, RunContext, register_method
 from ..run_context import StageTimer
