@@ -207,6 +207,8 @@ def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
     :class:`InputError` naming ``blend_candidates`` for a bad list, or for a prior without a blend."""
     if not str(text).strip() or "denoiser_blend" in given:
         return ()
+    if not hasattr(options.prior_parameters, "denoiser_blend") and "blend_candidates" not in given:
+        return ()  # the method's default list, and -p prior= chose a prior without a blend: nothing to choose
     try:
         blends = [float(item) for item in str(text).split(",")]
     except ValueError:

@@ -143,3 +143,11 @@ def test_bfloat16_denoising_stays_close_to_float32(capture):
     assert r32["params"]["denoiser_dtype"] == "float32" and r16["params"]["denoiser_dtype"] == "bfloat16"
     assert np.abs(full.image - half.image).max() < 5e-3
     assert np.sqrt(np.mean((full.image - half.image) ** 2)) < 1e-3
+
+
+def test_another_prior_drops_the_choice_and_the_denoiser_defaults(capture):
+    """-p prior=nlstr: caps-plus-cv's denoiser defaults and its blend candidates fall away: caps-plus exactly."""
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
+    other, record = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=4, prior="nlstr")
+    np.testing.assert_array_equal(other.image, plus.image)
+    assert record["params"]["prior"] == "nlstr" and "denoiser_sigma_steps" not in record["params"]
