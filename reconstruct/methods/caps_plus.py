@@ -105,9 +105,10 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`; a frame
     larger than :data:`HOLDOUT_WINDOW` is validated on its central window, :func:`window_validation`).
     ``holdout_refit=False`` keeps the best validation iterate instead of solving again with all the data.
-    ``blend_candidates`` (``"0,0.5"``; prior ``nlstr-denoiser``, ``caps-plus-cv``): the held-out validation runs once
-    per ``denoiser_blend`` listed, on the central window or the whole frame, and the final solve takes the one whose
-    held-out prediction error is lowest (:func:`window_validation`)."""
+    ``blend_candidates`` (``caps-plus-cv``'s ``"0,0.5,0.75"``; prior ``nlstr-denoiser``): the held-out validation
+    runs for each ``denoiser_blend`` listed in turn, on the central window or the whole frame, and the final solve
+    takes the one whose held-out prediction error is lowest (:func:`window_validation`; a calibrated run, which
+    validates in place, keeps the configured blend and says so in ``blend_note``)."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
@@ -121,6 +122,9 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     full = front.problems[0]
     if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates):
         stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
+    elif candidates:  # a count, the noise rule, a calibration or too few pixels: nothing validates the blends
+        front.params["blend_note"] = f"no blend chosen (stopping {stopping}, calibrated "  \
+                                     f"{context.calibration is not None}): denoiser_blend as configured"
     held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience, refit=holdout_refit)
     if name != "fusion":
         for problem, mask in ((front.problems[0], held_out), (full, None))[:1 if held_out is None else 2]:
@@ -231,8 +235,8 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     ``{"denoiser_blend": 0.5}``; none: once as configured) in their order until the held-out error rises (the
     error is taken to be unimodal along the candidates: one past the lowest is not worth validating), and
     record the count of the run with the lowest held-out error in ``front.params`` (``holdout_count``,
-    ``holdout_choice``, with the window and the validation's record). False (nothing done) for a smaller frame without candidates or a calibrated run,
-    which validate on the whole frame."""
+    ``holdout_choice``, with the window and the validation's record). False (nothing done) for a smaller frame
+    without candidates or a calibrated run, which validate on the whole frame."""
     h, w = capture.hr_shape
     if (max(h, w) <= HOLDOUT_WINDOW and not candidates) or context.calibration is not None:
         return False

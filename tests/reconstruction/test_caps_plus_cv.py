@@ -83,7 +83,9 @@ def test_blend_zero_is_caps_plus_exactly(capture, tiny_weights):
 @pytest.mark.parametrize("options", [{"denoiser_blend": 0.5}, {"iterations": 4}, {"stopping": "noise"}])
 def test_a_fixed_blend_count_or_rule_turns_the_choice_off(capture, tiny_weights, options):
     _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_weights), **options)
-    assert "holdout_candidates" not in record["params"]
+    params = record["params"]
+    assert "holdout_candidates" not in params and params["denoiser_blend"] == options.get("denoiser_blend", 0.5)
+    assert ("blend_note" in params) == ("denoiser_blend" not in options)  # the record says no blend was chosen
 
 
 def test_the_per_iteration_schedule_does_not_depend_on_the_run_length():
