@@ -100,8 +100,17 @@ def denoiser_dtype(precision: str, device: torch.device) -> torch.dtype:
     if device.type == "cuda":
         native = torch.cuda.is_bf16_supported()
     else:
-        native = device.type == "cpu" and bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+        native = device.type == "cpu" and _cpu_has_native_bfloat16()
     return torch.bfloat16 if native else torch.float32
+
+
+@lru_cache(maxsize=1)
+def _cpu_has_native_bfloat16() -> bool:
+    """oneDNN's own test (AVX-512 BF16 or AMX); False where this torch build cannot tell."""
+    try:
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
 
 
 @lru_cache(maxsize=4)

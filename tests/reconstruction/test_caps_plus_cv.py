@@ -12,7 +12,7 @@ import torch
 from capssim.errors import CapssimError, InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.networks import build_network, save_model
-from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior
+from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, denoiser_dtype
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
@@ -153,3 +153,11 @@ def test_another_prior_drops_the_choice_and_the_denoiser_defaults(capture):
     other, record = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=4, prior="nlstr")
     np.testing.assert_array_equal(other.image, plus.image)
     assert record["params"]["prior"] == "nlstr" and "denoiser_sigma_steps" not in record["params"]
+
+
+def test_auto_precision_is_bfloat16_only_where_native():
+    assert denoiser_dtype("float32", torch.device("cpu")) == torch.float32
+    assert denoiser_dtype("bfloat16", torch.device("cpu")) == torch.bfloat16
+    auto = denoiser_dtype("auto", torch.device("cpu"))
+    native = torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
+    assert auto == (torch.bfloat16 if native else torch.float32)
