@@ -219,7 +219,7 @@ def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
         blends = []
     if len(blends) < 2 or not all(0.0 <= w <= 1.0 for w in blends):
         raise InputError("option blend_candidates", repr(text), "two or more numbers in [0, 1], comma-separated",
-                         "Use -p blend_candidates=0,0.5 (0: NLSTR alone).")
+                         "Use -p blend_candidates=0,0.5,0.75 (the default; 0 is NLSTR alone).")
     if not hasattr(options.prior_parameters, "denoiser_blend"):
         raise InputError("option blend_candidates", f"prior {options.prior!r}", "prior 'nlstr-denoiser'",
                          "Add -p prior=nlstr-denoiser, or leave blend_candidates out.")
