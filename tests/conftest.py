@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from support import confidence, datasets, registration, scenes
+from support import confidence, datasets, networks, registration, scenes
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("CAPSSIM_SHARED_DATA", REPO.parent / "shared" / "data"))
@@ -89,6 +89,12 @@ def tree_bytes():
 def records_by_index():
     """:func:`support.datasets.records_by_index`: ``(out) -> {index: record}``."""
     return datasets.records_by_index
+
+
+@pytest.fixture(scope="session")
+def tiny_denoiser_weights(tmp_path_factory) -> Path:
+    """:func:`support.networks.tiny_denoiser_weights`: a small untrained denoiser's model file, made once."""
+    return networks.tiny_denoiser_weights(tmp_path_factory.mktemp("denoiser"))
 
 
 @pytest.fixture

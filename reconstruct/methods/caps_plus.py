@@ -41,7 +41,7 @@ demosaicking and unmixes the registered images by the calibrated analyzer, as ``
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import torch
 
@@ -57,7 +57,7 @@ from ..pipeline import PipelineConfig, caps_observations, run_pipeline
 from ..pipeline.options import CapsOptions, given_option_names
 from ..pipeline.problem import FrontEnd
 from ..pipeline.run import fused_initialization
-from ..pipeline.slots import parameter_defaults_of, problem_agreement
+from ..pipeline.slots import problem_agreement
 from ..registration.image_ops import noise_sigma
 from ..registry import MethodOutput, RunContext, register_method
 from ..run_context import StageTimer
@@ -123,8 +123,8 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates):
         stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
     elif candidates:  # a count, the noise rule, a calibration or too few pixels: nothing validates the blends
-        front.params["blend_note"] = f"no blend chosen (stopping {stopping}, calibrated "  \
-                                     f"{context.calibration is not None}): denoiser_blend as configured"
+        front.params["blend_note"] = (f"no blend chosen (stopping {stopping}, calibrated "
+                                      f"{context.calibration is not None}): denoiser_blend as configured")
     held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience, refit=holdout_refit)
     if name != "fusion":
         for problem, mask in ((front.problems[0], held_out), (full, None))[:1 if held_out is None else 2]:
@@ -209,9 +209,10 @@ def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
     """The prior overrides :func:`window_validation` chooses among: ``({"denoiser_blend": w}, ...)`` for each
     ``w`` of the comma list ``text``; ``()`` (no choice) when ``text`` is empty or ``denoiser_blend`` was given.
     :class:`InputError` naming ``blend_candidates`` for a bad list, or for a prior without a blend."""
+    has_blend = hasattr(options.prior_parameters, "denoiser_blend")
     if not str(text).strip() or "denoiser_blend" in given:
         return ()
-    if not hasattr(options.prior_parameters, "denoiser_blend") and "blend_candidates" not in given:
+    if not has_blend and "blend_candidates" not in given:
         return ()  # the method's default list, and -p prior= chose a prior without a blend: nothing to choose
     try:
         blends = [float(item) for item in str(text).split(",")]
@@ -220,7 +221,7 @@ def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
     if len(blends) < 2 or not all(0.0 <= w <= 1.0 for w in blends):
         raise InputError("option blend_candidates", repr(text), "two or more numbers in [0, 1], comma-separated",
                          "Use -p blend_candidates=0,0.5,0.75 (the default; 0 is NLSTR alone).")
-    if not hasattr(options.prior_parameters, "denoiser_blend"):
+    if not has_blend:
         raise InputError("option blend_candidates", f"prior {options.prior!r}", "prior 'nlstr-denoiser'",
                          "Add -p prior=nlstr-denoiser, or leave blend_candidates out.")
     return tuple({"denoiser_blend": w} for w in blends)
@@ -244,8 +245,7 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     top, left = (h - rows) // 2 // WINDOW_ALIGN * WINDOW_ALIGN, (w - cols) // 2 // WINDOW_ALIGN * WINDOW_ALIGN
     window = (top, left, top + rows, left + cols)
     crop = crop_window(capture, window, front.geometry.aperture_homographies, name="holdout-window")
-    own = {} if options.prior_parameters is None else \
-        {f: getattr(options.prior_parameters, f) for f in parameter_defaults_of(type(options.prior_parameters))}
+    own = {} if options.prior_parameters is None else asdict(options.prior_parameters)  # the prior's own options
     given = {k: v for k, v in context.options.items() if str(k).replace("-", "_") != "blend_candidates"}
     runs = []
     for overrides in candidates or ({},):

@@ -5,10 +5,10 @@ alone and NLSTR blended with a learned denoiser. Not the paper's method: capssim
 the learned denoiser restores fine rendered and synthetic texture, NLSTR alone keeps the real photographs, the
 3-D scenes and polarization-only structure (docs: results/caps-plus.md). ``caps-plus-cv`` runs ``caps-plus``'s
 held-out validation (:mod:`capssim.reconstruct.model.holdout`: 5 % of the raw pixels left out, predicted through
-``M``, eq. 15, after every iteration) once for each candidate of the ``nlstr-denoiser`` prior's blend
-``w`` (``-p blend_candidates=0,0.5``; ``w = 0`` is NLSTR alone, exactly ``caps-plus``'s prior), on the central
-256 px window of a larger frame or on the whole of a smaller one, and solves the whole problem with every pixel
-once, with the ``w`` and the iteration count of the lowest held-out error. This is model selection by
+``M``, eq. 15, after every iteration) for the ``nlstr-denoiser`` prior's blends ``w`` in turn (``-p
+blend_candidates=0,0.5,0.75``; ``w = 0`` is NLSTR alone, exactly ``caps-plus``'s prior) until the held-out error
+rises, on the central 256 px window of a larger frame or on the whole of a smaller one, and solves the whole
+problem with every pixel once, with the ``w`` and the iteration count of the lowest held-out error. This is model selection by
 hold-out validation (cross-validation with one fold; Stone, "Cross-validatory choice and assessment of
 statistical predictions", J. R. Stat. Soc. B 36(2) 1974).
 
@@ -31,7 +31,8 @@ from .caps_plus import CAPS_PLUS, frame_iterations
 
 __all__ = ["BLEND_CANDIDATES", "CAPS_PLUS_CV", "DENOISER_SIGMA_STEPS"]
 
-#: the ``nlstr-denoiser`` blends validated: NLSTR alone, and ``caps-plus-pnp``'s half share of the intensity
+#: the ``nlstr-denoiser`` blends validated, in this order: NLSTR alone, ``caps-plus-pnp``'s half share of the
+#: intensity, then three quarters
 BLEND_CANDIDATES = "0,0.5,0.75"
 #: iterations over which the denoiser's noise level falls (then it stays at its end level)
 DENOISER_SIGMA_STEPS = 15

@@ -11,7 +11,6 @@ import torch
 
 from capssim.errors import CapssimError, InputError
 from capssim.reconstruct import reconstruct
-from capssim.reconstruct.networks import build_network, save_model
 from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, denoiser_dtype
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
@@ -25,16 +24,8 @@ def capture(smooth_random_scene):
 
 
 @pytest.fixture(scope="module")
-def tiny_weights(tmp_path_factory):
-    """A small untrained denoiser (the mechanics do not need a trained one)."""
-    torch.manual_seed(0)
-    params = {"channels": 12, "features": 4, "depth": 3}
-    return save_model(tmp_path_factory.mktemp("cv") / "model.pt", "denoiser", params, build_network("denoiser", params))
-
-
-@pytest.fixture(scope="module")
-def chosen(capture, tiny_weights):
-    return reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_weights))
+def chosen(capture, tiny_denoiser_weights):
+    return reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_denoiser_weights))
 
 
 def test_every_candidate_is_validated_and_the_lowest_held_out_error_wins(chosen):
@@ -53,36 +44,36 @@ def test_every_candidate_is_validated_and_the_lowest_held_out_error_wins(chosen)
     assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
 
 
-def test_the_final_image_is_the_chosen_blend_and_count_run_with_every_pixel(capture, tiny_weights, chosen):
+def test_the_final_image_is_the_chosen_blend_and_count_run_with_every_pixel(capture, tiny_denoiser_weights, chosen):
     out, record = chosen
     params = record["params"]
-    fixed, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_weights),
+    fixed, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
                            denoiser_sigma_steps=15, denoiser_blend=params["denoiser_blend"],
                            iterations=params["iterations"])
     np.testing.assert_allclose(out.image, fixed.image, atol=1e-6)
 
 
-def test_a_candidate_validation_is_the_same_as_that_blend_validated_alone(capture, tiny_weights, chosen):
+def test_a_candidate_validation_is_the_same_as_that_blend_validated_alone(capture, tiny_denoiser_weights, chosen):
     """The whole-frame validation of each candidate is caps-plus-pnp's own held-out stopping at that blend."""
     _, record = chosen
     for candidate in record["params"]["holdout_candidates"]:
-        _, alone = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_weights),
+        _, alone = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
                                denoiser_sigma_steps=15, denoiser_blend=candidate["denoiser_blend"],
                                stopping="holdout")
         assert alone["params"]["holdout_error"] == pytest.approx(candidate["holdout_error"], rel=1e-5)
         assert alone["params"]["iterations"] == candidate["iterations"]
 
 
-def test_blend_zero_is_caps_plus_exactly(capture, tiny_weights):
+def test_blend_zero_is_caps_plus_exactly(capture, tiny_denoiser_weights):
     plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5)
     zero, _ = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=5, denoiser_blend=0.0,
-                          denoiser_weights=str(tiny_weights))
+                          denoiser_weights=str(tiny_denoiser_weights))
     np.testing.assert_array_equal(zero.image, plus.image)
 
 
 @pytest.mark.parametrize("options", [{"denoiser_blend": 0.5}, {"iterations": 4}, {"stopping": "noise"}])
-def test_a_fixed_blend_count_or_rule_turns_the_choice_off(capture, tiny_weights, options):
-    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_weights), **options)
+def test_a_fixed_blend_count_or_rule_turns_the_choice_off(capture, tiny_denoiser_weights, options):
+    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_denoiser_weights), **options)
     params = record["params"]
     assert "holdout_candidates" not in params and params["denoiser_blend"] == options.get("denoiser_blend", 0.5)
     assert ("blend_note" in params) == ("denoiser_blend" not in options)  # the record says no blend was chosen
@@ -116,8 +107,8 @@ def test_the_per_iteration_schedule_does_not_depend_on_the_run_length():
     ({"denoiser_sigma_steps": -1}, "denoiser_sigma_steps"),
     ({"denoiser_precision": "float16"}, "denoiser_precision"),
 ])
-def test_bad_options_name_themselves(capture, tiny_weights, options, match):
-    extra = {} if options.get("prior") == "nlstr" else {"denoiser_weights": str(tiny_weights)}
+def test_bad_options_name_themselves(capture, tiny_denoiser_weights, options, match):
+    extra = {} if options.get("prior") == "nlstr" else {"denoiser_weights": str(tiny_denoiser_weights)}
     with pytest.raises(InputError, match=match):
         reconstruct(capture, "caps-plus-cv", true_warps=True, **extra, **options)
 
@@ -127,10 +118,10 @@ def test_caps_plus_does_not_take_the_candidates(capture):
         reconstruct(capture, "caps-plus", true_warps=True, iterations=2, blend_candidates="0,0.5")
 
 
-def test_the_walk_stops_once_the_held_out_error_rises(capture, tiny_weights):
+def test_the_walk_stops_once_the_held_out_error_rises(capture, tiny_denoiser_weights):
     """Candidates ordered 1, 0.5, 0: with the untrained network the largest blend validates worst, so the walk
     stops at the second candidate unless its error fell."""
-    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_weights),
+    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
                             blend_candidates="0,1,0.5")
     candidates = record["params"]["holdout_candidates"]
     assert [c["denoiser_blend"] for c in candidates][:2] == [0.0, 1.0]

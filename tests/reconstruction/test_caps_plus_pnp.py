@@ -23,15 +23,6 @@ def capture(smooth_random_scene):
     return simulate_capture(smooth_random_scene(SIZE, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
 
 
-@pytest.fixture(scope="module")
-def tiny_weights(tmp_path_factory):
-    """A small untrained denoiser's model file (the mechanics do not need a trained one)."""
-    torch.manual_seed(0)
-    params = {"channels": 12, "features": 4, "depth": 3}
-    path = tmp_path_factory.mktemp("denoiser") / "model.pt"
-    return save_model(path, "denoiser", params, build_network("denoiser", params))
-
-
 @pytest.mark.parametrize("shape", [(1, 12, 1, 1), (2, 12, 7, 5), (1, 12, 33, 18)])
 def test_denoiser_keeps_shape_and_starts_near_identity_on_tiny_and_odd_sizes(shape):
     torch.manual_seed(0)
@@ -78,13 +69,13 @@ def test_blend_replaces_only_the_analyzer_mean():
         assert fields["denoiser_sigma"] == pytest.approx(0.05)
 
 
-def test_runs_through_the_pipeline_and_blend_zero_is_caps_plus(capture, tiny_weights):
+def test_runs_through_the_pipeline_and_blend_zero_is_caps_plus(capture, tiny_denoiser_weights):
     plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
-    zero, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4, denoiser_weights=str(tiny_weights),
+    zero, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4, denoiser_weights=str(tiny_denoiser_weights),
                           denoiser_blend=0.0)
     np.testing.assert_array_equal(zero.image, plus.image)
     out, record = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4,
-                              denoiser_weights=str(tiny_weights))
+                              denoiser_weights=str(tiny_denoiser_weights))
     assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
     assert not np.array_equal(out.image, plus.image)
     params = record["params"]
@@ -108,14 +99,14 @@ def test_bad_options_name_themselves(capture, options, match):
         reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=2, **options)
 
 
-def test_other_networks_and_channel_counts_are_refused(capture, tmp_path, tiny_weights):
+def test_other_networks_and_channel_counts_are_refused(capture, tmp_path, tiny_denoiser_weights):
     edsr = save_model(tmp_path / "edsr.pt", "edsr", {"channels": 3, "features": 4, "blocks": 1},
                       build_network("edsr", {"channels": 3, "features": 4, "blocks": 1}))
     with pytest.raises(InputError, match="denoiser"):
         reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=2, denoiser_weights=str(edsr))
     with pytest.raises(CapssimError, match="12-channel"):
         reconstruct(capture, "caps-iccp", true_warps=True, iterations=2, prior="nlstr-denoiser",
-                    denoiser_weights=str(tiny_weights))
+                    denoiser_weights=str(tiny_denoiser_weights))
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
