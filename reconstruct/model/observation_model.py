@@ -171,8 +171,11 @@ def _estimated_aperture_warps(images: np.ndarray, saturated: np.ndarray, hr_shap
 
 def _registration_record(result, mode: str) -> dict:
     diagnostics = result.diagnostics
-    return {"source": "estimated (capssim.reconstruct.registration)", "mode": mode,
-            "luminance": diagnostics.get("luminance"), "time_s": diagnostics.get("time_s"),
-            "warnings": list(diagnostics.get("warnings", [])),
-            "fallbacks": {str(a["aperture"]): a["fallback"] for a in diagnostics.get("apertures", [])
-                          if a.get("fallback") not in ("none", "reference")}}
+    record = {"source": "estimated (capssim.reconstruct.registration)", "mode": mode,
+              "luminance": diagnostics.get("luminance"), "time_s": diagnostics.get("time_s"),
+              "warnings": list(diagnostics.get("warnings", [])),
+              "fallbacks": {str(a["aperture"]): a["fallback"] for a in diagnostics.get("apertures", [])
+                            if a.get("fallback") not in ("none", "reference")}}
+    if "wide_window_retry" in diagnostics:
+        record["wide_window_retry"] = diagnostics["wide_window_retry"]
+    return record

@@ -47,7 +47,6 @@ import numpy as np
 import torch
 
 from capssim.array_geometry import lr_homographies as lr_from_aperture
-from capssim.array_geometry import raw_matrix
 from capssim.conventions import N_APERTURES, N_LR_IMAGES
 from capssim.errors import InputError
 from capssim.homography import rotation_and_scale
@@ -67,6 +66,7 @@ from .parameters import (
     RegistrationParameters,
     registration_parameters,
 )
+from .plausibility import aperture_warp, implausible_apertures, is_plausible
 
 __all__ = ["REGISTRATION_MODES", "RegistrationParameters", "RegistrationResult", "estimate_lr_homographies",
            "registration_parameters"]
@@ -256,24 +256,54 @@ def _flag_match_quality(n: int, correlation: float, rescue: dict | None, min_cor
         record["weak_match"] = True
 
 
+def _retry_wider_windows(reg: StackRegistration, raw: torch.Tensor, lum: torch.Tensor, valid: torch.Tensor,
+                         active: list[int], model: str, parameters: RegistrationParameters,
+                         diag: dict) -> StackRegistration:
+    """When some warp of ``reg`` is implausible, register again with windows of ``parameters.retry_window_radius``
+    and keep that result if all its warps are plausible and its registered binomial images are more
+    Stokes-consistent (``diag["wide_window_retry"]`` records the comparison)."""
+    radius = parameters.retry_window_radius
+    rejected = implausible_apertures(reg, active, parameters)
+    if not rejected or len(active) != 3 or radius in (0, parameters.window_radius):
+        return reg
+    retry_diag: dict = {"warnings": [], "luminance": diag["luminance"]}
+    wide = _register_apertures(raw, lum, valid, active, model, parameters.replace(window_radius=radius), retry_diag)
+
+    def residual(result):
+        return stokes_residual_rms(lum[0], lum[active], torch.as_tensor(result.params), ref_valid=valid[0],
+                                   moving_valid=valid[active], model=model)
+
+    before, after = residual(reg), residual(wide)
+    kept = (not implausible_apertures(wide, active, parameters) and all(np.isfinite(v) for v in (before, after))
+            and after < before)
+    diag["wide_window_retry"] = {"window_radius": radius, "implausible_apertures": rejected,
+                                 "stokes_residual_rms": {"first": before, "retry": after}, "kept": kept}
+    if not kept:
+        return reg
+    log.info("registration: implausible warp for apertures %s; the retry with %d px windows is plausible and more "
+             "Stokes-consistent (%.4g -> %.4g): kept", rejected, radius, before, after)
+    diag["luminance"] = retry_diag["luminance"]
+    if "luminance_stokes_residual_rms" in retry_diag:
+        diag["luminance_stokes_residual_rms"] = retry_diag["luminance_stokes_residual_rms"]
+    diag["warnings"].extend(retry_diag["warnings"])
+    return wide
+
+
 def _accept_warps(reg: StackRegistration, active: list[int], parameters: RegistrationParameters,
                   aperture: np.ndarray, per_ap: list[dict], diag: dict) -> None:
     """Write the estimated aperture warps ``H_n = R^-1 G_n R`` into ``aperture`` ``(4, 3, 3)``; degenerate
     and implausible ones (beyond the parameters' rotation and scale limits) keep the identity."""
-    rmat = raw_matrix()
-    rinv = np.linalg.inv(rmat)
     joint = reg.info.get("stokes_joint", {})
     rescued = set(joint.get("images", [])) if joint.get("kept") else set()
     max_rotation, max_scale_error = parameters.max_rotation_deg, parameters.max_scale_error
     for j, n in enumerate(active):
-        hn = rinv @ reg.matrices[j] @ rmat
-        if not np.all(np.isfinite(hn)) or abs(np.linalg.det(hn[:2, :2])) < 1e-6:
+        hn = aperture_warp(reg.matrices[j])
+        if hn is None:
             _warn(diag, f"registration: aperture {n} gave a degenerate warp; using the identity for it")
             per_ap[n]["fallback"] = "identity: degenerate estimate"
             continue
-        hn = hn / hn[2, 2]
-        rotation_deg, scale = rotation_and_scale(hn)
-        if abs(rotation_deg) > max_rotation or abs(scale - 1.0) > max_scale_error:
+        if not is_plausible(hn, parameters):
+            rotation_deg, scale = rotation_and_scale(hn)
             _warn(diag, f"registration: aperture {n} ({45 * n} deg) matched at a rotation of {rotation_deg:.1f} deg "
                   f"and scale {scale:.3f}, implausible for a camera array (limits {max_rotation} deg, "
                   f"1 +- {max_scale_error}); using the identity for it. The analyzer images probably differ by "
@@ -342,6 +372,7 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, parameters:
     aperture = np.tile(np.eye(3), (N_APERTURES, 1, 1))
     if active:
         reg = _register_apertures(raw, lum, valid, active, model, parameters, diag)
+        reg = _retry_wider_windows(reg, raw, lum, valid, active, model, parameters, diag)
         _accept_warps(reg, active, parameters, aperture, per_ap, diag)
         diag["engine"] = reg.info
     diag["apertures"] = per_ap

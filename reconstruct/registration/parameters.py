@@ -61,6 +61,11 @@ class RegistrationParameters:
         an aperture warp rotated by more than this (degrees) or scaled by more than
         ``1 +- max_scale_error`` is not a camera array's: it falls back to the identity with a
         warning (``fallback`` ``identity: implausible warp``).
+    retry_window_radius
+        when some warp is implausible, the registration runs again with local-correlation windows of
+        this radius (raw pixels; 0: no retry) and keeps the new warps if all of them are plausible and
+        their registered images obey ``I0 + I90 = I45 + I135`` better (lower Stokes residual). Small
+        windows lock onto aliased periodic texture (a 512 px Siemens star); wider ones see more of it.
     """
 
     model: str = "similarity"
@@ -78,6 +83,7 @@ class RegistrationParameters:
     stokes_subspace_std: float = 0.0
     max_rotation_deg: float = MAX_PLAUSIBLE_ROTATION_DEG
     max_scale_error: float = MAX_PLAUSIBLE_SCALE_ERROR
+    retry_window_radius: int = 6
 
     @classmethod
     def for_mode(cls, name: str) -> RegistrationParameters:
@@ -115,7 +121,8 @@ class RegistrationParameters:
             raise InputError("max_rotation_deg", self.max_rotation_deg, "a finite angle > 0 in degrees")
         if not (0 < self.max_scale_error < 1):
             raise InputError("max_scale_error", self.max_scale_error, "a relative scale error in (0, 1)")
-        for name in ("window_radius", "stokes_levels", "max_iterations", "robust_levels", "robust_passes"):
+        for name in ("window_radius", "stokes_levels", "max_iterations", "robust_levels", "robust_passes",
+                     "retry_window_radius"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < (1 if name == "max_iterations" else 0):
                 raise InputError(name, value, "an integer >= 1" if name == "max_iterations" else "an integer >= 0")
