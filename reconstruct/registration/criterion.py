@@ -193,3 +193,31 @@ def stokes_residual_rms(ref: torch.Tensor, moving: torch.Tensor, params, *, ref_
     with torch.no_grad():
         return float(crit.stokes_residual(spline_sample(crit.coef, crit.coords(p))).sqrt())
 
+
+
+def intensity_texture_ratio(ref: torch.Tensor, moving: torch.Tensor, params, *, model: str = "similarity",
+                            border: int = 3) -> float:
+    """How much texture the sums of orthogonal analyzer images keep: for the pairs (0, 90) and (45, 135) deg, with
+    ``moving`` ``(3, H, W)`` (45, 90, 135 deg) warped onto ``ref`` ``(H, W)`` (0 deg) by ``params`` ``(3, P)``,
+    ``std(I_a + I_b) / (std(I_a) + std(I_b))`` over the pixels ``border`` px from the edge; the smaller of the two
+    (a pair with less than a tenth of the other's texture is left out).
+
+    Each pair sums to ``S0``: about 1 for an unpolarized scene (the two images are alike), about 0.7 for
+    independent ones, near 0 when the structure is in the polarization only (``S0`` flat: a polarization star, an
+    AoP wheel; the two images are negatives of each other). There the registration is ill-posed: a shift common to
+    the 45 and 135 deg apertures leaves their sum, and so every criterion of the registration, unchanged."""
+    if moving.shape[0] != 3:
+        raise InputError("moving", tuple(moving.shape), "three images (45, 90, 135 deg) of the reference's shape")
+    hh, ww = ref.shape
+    ones = torch.ones_like(ref)
+    crit = LevelCriterion(ref, moving, ones, torch.ones_like(moving), scale=1, window_radius=1, model=model,
+                          centre=((ww - 1) / 2.0, (hh - 1) / 2.0), radius=max(hh, ww) / 2.0, eps=1e-12)
+    p = torch.as_tensor(params, dtype=ref.dtype, device=ref.device)
+    with torch.no_grad():
+        warped = spline_sample(crit.coef, crit.coords(p))
+    images = torch.cat([ref[None], warped])[:, border:hh - border, border:ww - border].flatten(1)
+    spread = images.std(dim=1)
+    pairs = [(spread[a] + spread[b], images[a] + images[b]) for a, b in ((0, 2), (1, 3))]
+    most = max(float(texture) for texture, _ in pairs)
+    ratios = [float(total.std() / texture) for texture, total in pairs if float(texture) > 0.1 * most and most > 0]
+    return min(ratios) if ratios else 1.0
