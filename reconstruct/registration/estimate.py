@@ -299,7 +299,7 @@ def _check_intensity_texture(reg: StackRegistration, lum: torch.Tensor, model: s
     ratio = diag["intensity_texture_ratio"] = intensity_texture_ratio(lum[0], lum[1:], torch.as_tensor(reg.params),
                                                                       model=model)
     if ratio < POLARIZATION_ONLY_TEXTURE:
-        _warn(diag, f"registration: the four analyzer images' mean is nearly flat (texture ratio {ratio:.3f} < "
+        _warn(diag, f"registration: the sums of orthogonal analyzer images are nearly flat (texture ratio {ratio:.3f} < "
               f"{POLARIZATION_ONLY_TEXTURE}): the scene's structure is in its polarization, and a shift common to the "
               "45 and 135 deg apertures leaves every intensity criterion unchanged, so those warps can be pixels off; "
               "use --true-warps or calibrated warps (capssim calibrate)")
