@@ -180,19 +180,27 @@ def stokes_residual_rms(ref: torch.Tensor, moving: torch.Tensor, params, *, ref_
     :func:`~capssim.reconstruct.registration.engine.register_stack` returns them), over the pixels valid in
     all four images and ``border`` px from the edge: the figure ``register_stack`` reports as
     ``info["stokes_residual_rms"]``, for any images and warps."""
-    if moving.shape[0] != 3:
-        raise InputError("moving", tuple(moving.shape), "three images (45, 90, 135 deg) of the reference's shape")
     hh, ww = ref.shape
     rv = torch.ones_like(ref) if ref_valid is None else ref_valid.to(ref.dtype).clone()
     rv[:border], rv[hh - border:], rv[:, :border], rv[:, ww - border:] = 0, 0, 0, 0
     mv = torch.ones_like(moving) if moving_valid is None else moving_valid.to(moving.dtype)
-    crit = LevelCriterion(ref, moving, rv, mv, scale=1, window_radius=1, model=model,
-                          centre=((ww - 1) / 2.0, (hh - 1) / 2.0), radius=max(hh, ww) / 2.0, eps=1e-12)
+    crit = _analyzer_criterion(ref, moving, rv, mv, model)
     p = torch.as_tensor(params, dtype=ref.dtype, device=ref.device)
     crit.fix_weights(p)
     with torch.no_grad():
         return float(crit.stokes_residual(spline_sample(crit.coef, crit.coords(p))).sqrt())
 
+
+def _analyzer_criterion(ref: torch.Tensor, moving: torch.Tensor, ref_valid: torch.Tensor, moving_valid: torch.Tensor,
+                        model: str) -> LevelCriterion:
+    """The full-resolution :class:`LevelCriterion` of the 0 deg ``ref`` ``(H, W)`` and the 45, 90, 135 deg
+    ``moving`` ``(3, H, W)``, with :func:`~capssim.reconstruct.registration.engine.register_stack`'s centre and
+    radius, so that its parameters warp them as they do there."""
+    if moving.shape[0] != 3:
+        raise InputError("moving", tuple(moving.shape), "three images (45, 90, 135 deg) of the reference's shape")
+    hh, ww = ref.shape
+    return LevelCriterion(ref, moving, ref_valid, moving_valid, scale=1, window_radius=1, model=model,
+                          centre=((ww - 1) / 2.0, (hh - 1) / 2.0), radius=max(hh, ww) / 2.0, eps=1e-12)
 
 
 def intensity_texture_ratio(ref: torch.Tensor, moving: torch.Tensor, params, *, model: str = "similarity",
@@ -206,12 +214,8 @@ def intensity_texture_ratio(ref: torch.Tensor, moving: torch.Tensor, params, *, 
     independent ones, near 0 when the structure is in the polarization only (``S0`` flat: a polarization star, an
     AoP wheel; the two images are negatives of each other). There the registration is ill-posed: a shift common to
     the 45 and 135 deg apertures leaves their sum, and so every criterion of the registration, unchanged."""
-    if moving.shape[0] != 3:
-        raise InputError("moving", tuple(moving.shape), "three images (45, 90, 135 deg) of the reference's shape")
     hh, ww = ref.shape
-    ones = torch.ones_like(ref)
-    crit = LevelCriterion(ref, moving, ones, torch.ones_like(moving), scale=1, window_radius=1, model=model,
-                          centre=((ww - 1) / 2.0, (hh - 1) / 2.0), radius=max(hh, ww) / 2.0, eps=1e-12)
+    crit = _analyzer_criterion(ref, moving, torch.ones_like(ref), torch.ones_like(moving), model)
     p = torch.as_tensor(params, dtype=ref.dtype, device=ref.device)
     with torch.no_grad():
         warped = spline_sample(crit.coef, crit.coords(p))
