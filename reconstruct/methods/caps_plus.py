@@ -48,7 +48,7 @@ import torch
 from capssim.errors import InputError
 
 from ..model.data_term import ConfidenceDataTerm
-from ..model.holdout import HoldoutValidation, holdout_mask, split_held_out
+from ..model.holdout import HOLDOUT_RULES, HoldoutValidation, holdout_mask, split_held_out
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
 from ..model.polarization_split import angle_mean
 from ..model.rearrange import observations_from_capture
@@ -95,7 +95,7 @@ def demosaicked_initialization(capture, context: RunContext, geometry, *, held_o
 
 def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "holdout",
                            holdout_fraction: float = 0.05, patience: int = 5, holdout_refit: bool = True,
-                           blend_candidates: str = "") -> FrontEnd:
+                           holdout_rule: str = "min", blend_candidates: str = "") -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
@@ -105,6 +105,8 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`; a frame
     larger than :data:`HOLDOUT_WINDOW` is validated on its central window, :func:`window_validation`).
     ``holdout_refit=False`` keeps the best validation iterate instead of solving again with all the data.
+    ``holdout_rule`` names the count the final solve runs: ``min`` (the lowest held-out error) or ``one-se``
+    (the earliest within one standard error of it; :class:`~capssim.reconstruct.model.holdout.HoldoutValidation`).
     ``blend_candidates`` (``caps-plus-cv``'s ``"0,0.5,0.75"``; prior ``nlstr-denoiser``): the held-out validation
     runs for each ``denoiser_blend`` listed in turn, on the central window or the whole frame, and the final solve
     takes the one whose held-out prediction error is lowest (:func:`window_validation`; a calibrated run, which
@@ -113,19 +115,21 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
                          "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
-    stopping = check_stopping(stopping, holdout_fraction, patience)
+    stopping = check_stopping(stopping, holdout_fraction, patience, holdout_rule)
     given = given_option_names(context.options)
     if given & COUNT_OPTIONS and "stopping" not in given:  # a count given fixes the count: nothing to validate
         stopping = "noise"
     candidates = blend_choices(blend_candidates, options, given)
     front = caps_observations(capture, context, options)
     full = front.problems[0]
-    if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates):
+    if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates,
+                                                   rule=holdout_rule):
         stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
     elif candidates:  # a count, the noise rule, a calibration or too few pixels: nothing validates the blends
         front.params["blend_note"] = (f"no blend chosen (stopping {stopping}, calibrated "
                                       f"{context.calibration is not None}): denoiser_blend as configured")
-    held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience, refit=holdout_refit)
+    held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience, refit=holdout_refit,
+                               holdout_rule=holdout_rule)
     if name != "fusion":
         for problem, mask in ((front.problems[0], held_out), (full, None))[:1 if held_out is None else 2]:
             problem.init = agreement_initialization(capture, context, front, problem, options, name, held_out=mask)
@@ -158,7 +162,7 @@ MIN_HELD_OUT = 32
 HOLDOUT_MAX_ITERATIONS = 60
 
 
-def check_stopping(stopping: str, fraction: float, patience: int) -> str:
+def check_stopping(stopping: str, fraction: float, patience: int, holdout_rule: str = "min") -> str:
     """The stopping rule's name, with its options checked before any work (:class:`InputError` naming the
     option otherwise)."""
     rule = str(stopping).strip()
@@ -170,10 +174,14 @@ def check_stopping(stopping: str, fraction: float, patience: int) -> str:
                          "Use -p holdout_fraction=0.05.")
     if int(patience) < 1:
         raise InputError("option patience", patience, "an integer >= 1", "Use -p patience=5.")
+    if holdout_rule not in HOLDOUT_RULES:
+        raise InputError("option holdout_rule", repr(holdout_rule), "one of " + ", ".join(HOLDOUT_RULES),
+                         "Use -p holdout_rule=min (the lowest held-out error) or -p holdout_rule=one-se.")
     return rule
 
 
-def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int, *, refit: bool = True):
+def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int, *, refit: bool = True,
+                    holdout_rule: str = "min"):
     """For ``stopping="holdout"``: replace the front end's single problem by a copy without ``fraction`` of the
     raw pixels (data weights and the fused start), whose
     :class:`~capssim.reconstruct.model.holdout.HoldoutValidation` rule predicts them and names the whole
@@ -194,9 +202,9 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
     validation = replace(full, obs=obs, seen=seen, derived={}, init=None)
     predict = ConfidenceDataTerm(obs, validation.operator, mixing=validation.mixing).forward  # M I, eq. 15
     validation.stopping = HoldoutValidation(predict, obs.images, held, patience=patience,
-                                            refit=full if refit else None)
+                                            refit=full if refit else None, rule=holdout_rule)
     front.problems[0] = validation
-    front.params.update({"holdout_fraction": float(fraction), "patience": int(patience)})
+    front.params.update({"holdout_fraction": float(fraction), "patience": int(patience), "holdout_rule": holdout_rule})
     return held_out
 
 
@@ -228,14 +236,15 @@ def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
 
 
 def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
-                      candidates: tuple[dict, ...] = ()) -> bool:
+                      candidates: tuple[dict, ...] = (), rule: str = "min") -> bool:
     """For a frame larger than :data:`HOLDOUT_WINDOW` on either side, or any frame when ``candidates`` are given
     (uncalibrated): run ``caps-plus`` with ``stopping=holdout`` and no final solve on the central window's
     capture (:func:`~capssim.reconstruct.model.window_capture.crop_window`, the front end's warps re-based to
     it; the whole frame when it is no larger), once per candidate (prior option overrides, e.g.
     ``{"denoiser_blend": 0.5}``; none: once as configured) in their order until the held-out error rises (the
     error is taken to be unimodal along the candidates: one past the lowest is not worth validating), and
-    record the count of the run with the lowest held-out error in ``front.params`` (``holdout_count``,
+    record the count ``rule`` names (:class:`~capssim.reconstruct.model.holdout.HoldoutValidation`) of the run
+    with the lowest held-out error in ``front.params`` (``holdout_count``,
     ``holdout_choice``, with the window and the validation's record). False (nothing done) for a smaller frame
     without candidates or a calibrated run, which validate on the whole frame."""
     h, w = capture.hr_shape
@@ -250,7 +259,7 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     runs = []
     for overrides in candidates or ({},):
         sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
-                         options={**given, "stopping": "holdout", "holdout_refit": False,
+                         options={**given, "stopping": "holdout", "holdout_refit": False, "holdout_rule": rule,
                                   "prior": options.prior, "data_term": options.data_term, **own, **overrides})
         with context.timer.stage("holdout_validation"):
             params = run_pipeline(crop, sub, CAPS_PLUS).params
@@ -260,12 +269,12 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
         if len(runs) > 1 and runs[-1][0] > runs[-2][0]:  # past the lowest error (unimodal along the candidates)
             break
     error, chosen, params = min(runs, key=lambda run: run[0])
-    front.params.update({"holdout_count": int(params["holdout_best_iteration"]), "holdout_window": list(window),
+    front.params.update({"holdout_count": int(params["holdout_chosen_iteration"]), "holdout_window": list(window),
                          **{k: params[k] for k in ("holdout_best_iteration", "holdout_error", "holdout_iterations_run",
-                                                   "holdout_fraction", "patience")}})
+                                                   "holdout_fraction", "patience", "holdout_rule")}})
     if candidates:
         front.params.update({"holdout_choice": chosen,
-                             "holdout_candidates": [{**o, "holdout_error": e, "iterations": p["holdout_best_iteration"]}
+                             "holdout_candidates": [{**o, "holdout_error": e, "iterations": p["holdout_chosen_iteration"]}
                                                     for e, o, p in runs]})
     return True
 
@@ -330,7 +339,7 @@ def frame_iterations(capture, options: dict) -> dict:
 CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
                            defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
                            front_end_options={"init": "agree", "stopping": "holdout", "holdout_fraction": 0.05,
-                                              "patience": 5, "holdout_refit": True},
+                                              "patience": 5, "holdout_refit": True, "holdout_rule": "min"},
                            schedule=noise_adaptive_schedule)
 
 

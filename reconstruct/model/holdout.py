@@ -20,6 +20,17 @@ which partitions the measured samples the same way).
 The solver keeps the best iterate and stops ``patience`` iterations after it
 (:class:`HoldoutValidation`, the :class:`~capssim.reconstruct.solvers.interfaces.StoppingRule` protocol).
 
+Which count a final solve with all the data runs (``rule``):
+
+- ``min``: the iteration of the lowest ``e``.
+- ``one-se``: the earliest iteration ``k >= min_iterations`` whose error is within one standard error of the
+  lowest, ``mean_m(d_m) <= std_m(d_m) / sqrt(n)`` with ``d_m = w_m ((y_m - (M I_k)_m)^2 - (y_m - (M I_best)_m)^2)``
+  the paired per-sample differences over the ``n`` held-out samples (the one-standard-error rule of
+  cross-validation: Breiman, Friedman, Olshen, Stone, *Classification and Regression Trees*, 1984, 3.4.3; Hastie,
+  Tibshirani, Friedman, *The Elements of Statistical Learning*, 2nd ed., 2009, 7.10). Near its minimum ``e`` is
+  flat within its own noise, and the argmin lands late by chance; the rule takes the least-iterated count the
+  held-out pixels cannot tell from it. It keeps every iteration's ``n`` sample errors (8 bytes each).
+
 Units: raw values on the sensor's [0, 1] full scale; ``e`` in those units squared.
 """
 
@@ -34,7 +45,10 @@ import torch.nn.functional as F
 from capssim.conventions import split_bayer
 from capssim.errors import InputError
 
-__all__ = ["HOLDOUT_SEED", "HoldoutValidation", "fill_held_out", "holdout_mask", "split_held_out"]
+__all__ = ["HOLDOUT_RULES", "HOLDOUT_SEED", "HoldoutValidation", "fill_held_out", "holdout_mask", "split_held_out"]
+
+#: the counts a validation can name for the final solve (module docstring)
+HOLDOUT_RULES = ("min", "one-se")
 
 #: the seed of the held-out pixels: a run is reproducible, and every method that holds out sees the same pixels
 HOLDOUT_SEED = 20261127
@@ -97,34 +111,53 @@ class HoldoutValidation:
     min_iterations : int
         Iterations always run (>= 0).
     refit : object, optional
-        The problem with all the data, which the pipeline solves again for :attr:`best_iteration` iterations
+        The problem with all the data, which the pipeline solves again for :attr:`chosen_iteration` iterations
         once this rule has stopped its run (:func:`capssim.reconstruct.pipeline.run.run_pipeline`); ``None``:
         the best iterate of this run is the result.
+    rule : str
+        Which count :attr:`chosen_iteration` names: ``min`` (:attr:`best_iteration`) or ``one-se`` (module
+        docstring).
     """
 
     def __init__(self, forward, images: torch.Tensor, weights: torch.Tensor, *, patience: int = 5,
-                 min_iterations: int = 3, refit=None):
+                 min_iterations: int = 3, refit=None, rule: str = "min"):
         if int(patience) < 1:
             raise InputError("patience", patience, "an integer >= 1", "Use -p patience=5.")
+        if rule not in HOLDOUT_RULES:
+            raise InputError("holdout_rule", repr(rule), "one of " + ", ".join(HOLDOUT_RULES),
+                             "Use -p holdout_rule=min (the lowest held-out error) or -p holdout_rule=one-se.")
         self.forward, self.images, self.weights = forward, images, weights
         self.total = float(weights.sum())
         if self.total <= 0:
             raise InputError("holdout_fraction", "no held-out sample with a data weight",
                              "a fraction that holds out some usable pixels", "Use -p holdout_fraction=0.05.")
-        self.patience, self.min_iterations, self.refit = int(patience), int(min_iterations), refit
+        self.patience, self.min_iterations, self.refit, self.rule = int(patience), int(min_iterations), refit, rule
+        self.held = weights > 0
+        self.sample_errors: list[torch.Tensor] = []  # rule one-se: each iterate's weighted squared errors
         self.best_image: torch.Tensor | None = None
         self.best_error, self.best_iteration, self.last_iteration = math.inf, 0, 0
         self.init_error = math.inf
 
     def error(self, image: torch.Tensor) -> float:
         """``e(image)``: the weighted mean squared prediction error at the held-out samples."""
+        return float(self._weighted_errors(image).sum()) / self.total
+
+    def _weighted_errors(self, image: torch.Tensor) -> torch.Tensor:
         residual = self.images - self.forward(image)
-        return float((self.weights * residual.square()).sum()) / self.total
+        return self.weights * residual.square()
+
+    def _measure(self, image: torch.Tensor) -> float:
+        """:meth:`error` of an iterate, whose sample errors ``rule="one-se"`` keeps."""
+        weighted = self._weighted_errors(image)
+        if self.rule == "one-se":
+            self.sample_errors.append(weighted[self.held].double())
+        return float(weighted.sum()) / self.total
 
     def begin(self, init: torch.Tensor) -> dict:
         """Start a run from ``init`` (iteration 0, a candidate itself); its error, which the first
         :meth:`update` reports too."""
-        self.best_error, self.best_iteration, self.last_iteration = self.error(init), 0, 0
+        self.sample_errors = []
+        self.best_error, self.best_iteration, self.last_iteration = self._measure(init), 0, 0
         self.best_image = init.detach().clone()
         self.init_error = self.best_error
         return {"holdout_error_init": self.init_error}
@@ -132,7 +165,7 @@ class HoldoutValidation:
     def update(self, iteration: int, image: torch.Tensor) -> dict:
         """After iteration ``iteration`` (1-based) produced ``image``: its error, kept if the best so far (the
         first iteration's fields also hold the start's error)."""
-        e = self.error(image)
+        e = self._measure(image)
         first = self.last_iteration == 0
         self.last_iteration = int(iteration)
         if e < self.best_error:
@@ -147,12 +180,33 @@ class HoldoutValidation:
         return (self.last_iteration >= self.min_iterations
                 and self.last_iteration - self.best_iteration >= self.patience)
 
+    @property
+    def chosen_iteration(self) -> int:
+        """The count a final solve with all the data runs: :attr:`best_iteration` (``rule="min"``), or the earliest
+        count from ``min_iterations`` on whose paired error difference to it is within one standard error
+        (``rule="one-se"``)."""
+        best = self.best_iteration
+        if self.rule == "min" or best <= self.min_iterations or len(self.sample_errors) <= best:
+            return best
+        reference = self.sample_errors[best]
+        n = reference.numel()
+        for k in range(self.min_iterations, best):
+            diff = self.sample_errors[k] - reference
+            if float(diff.mean()) <= float(diff.std()) / math.sqrt(n):
+                return k
+        return best
+
     def final(self, image: torch.Tensor) -> torch.Tensor:
         """The image the solver returns: the best iterate (``image`` if the rule never began)."""
         return image if self.best_image is None else self.best_image
 
     def record(self) -> dict:
-        """What the method's record keeps: the chosen count (``iterations``), its held-out error and the
-        iterations the validation run took."""
-        return {"iterations": self.best_iteration, "holdout_best_iteration": self.best_iteration,
-                "holdout_error": self.best_error, "holdout_iterations_run": self.last_iteration}
+        """What the method's record keeps: the count run (``iterations``: the chosen one where the problem is solved
+        again, else that of the best iterate, which is the result), the count a final solve runs
+        (``holdout_chosen_iteration``), the lowest held-out error, where it was and the iterations the
+        validation run took."""
+        chosen = self.chosen_iteration
+        return {"iterations": chosen if self.refit is not None else self.best_iteration,
+                "holdout_best_iteration": self.best_iteration, "holdout_chosen_iteration": chosen,
+                "holdout_rule": self.rule, "holdout_error": self.best_error,
+                "holdout_iterations_run": self.last_iteration}

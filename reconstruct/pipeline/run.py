@@ -199,7 +199,7 @@ def _solve_problem(capture, context: RunContext, opts: CapsOptions, defaults: Ca
     if refit is None:
         return _Solved(problem, data, init, image, history, problem.stopping)
     # the rule chose the iteration count on part of the data: solve again with all of it, for that count
-    count = int(problem.stopping.best_iteration)
+    count = int(problem.stopping.chosen_iteration)
     data = get_data_term(opts.data_term).factory(refit, options=opts, stage=timer.stage)
     with timer.stage("init"):
         init = refit.init if refit.init is not None else fused_initialization(refit)

@@ -30,7 +30,9 @@ options are a :class:`~capssim.reconstruct.registration.parameters.RegistrationP
 Safeguards: constant / flat images, or frames too small for the model, fall back to the
 identity (or a smaller model) with a logged warning and a flag in ``diagnostics``; a warp no
 camera array has (rotation, scale) falls back to the identity; a poor final match is flagged
-``unreliable``.
+``unreliable``. On a scene whose structure is in its polarization only (flat S0), the motion common to the 45
+and 135 deg apertures, which no intensity criterion sees, is set by the smoothness of the linear polarization
+(:mod:`~capssim.reconstruct.registration.polarization_cue`) and a warning says so.
 
 Raw coordinates of aperture n relate to its aperture-HR coordinates by
 :func:`capssim.array_geometry.raw_matrix`: ``H_n = R^-1 G_n R`` for the estimated raw-to-raw
@@ -52,7 +54,7 @@ from capssim.errors import InputError
 from capssim.homography import rotation_and_scale
 
 from ..filters import gaussian_blur
-from .criterion import intensity_texture_ratio, stokes_residual_rms
+from .criterion import stokes_residual_rms
 from .engine import StackRegistration, register_stack
 from .image_ops import noise_sigma
 from .luminance import (
@@ -67,6 +69,7 @@ from .parameters import (
     registration_parameters,
 )
 from .plausibility import aperture_warp, implausible_apertures, is_plausible
+from .polarization_cue import check_polarization_only
 
 __all__ = ["REGISTRATION_MODES", "RegistrationParameters", "RegistrationResult", "estimate_lr_homographies",
            "registration_parameters"]
@@ -81,11 +84,6 @@ _MODELS_BY_SIZE = ["translation", "euclidean", "similarity", "affine", "homograp
 #: right estimates on strongly polarized scenes reach 0.4-0.8, wrong ones 0.3-0.5 (apertures whose
 #: warp the Stokes-consistency rescue set get their own warning instead)
 WEAK_CORRELATION = 0.6
-
-#: :func:`~capssim.reconstruct.registration.criterion.intensity_texture_ratio` below which the structure is taken to be
-#: in the polarization only (S0 flat; the registration is then ill-posed and says so): rendered polarization stars
-#: 0.02-0.03, every other scene of the benchmark suites 0.37 (strongly polarized photographs) to 1
-POLARIZATION_ONLY_TEXTURE = 0.2
 
 #: ``luminance='auto'``: the pyramid level on which the demosaicked image's refinement (from the
 #: binomial warps) starts
@@ -294,17 +292,6 @@ def _retry_wider_windows(reg: StackRegistration, raw: torch.Tensor, lum: torch.T
     return wide
 
 
-def _check_intensity_texture(reg: StackRegistration, lum: torch.Tensor, model: str, diag: dict) -> None:
-    """Record the registered images' :func:`intensity_texture_ratio`; warn when the structure is polarization only."""
-    ratio = diag["intensity_texture_ratio"] = intensity_texture_ratio(lum[0], lum[1:], torch.as_tensor(reg.params),
-                                                                      model=model)
-    if ratio < POLARIZATION_ONLY_TEXTURE:
-        _warn(diag, f"registration: the sums of orthogonal analyzer images are nearly flat (texture ratio {ratio:.3f} < "
-              f"{POLARIZATION_ONLY_TEXTURE}): the scene's structure is in its polarization, and a shift common to the "
-              "45 and 135 deg apertures leaves every intensity criterion unchanged, so those warps can be pixels off; "
-              "use --true-warps or calibrated warps (capssim calibrate)")
-
-
 def _accept_warps(reg: StackRegistration, active: list[int], parameters: RegistrationParameters,
                   aperture: np.ndarray, per_ap: list[dict], diag: dict) -> None:
     """Write the estimated aperture warps ``H_n = R^-1 G_n R`` into ``aperture`` ``(4, 3, 3)``; degenerate
@@ -389,9 +376,9 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, parameters:
     if active:
         reg = _register_apertures(raw, lum, valid, active, model, parameters, diag)
         reg = _retry_wider_windows(reg, raw, lum, valid, active, model, parameters, diag)
-        if len(active) == 3:
-            _check_intensity_texture(reg, lum, model, diag)
         _accept_warps(reg, active, parameters, aperture, per_ap, diag)
+        if len(active) == 3:
+            aperture = check_polarization_only(reg, lum, valid, aperture, model, parameters, diag, warn=_warn)
         diag["engine"] = reg.info
     diag["apertures"] = per_ap
     diag["time_s"] = time.perf_counter() - t_start

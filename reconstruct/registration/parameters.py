@@ -66,6 +66,11 @@ class RegistrationParameters:
         this radius (raw pixels; 0: no retry) and keeps the new warps if all of them are plausible and
         their registered images obey ``I0 + I90 = I45 + I135`` better (lower Stokes residual). Small
         windows lock onto aliased periodic texture (a 512 px Siemens star); wider ones see more of it.
+    polarization_cue_radius
+        when the structure is in the polarization only (flat ``S0``), the motion common to the 45 and 135 deg
+        apertures, which no intensity criterion sees, is searched within this many raw pixels and set by the
+        smoothness of the linear polarization
+        (:mod:`~capssim.reconstruct.registration.polarization_cue`; 0: off, a warning only).
     """
 
     model: str = "similarity"
@@ -84,6 +89,7 @@ class RegistrationParameters:
     max_rotation_deg: float = MAX_PLAUSIBLE_ROTATION_DEG
     max_scale_error: float = MAX_PLAUSIBLE_SCALE_ERROR
     retry_window_radius: int = 6
+    polarization_cue_radius: float = 6.0
 
     @classmethod
     def for_mode(cls, name: str) -> RegistrationParameters:
@@ -119,6 +125,9 @@ class RegistrationParameters:
             raise InputError("stokes_subspace_std", self.stokes_subspace_std, "a finite number >= 0 (0: off)")
         if not (self.max_rotation_deg > 0 and math.isfinite(self.max_rotation_deg)):
             raise InputError("max_rotation_deg", self.max_rotation_deg, "a finite angle > 0 in degrees")
+        if not (0 <= self.polarization_cue_radius <= 64 and math.isfinite(self.polarization_cue_radius)):
+            raise InputError("polarization_cue_radius", self.polarization_cue_radius,
+                             "a search radius in raw pixels in [0, 64] (0: off)")
         if not (0 < self.max_scale_error < 1):
             raise InputError("max_scale_error", self.max_scale_error, "a relative scale error in (0, 1)")
         for name in ("window_radius", "stokes_levels", "max_iterations", "robust_levels", "robust_passes",

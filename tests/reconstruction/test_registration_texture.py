@@ -7,7 +7,7 @@ from scipy.ndimage import gaussian_filter
 from capssim.homography import similarity
 from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registration import estimate_lr_homographies
-from capssim.reconstruct.registration.estimate import POLARIZATION_ONLY_TEXTURE
+from capssim.reconstruct.registration.polarization_cue import POLARIZATION_ONLY_TEXTURE
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
 
