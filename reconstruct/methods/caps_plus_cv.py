@@ -8,12 +8,11 @@ held-out validation (:mod:`capssim.reconstruct.model.holdout`: 5 % of the raw pi
 ``M``, eq. 15, after every iteration) for the ``nlstr-denoiser`` prior's blends ``w`` in turn (``-p
 blend_candidates=0,0.5,0.75``; ``w = 0`` is NLSTR alone, exactly ``caps-plus``'s prior) until the held-out error
 rises, on the central 256 px window of a larger frame or on the whole of a smaller one, and solves the whole
-problem with every pixel once, with the ``w`` of the lowest held-out error and the earliest iteration count whose
-held-out error is within one standard error of that run's lowest (``-p holdout_rule=one-se``, the default here;
-``min`` takes the lowest's count, as ``caps-plus`` does). This is model selection by hold-out validation
-(cross-validation with one fold; Stone, "Cross-validatory choice and assessment of statistical predictions",
-J. R. Stat. Soc. B 36(2) 1974) with the one-standard-error rule (Breiman et al., *Classification and Regression
-Trees*, 1984; :mod:`capssim.reconstruct.model.holdout`).
+problem with every pixel once, with the ``w`` and the iteration count of the lowest held-out error
+(``-p holdout_rule=one-se`` takes the earliest count within one standard error of it instead,
+:mod:`capssim.reconstruct.model.holdout`). This is model selection by hold-out validation (cross-validation with
+one fold; Stone, "Cross-validatory choice and assessment of statistical predictions", J. R. Stat. Soc. B 36(2)
+1974).
 
 The denoiser's noise level falls from 0.05 to 0.005 over the first 15 iterations and then stays
 (``denoiser_sigma_steps=15``), so that iteration ``k`` of a validation run is a ``k``-iteration run, which
@@ -32,22 +31,19 @@ from ..registry import MethodOutput, RunContext, register_method
 from .caps import REFERENCE as CAPS_REFERENCE
 from .caps_plus import CAPS_PLUS, frame_iterations
 
-__all__ = ["BLEND_CANDIDATES", "CAPS_PLUS_CV", "DENOISER_SIGMA_STEPS", "HOLDOUT_RULE"]
+__all__ = ["BLEND_CANDIDATES", "CAPS_PLUS_CV", "DENOISER_SIGMA_STEPS"]
 
 #: the ``nlstr-denoiser`` blends validated, in this order: NLSTR alone, ``caps-plus-pnp``'s half share of the
 #: intensity, then three quarters
 BLEND_CANDIDATES = "0,0.5,0.75"
 #: iterations over which the denoiser's noise level falls (then it stays at its end level)
 DENOISER_SIGMA_STEPS = 15
-#: the count the final solve runs: the earliest within one standard error of the lowest held-out error
-HOLDOUT_RULE = "one-se"
 
 #: caps-plus with the ``nlstr-denoiser`` prior, whose blend and count the held-out pixels choose
 CAPS_PLUS_CV = replace(CAPS_PLUS,
                        defaults={**CAPS_PLUS.defaults, "prior": "nlstr-denoiser",
                                  "denoiser_sigma_steps": DENOISER_SIGMA_STEPS},
-                       front_end_options={**CAPS_PLUS.front_end_options, "blend_candidates": BLEND_CANDIDATES,
-                                          "holdout_rule": HOLDOUT_RULE})
+                       front_end_options={**CAPS_PLUS.front_end_options, "blend_candidates": BLEND_CANDIDATES})
 
 
 @register_method("caps-plus-cv", input_kind="caps", frame_options=frame_iterations,

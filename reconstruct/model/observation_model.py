@@ -176,6 +176,7 @@ def _registration_record(result, mode: str) -> dict:
               "warnings": list(diagnostics.get("warnings", [])),
               "fallbacks": {str(a["aperture"]): a["fallback"] for a in diagnostics.get("apertures", [])
                             if a.get("fallback") not in ("none", "reference")}}
-    if "wide_window_retry" in diagnostics:
-        record["wide_window_retry"] = diagnostics["wide_window_retry"]
+    for key in ("intensity_texture_ratio", "polarization_cue", "wide_window_retry"):
+        if key in diagnostics:
+            record[key] = diagnostics[key]
     return record

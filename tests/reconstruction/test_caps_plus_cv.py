@@ -59,7 +59,7 @@ def test_a_candidate_validation_is_the_same_as_that_blend_validated_alone(captur
     for candidate in record["params"]["holdout_candidates"]:
         _, alone = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
                                denoiser_sigma_steps=15, denoiser_blend=candidate["denoiser_blend"],
-                               stopping="holdout", holdout_rule="one-se")
+                               stopping="holdout")
         assert alone["params"]["holdout_error"] == pytest.approx(candidate["holdout_error"], rel=1e-5)
         assert alone["params"]["iterations"] == candidate["iterations"]
 

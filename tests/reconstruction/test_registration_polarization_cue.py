@@ -8,6 +8,7 @@ from scipy.ndimage import gaussian_filter
 from capssim.errors import InputError
 from capssim.homography import similarity
 from capssim.polarization import twelve_from_stokes
+from capssim.reconstruct import reconstruct
 from capssim.reconstruct.registration import RegistrationParameters, estimate_lr_homographies
 from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
@@ -64,6 +65,15 @@ def test_the_polarization_cue_recovers_the_common_motion(fields, dolp_varies):
     assert "polarization_cue" not in blind.diagnostics
     assert _max_error(blind.aperture_homographies)[[1, 3]].min() > 1.0
     assert any("can be pixels off" in w for w in blind.diagnostics["warnings"])
+
+
+def test_the_method_record_keeps_what_the_cue_did(fields):
+    aop = fields[0]
+    flat = np.full((SIZE, SIZE), 0.5)
+    _, record = reconstruct(_capture(flat, 0.3 * flat * np.cos(2 * aop), 0.3 * flat * np.sin(2 * aop)), "caps-naive")
+    registration = record["registration"]
+    assert registration["intensity_texture_ratio"] < 0.2 and registration["polarization_cue"]["kept"]
+    assert any("smoothness of the linear polarization" in w for w in registration["warnings"])
 
 
 def test_a_scene_with_intensity_texture_is_left_to_the_intensity_criteria(fields):
