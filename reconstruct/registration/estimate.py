@@ -378,7 +378,9 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, parameters:
         reg = _retry_wider_windows(reg, raw, lum, valid, active, model, parameters, diag)
         _accept_warps(reg, active, parameters, aperture, per_ap, diag)
         if len(active) == 3:
-            aperture = check_polarization_only(reg, lum, valid, aperture, model, parameters, diag, warn=_warn)
+            fallbacks = frozenset(a["aperture"] for a in per_ap if a["fallback"] not in ("none", "reference"))
+            aperture = check_polarization_only(reg, lum, valid, aperture, model, parameters, diag, warn=_warn,
+                                               fallbacks=fallbacks)
         diag["engine"] = reg.info
     diag["apertures"] = per_ap
     diag["time_s"] = time.perf_counter() - t_start

@@ -23,8 +23,9 @@ removal algorithms", Physica D 60, 1992. The common *scale* is not
 searched: a star, the typical flat-``S0`` target, looks the same at every scale about its centre. It is set by the
 array instead (identical cameras): the 45/135 pair's mean scale is made that of the 0/90 pair. It is a prior on the
 scene (its polarization magnitude has less structure than its components), not a measurement, so it runs only
-when the intensity criteria cannot see the motion, is kept only when it lowers that variation by
-:data:`MIN_IMPROVEMENT` and its warps are plausible, and is recorded and announced either way.
+when the intensity criteria cannot see the motion and both the 45 and the 135 deg warp came from them (not an
+identity fallback), is kept only when it lowers that variation by :data:`MIN_IMPROVEMENT` inside the search and
+its warps are plausible, and is recorded and announced either way.
 """
 
 from __future__ import annotations
@@ -151,8 +152,9 @@ def refine_common_motion(lum: torch.Tensor, valid: torch.Tensor, aperture: np.nd
 
     ``lum`` ``(4, h, w)``: the registration images at raw resolution; ``valid`` ``(4, h, w)`` bool, their usable
     pixels; ``aperture``: the warps the intensity criteria found. Returns ``aperture`` unchanged (and
-    ``kept: False``) when the cue does not lower :func:`polarization_roughness` by :data:`MIN_IMPROVEMENT` or
-    gives an implausible warp."""
+    ``kept: False``) when the cue does not lower :func:`polarization_roughness` by :data:`MIN_IMPROVEMENT`, finds its
+    minimum on the edge of the search (within half a pixel of ``polarization_cue_radius``) or gives an implausible
+    warp."""
     radius = float(parameters.polarization_cue_radius)
     rmat = raw_matrix()
     raw_warps = np.stack([rmat @ h @ np.linalg.inv(rmat) for h in aperture])
@@ -173,7 +175,8 @@ def refine_common_motion(lum: torch.Tensor, valid: torch.Tensor, aperture: np.nd
     for n in COMMON_APERTURES:
         moved[n] = aperture[n] @ motion
         moved[n] /= moved[n][2, 2]
-    kept = bool(np.isfinite(after) and after <= (1 - MIN_IMPROVEMENT) * before
+    inside = float(q[:2].abs().max()) < radius - 0.5  # a minimum on the search's edge is not one it found
+    kept = bool(np.isfinite(after) and after <= (1 - MIN_IMPROVEMENT) * before and inside
                 and all(is_plausible(moved[n], parameters) for n in COMMON_APERTURES))
     record = {"roughness": {"intensity_warps": before, "polarization_cue": after}, "kept": kept,
               "translation_raw_px": [float(v) for v in q[:2].cpu()], "rotation_deg": float(np.degrees(
@@ -182,10 +185,13 @@ def refine_common_motion(lum: torch.Tensor, valid: torch.Tensor, aperture: np.nd
 
 
 def check_polarization_only(reg: StackRegistration, lum: torch.Tensor, valid: torch.Tensor, aperture: np.ndarray,
-                            model: str, parameters: RegistrationParameters, diag: dict, *, warn) -> np.ndarray:
+                            model: str, parameters: RegistrationParameters, diag: dict, *, warn,
+                            fallbacks: frozenset = frozenset()) -> np.ndarray:
     """Record the registered images' :func:`~.criterion.intensity_texture_ratio` in ``diag``; when the structure is
     in the polarization only, set the 45/135 deg common motion by :func:`refine_common_motion` (unless
-    ``polarization_cue_radius`` is 0) and ``warn(diag, message)`` what was done. Returns the aperture warps."""
+    ``polarization_cue_radius`` is 0, or the 45 or 135 deg warp is in ``fallbacks``, the apertures that fell back
+    to the identity: then the pair's relative warp, which the cue keeps, is unknown) and ``warn(diag, message)``
+    what was done. Returns the aperture warps."""
     ratio = diag["intensity_texture_ratio"] = intensity_texture_ratio(lum[0], lum[1:], torch.as_tensor(reg.params),
                                                                       model=model)
     if ratio >= POLARIZATION_ONLY_TEXTURE:
@@ -193,7 +199,11 @@ def check_polarization_only(reg: StackRegistration, lum: torch.Tensor, valid: to
     what = (f"registration: the sums of orthogonal analyzer images are nearly flat (texture ratio {ratio:.3f} < "
             f"{POLARIZATION_ONLY_TEXTURE}): the scene's structure is in its polarization, and a motion common to the "
             "45 and 135 deg apertures leaves every intensity criterion unchanged")
-    if parameters.polarization_cue_radius > 0:
+    lost = sorted(set(COMMON_APERTURES) & set(fallbacks))
+    if parameters.polarization_cue_radius > 0 and lost:
+        diag["polarization_cue"] = {"kept": False, "skipped": f"apertures {lost} fell back to the identity, so the "
+                                    "relative warp of the 45/135 pair is unknown"}
+    elif parameters.polarization_cue_radius > 0:
         aperture, cue = refine_common_motion(lum, valid, aperture, parameters)
         diag["polarization_cue"] = cue
         if cue["kept"]:

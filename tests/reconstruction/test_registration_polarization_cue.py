@@ -76,6 +76,18 @@ def test_the_method_record_keeps_what_the_cue_did(fields):
     assert any("smoothness of the linear polarization" in w for w in registration["warnings"])
 
 
+def test_the_cue_is_skipped_when_the_pair_fell_back_to_the_identity(fields):
+    """An identity fallback (here forced by a scale tolerance no estimate meets) loses the 45/135 pair's relative
+    warp, which the cue keeps: it does not run, and the warning says the warps can be pixels off."""
+    aop = fields[0]
+    flat = np.full((SIZE, SIZE), 0.5)
+    capture = _capture(flat, 0.3 * flat * np.cos(2 * aop), 0.3 * flat * np.sin(2 * aop))
+    result = _register(capture, max_scale_error=1e-12)
+    assert "fell back to the identity" in result.diagnostics["polarization_cue"]["skipped"]
+    np.testing.assert_allclose(result.aperture_homographies[[1, 3]], np.tile(np.eye(3), (2, 1, 1)))
+    assert any("can be pixels off" in w for w in result.diagnostics["warnings"])
+
+
 def test_a_scene_with_intensity_texture_is_left_to_the_intensity_criteria(fields):
     s0 = 0.5 + 0.1 * fields[0]
     result = _register(_capture(s0, 0.3 * s0, 0.0 * s0))
