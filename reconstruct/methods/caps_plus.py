@@ -48,7 +48,7 @@ import torch
 from capssim.errors import InputError
 
 from ..model.data_term import ConfidenceDataTerm
-from ..model.holdout import HOLDOUT_RULES, HoldoutValidation, holdout_mask, split_held_out
+from ..model.holdout import HoldoutValidation, check_holdout_rule, holdout_mask, split_held_out
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
 from ..model.polarization_split import angle_mean
 from ..model.rearrange import observations_from_capture
@@ -174,9 +174,7 @@ def check_stopping(stopping: str, fraction: float, patience: int, holdout_rule: 
                          "Use -p holdout_fraction=0.05.")
     if int(patience) < 1:
         raise InputError("option patience", patience, "an integer >= 1", "Use -p patience=5.")
-    if holdout_rule not in HOLDOUT_RULES:
-        raise InputError("option holdout_rule", repr(holdout_rule), "one of " + ", ".join(HOLDOUT_RULES),
-                         "Use -p holdout_rule=min (the lowest held-out error) or -p holdout_rule=one-se.")
+    check_holdout_rule(holdout_rule, name="option holdout_rule")
     return rule
 
 

@@ -45,7 +45,8 @@ import torch.nn.functional as F
 from capssim.conventions import split_bayer
 from capssim.errors import InputError
 
-__all__ = ["HOLDOUT_RULES", "HOLDOUT_SEED", "HoldoutValidation", "fill_held_out", "holdout_mask", "split_held_out"]
+__all__ = ["HOLDOUT_RULES", "HOLDOUT_SEED", "HoldoutValidation", "check_holdout_rule", "fill_held_out", "holdout_mask",
+           "split_held_out"]
 
 #: the counts a validation can name for the final solve (module docstring)
 HOLDOUT_RULES = ("min", "one-se")
@@ -95,6 +96,14 @@ def split_held_out(weights: torch.Tensor, held_out: np.ndarray) -> tuple[torch.T
     return weights * (1.0 - lr), weights * lr
 
 
+def check_holdout_rule(rule: str, *, name: str = "holdout_rule") -> str:
+    """``rule`` if it is one of :data:`HOLDOUT_RULES`; :class:`InputError` naming ``name`` otherwise."""
+    if rule not in HOLDOUT_RULES:
+        raise InputError(name, repr(rule), "one of " + ", ".join(HOLDOUT_RULES),
+                         "Use -p holdout_rule=min (the lowest held-out error) or -p holdout_rule=one-se.")
+    return rule
+
+
 class HoldoutValidation:
     """A :class:`~capssim.reconstruct.solvers.interfaces.StoppingRule`: the held-out prediction error ``e``
     (module docstring) after every iteration; the best iterate so far is kept, and the solver stops once
@@ -123,9 +132,7 @@ class HoldoutValidation:
                  min_iterations: int = 3, refit=None, rule: str = "min"):
         if int(patience) < 1:
             raise InputError("patience", patience, "an integer >= 1", "Use -p patience=5.")
-        if rule not in HOLDOUT_RULES:
-            raise InputError("holdout_rule", repr(rule), "one of " + ", ".join(HOLDOUT_RULES),
-                             "Use -p holdout_rule=min (the lowest held-out error) or -p holdout_rule=one-se.")
+        check_holdout_rule(rule)
         self.forward, self.images, self.weights = forward, images, weights
         self.total = float(weights.sum())
         if self.total <= 0:

@@ -71,12 +71,18 @@ def _similarity(q: torch.Tensor, centre: tuple[float, float], radius: float, sca
     return torch.stack([row0, row1, torch.stack([zero, zero, one])])
 
 
-def _sample(images: torch.Tensor, matrices: torch.Tensor) -> torch.Tensor:
-    """``images`` ``(B, h, w)`` read at ``matrices[b] (x, y, 1)`` for every pixel ``(x=col, y=row)``, bilinear."""
+def _pixel_points(images: torch.Tensor) -> torch.Tensor:
+    """``(h, w, 3)`` homogeneous ``(x=col, y=row, 1)`` of every pixel of ``images`` ``(..., h, w)``."""
     h, w = images.shape[-2:]
     ys, xs = torch.meshgrid(torch.arange(h, dtype=images.dtype, device=images.device),
                             torch.arange(w, dtype=images.dtype, device=images.device), indexing="ij")
-    pts = torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)
+    return torch.stack([xs, ys, torch.ones_like(xs)], dim=-1)
+
+
+def _sample(images: torch.Tensor, matrices: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+    """``images`` ``(B, h, w)`` read at ``matrices[b] (x, y, 1)`` for every pixel ``pts`` ``(h, w, 3)``
+    (:func:`_pixel_points`), bilinear; differentiable in ``matrices``."""
+    h, w = images.shape[-2:]
     src = torch.einsum("bij,hwj->bhwi", matrices, pts)
     grid = torch.stack([2 * src[..., 0] / src[..., 2] / max(w - 1, 1) - 1,
                         2 * src[..., 1] / src[..., 2] / max(h - 1, 1) - 1], dim=-1)
@@ -100,15 +106,17 @@ class _CommonMotion:
         self.lum, self.h, self.w, self.scale = lum, lum.shape[-2], lum.shape[-1], scale
         self.warps = torch.as_tensor(raw_warps, dtype=lum.dtype, device=lum.device)
         self.centre, self.radius = ((self.w - 1) / 2.0, (self.h - 1) / 2.0), max(self.h, self.w) / 2.0
-        reach = _sample(valid.to(lum.dtype), self.warps).amin(dim=0) > 0.99
+        self.pts = _pixel_points(lum)
+        reach = _sample(valid.to(lum.dtype), self.warps, self.pts).amin(dim=0) > 0.99
         mask = torch.zeros_like(reach)
         mask[margin:self.h - margin, margin:self.w - margin] = True
         self.mask = (mask & reach).to(lum.dtype)
-        self.fixed = _sample(lum[[0, 2]], self.warps[[0, 2]])
+        self.fixed = _sample(lum[[0, 2]], self.warps[[0, 2]], self.pts)
 
-    def __call__(self, q: torch.Tensor) -> torch.Tensor:
-        motion = _similarity(q, self.centre, self.radius, self.scale)
-        moved = _sample(self.lum[list(COMMON_APERTURES)], self.warps[list(COMMON_APERTURES)] @ motion)
+    def __call__(self, q: torch.Tensor, *, scale: float | None = None) -> torch.Tensor:
+        """The roughness at motion ``q``, with the common scale ``scale`` (default: the one given at construction)."""
+        motion = _similarity(q, self.centre, self.radius, self.scale if scale is None else scale)
+        moved = _sample(self.lum[list(COMMON_APERTURES)], self.warps[list(COMMON_APERTURES)] @ motion, self.pts)
         images = torch.stack([self.fixed[0], moved[0], self.fixed[1], moved[1]])
         return polarization_roughness(images, self.mask)
 
@@ -160,10 +168,9 @@ def refine_common_motion(lum: torch.Tensor, valid: torch.Tensor, aperture: np.nd
     raw_warps = np.stack([rmat @ h @ np.linalg.inv(rmat) for h in aperture])
     scales = [rotation_and_scale(h)[1] for h in aperture]
     scale = (scales[0] + scales[2]) / (scales[1] + scales[3])  # the 45/135 pair's mean scale -> the 0/90 pair's
-    with torch.no_grad():
-        before = float(_CommonMotion(lum, valid, raw_warps, margin=int(np.ceil(radius)) + 2, scale=1.0)(
-            torch.zeros(3, dtype=lum.dtype, device=lum.device)))
     fine = _CommonMotion(lum, valid, raw_warps, margin=int(np.ceil(radius)) + 2, scale=scale)
+    with torch.no_grad():  # the intensity criteria's warps as they are: no motion, no scale change
+        before = float(fine(torch.zeros(3, dtype=lum.dtype, device=lum.device), scale=1.0))
     start = _grid_search(lum, valid, raw_warps, radius, scale)
     q, _, _ = minimize_lbfgs(fine.objective, start, max_iterations=60, tolerance_grad=1e-9, tolerance_change=1e-12)
     if not bool(torch.isfinite(q).all()) or float((q - start).abs().max()) > 1.0:  # left the grid point's basin
