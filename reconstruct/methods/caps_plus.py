@@ -50,6 +50,7 @@ from capssim.errors import InputError
 from ..model.data_term import ConfidenceDataTerm
 from ..model.holdout import HoldoutValidation, check_holdout_rule, holdout_mask, split_held_out
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
+from ..model.polarization_filter import apply_chosen_filter, check_polarization_filter
 from ..model.polarization_split import angle_mean
 from ..model.rearrange import observations_from_capture
 from ..model.window_capture import WINDOW_ALIGN, crop_window
@@ -66,7 +67,7 @@ from .caps_naive import bicubic_warp, demosaicked_frames
 
 __all__ = ["CAPS_PLUS", "COUNT_OPTIONS", "INITIALIZATIONS", "NOISE_ITERATIONS", "caps_plus_observations",
            "demosaicked_initialization", "frame_iterations", "noise_adaptive_iterations", "noise_adaptive_schedule",
-           "raw_noise_sigma"]
+           "polarization_filter_finish", "raw_noise_sigma"]
 
 #: ``-p init=NAME``: ``agree`` (the default: ``split`` with the fusion's polarization part where the analyzer
 #: images agree), ``naive`` (demosaicked apertures), ``fusion`` (``caps``'s, eq. 24) or ``split`` (the analyzer
@@ -95,7 +96,8 @@ def demosaicked_initialization(capture, context: RunContext, geometry, *, held_o
 
 def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "holdout",
                            holdout_fraction: float = 0.05, patience: int = 5, holdout_refit: bool = True,
-                           holdout_rule: str = "min", blend_candidates: str = "") -> FrontEnd:
+                           holdout_rule: str = "min", blend_candidates: str = "",
+                           polarization_filter: str = "holdout") -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
@@ -110,12 +112,16 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     ``blend_candidates`` (``caps-plus-cv``'s ``"0,0.5,0.75"``; prior ``nlstr-denoiser``): the held-out validation
     runs for each ``denoiser_blend`` listed in turn, on the central window or the whole frame, and the final solve
     takes the one whose held-out prediction error is lowest (:func:`window_validation`; a calibrated run, which
-    validates in place, keeps the configured blend and says so in ``blend_note``)."""
+    validates in place, keeps the configured blend and says so in ``blend_note``). ``polarization_filter="holdout"``:
+    the validation also chooses the guided filter of the final image's polarization part
+    (:mod:`capssim.reconstruct.model.polarization_filter`; ``polarization_filter_choice`` in the record, applied by
+    :func:`polarization_filter_finish`); ``none``, or no validation, leaves the solver's image as it is."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
                          "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
     stopping = check_stopping(stopping, holdout_fraction, patience, holdout_rule)
+    choose_filter = check_polarization_filter(polarization_filter) == "holdout"
     given = given_option_names(context.options)
     if given & COUNT_OPTIONS and "stopping" not in given:  # a count given fixes the count: nothing to validate
         stopping = "noise"
@@ -123,13 +129,13 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     front = caps_observations(capture, context, options)
     full = front.problems[0]
     if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates,
-                                                   rule=holdout_rule):
+                                                   rule=holdout_rule, choose_filter=choose_filter):
         stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
     elif candidates:  # a count, the noise rule, a calibration or too few pixels: nothing validates the blends
         front.params["blend_note"] = (f"no blend chosen (stopping {stopping}, calibrated "
                                       f"{context.calibration is not None}): denoiser_blend as configured")
     held_out = hold_out_pixels(capture, front, stopping, holdout_fraction, patience, refit=holdout_refit,
-                               holdout_rule=holdout_rule)
+                               holdout_rule=holdout_rule, choose_filter=choose_filter)
     if name != "fusion":
         for problem, mask in ((front.problems[0], held_out), (full, None))[:1 if held_out is None else 2]:
             problem.init = agreement_initialization(capture, context, front, problem, options, name, held_out=mask)
@@ -179,7 +185,7 @@ def check_stopping(stopping: str, fraction: float, patience: int, holdout_rule: 
 
 
 def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, patience: int, *, refit: bool = True,
-                    holdout_rule: str = "min"):
+                    holdout_rule: str = "min", choose_filter: bool = False):
     """For ``stopping="holdout"``: replace the front end's single problem by a copy without ``fraction`` of the
     raw pixels (data weights and the fused start), whose
     :class:`~capssim.reconstruct.model.holdout.HoldoutValidation` rule predicts them and names the whole
@@ -200,7 +206,8 @@ def hold_out_pixels(capture, front: FrontEnd, stopping: str, fraction: float, pa
     validation = replace(full, obs=obs, seen=seen, derived={}, init=None)
     predict = ConfidenceDataTerm(obs, validation.operator, mixing=validation.mixing).forward  # M I, eq. 15
     validation.stopping = HoldoutValidation(predict, obs.images, held, patience=patience,
-                                            refit=full if refit else None, rule=holdout_rule)
+                                            refit=full if refit else None, rule=holdout_rule,
+                                            choose_filter=choose_filter)
     front.problems[0] = validation
     front.params.update({"holdout_fraction": float(fraction), "patience": int(patience), "holdout_rule": holdout_rule})
     return held_out
@@ -234,7 +241,7 @@ def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
 
 
 def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
-                      candidates: tuple[dict, ...] = (), rule: str = "min") -> bool:
+                      candidates: tuple[dict, ...] = (), rule: str = "min", choose_filter: bool = False) -> bool:
     """For a frame larger than :data:`HOLDOUT_WINDOW` on either side, or any frame when ``candidates`` are given
     (uncalibrated): run ``caps-plus`` with ``stopping=holdout`` and no final solve on the central window's
     capture (:func:`~capssim.reconstruct.model.window_capture.crop_window`, the front end's warps re-based to
@@ -243,7 +250,8 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     error is taken to be unimodal along the candidates: one past the lowest is not worth validating), and
     record the count ``rule`` names (:class:`~capssim.reconstruct.model.holdout.HoldoutValidation`) of the run
     with the lowest held-out error in ``front.params`` (``holdout_count``,
-    ``holdout_choice``, with the window and the validation's record). False (nothing done) for a smaller frame
+    ``holdout_choice``, with the window and the validation's record; ``polarization_filter_choice`` with
+    ``choose_filter``). False (nothing done) for a smaller frame
     without candidates or a calibrated run, which validate on the whole frame."""
     h, w = capture.hr_shape
     if (max(h, w) <= HOLDOUT_WINDOW and not candidates) or context.calibration is not None:
@@ -258,6 +266,7 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     for overrides in candidates or ({},):
         sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
                          options={**given, "stopping": "holdout", "holdout_refit": False, "holdout_rule": rule,
+                                  "polarization_filter": "holdout" if choose_filter else "none",
                                   "prior": options.prior, "data_term": options.data_term, **own, **overrides})
         with context.timer.stage("holdout_validation"):
             params = run_pipeline(crop, sub, CAPS_PLUS).params
@@ -270,6 +279,8 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     front.params.update({"holdout_count": int(params["holdout_chosen_iteration"]), "holdout_window": list(window),
                          **{k: params[k] for k in ("holdout_best_iteration", "holdout_error", "holdout_iterations_run",
                                                    "holdout_fraction", "patience", "holdout_rule")}})
+    if "polarization_filter_choice" in params:
+        front.params["polarization_filter_choice"] = params["polarization_filter_choice"]
     if candidates:
         front.params.update({"holdout_choice": chosen,
                              "holdout_candidates": [{**o, "holdout_error": e, "iterations": p["holdout_chosen_iteration"]}
@@ -333,12 +344,19 @@ def frame_iterations(capture, options: dict) -> dict:
             "iterations": noise_adaptive_iterations(raw_noise_sigma(observations_from_capture(capture).images))}
 
 
+def polarization_filter_finish(image: torch.Tensor, params: dict) -> torch.Tensor:
+    """caps-plus's last step (:class:`~capssim.reconstruct.pipeline.run.PipelineConfig` ``finish``): the polarization
+    filter the held-out pixels chose (``params["polarization_filter_choice"]``), or the image as it is."""
+    return apply_chosen_filter(image, params.get("polarization_filter_choice"))
+
+
 #: caps-plus: the pipeline's slots and schedule (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
                            defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
                            front_end_options={"init": "agree", "stopping": "holdout", "holdout_fraction": 0.05,
-                                              "patience": 5, "holdout_refit": True, "holdout_rule": "min"},
-                           schedule=noise_adaptive_schedule)
+                                              "patience": 5, "holdout_refit": True, "holdout_rule": "min",
+                                              "polarization_filter": "holdout"},
+                           schedule=noise_adaptive_schedule, finish=polarization_filter_finish)
 
 
 @register_method("caps-plus", input_kind="caps", frame_options=frame_iterations,

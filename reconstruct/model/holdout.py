@@ -45,6 +45,8 @@ import torch.nn.functional as F
 from capssim.conventions import split_bayer
 from capssim.errors import InputError
 
+from .polarization_filter import choose_polarization_filter
+
 __all__ = ["HOLDOUT_RULES", "HOLDOUT_SEED", "HoldoutValidation", "check_holdout_rule", "fill_held_out", "holdout_mask",
            "split_held_out"]
 
@@ -126,10 +128,14 @@ class HoldoutValidation:
     rule : str
         Which count :attr:`chosen_iteration` names: ``min`` (:attr:`best_iteration`) or ``one-se`` (module
         docstring).
+    choose_filter : bool
+        Also choose the polarization filter of the final image on the best iterate
+        (:func:`~capssim.reconstruct.model.polarization_filter.choose_polarization_filter`;
+        ``polarization_filter_choice`` in :meth:`record`).
     """
 
     def __init__(self, forward, images: torch.Tensor, weights: torch.Tensor, *, patience: int = 5,
-                 min_iterations: int = 3, refit=None, rule: str = "min"):
+                 min_iterations: int = 3, refit=None, rule: str = "min", choose_filter: bool = False):
         if int(patience) < 1:
             raise InputError("patience", patience, "an integer >= 1", "Use -p patience=5.")
         check_holdout_rule(rule)
@@ -144,10 +150,15 @@ class HoldoutValidation:
         self.best_image: torch.Tensor | None = None
         self.best_error, self.best_iteration, self.last_iteration = math.inf, 0, 0
         self.init_error = math.inf
+        self.choose_filter, self._filter_choice = bool(choose_filter), None
 
     def error(self, image: torch.Tensor) -> float:
         """``e(image)``: the weighted mean squared prediction error at the held-out samples."""
         return float(self._weighted_errors(image).sum()) / self.total
+
+    def held_out_errors(self, image: torch.Tensor) -> torch.Tensor:
+        """``(n,)`` each held-out sample's weighted squared prediction error for ``image``, in a fixed order."""
+        return self._weighted_errors(image)[self.held]
 
     def _weighted_errors(self, image: torch.Tensor) -> torch.Tensor:
         residual = self.images - self.forward(image)
@@ -163,7 +174,7 @@ class HoldoutValidation:
     def begin(self, init: torch.Tensor) -> dict:
         """Start a run from ``init`` (iteration 0, a candidate itself); its error, which the first
         :meth:`update` reports too."""
-        self.sample_errors = []
+        self.sample_errors, self._filter_choice = [], None
         self.best_error, self.best_iteration, self.last_iteration = self._measure(init), 0, 0
         self.best_image = init.detach().clone()
         self.init_error = self.best_error
@@ -213,7 +224,12 @@ class HoldoutValidation:
         (``holdout_chosen_iteration``), the lowest held-out error, where it was and the iterations the
         validation run took."""
         chosen = self.chosen_iteration
-        return {"iterations": chosen if self.refit is not None else self.best_iteration,
-                "holdout_best_iteration": self.best_iteration, "holdout_chosen_iteration": chosen,
-                "holdout_rule": self.rule, "holdout_error": self.best_error,
-                "holdout_iterations_run": self.last_iteration}
+        out = {"iterations": chosen if self.refit is not None else self.best_iteration,
+               "holdout_best_iteration": self.best_iteration, "holdout_chosen_iteration": chosen,
+               "holdout_rule": self.rule, "holdout_error": self.best_error,
+               "holdout_iterations_run": self.last_iteration}
+        if self.choose_filter and self.best_image is not None and self.best_image.shape[0] == 12:
+            if self._filter_choice is None:
+                self._filter_choice = choose_polarization_filter(self.held_out_errors, self.best_image)
+            out["polarization_filter_choice"] = self._filter_choice
+        return out

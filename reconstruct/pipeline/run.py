@@ -71,12 +71,17 @@ class PipelineConfig:
         its front end measured (e.g. ``caps-plus``'s iteration count from the noise level), run after the
         front end; ``given`` holds the option names set explicitly (``-p``, ``-`` read as ``_``), which
         a schedule leaves as given. None (``caps``): the options as parsed.
+    finish : callable, optional
+        ``finish(image, params) -> image``: the method's last step on the solved ``(12, H, W)`` image, given the
+        run's record (e.g. ``caps-plus``'s polarization filter chosen by held-out pixels); before the physical
+        projection. None (``caps``): the solver's image.
     """
 
     front_end: Callable[..., FrontEnd] = caps_observations
     defaults: Mapping[str, object] = field(default_factory=dict)
     front_end_options: Mapping[str, object] = field(default_factory=dict)
     schedule: Callable[..., CapsOptions] | None = None
+    finish: Callable[..., torch.Tensor] | None = None
 
 
 @dataclass
@@ -151,6 +156,9 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
     for owner in [*priors.values(), *(s.stopping for s in solved)]:
         if callable(getattr(owner, "record", None)):
             params.update(owner.record())
+    if config.finish is not None:
+        with context.timer.stage("finish"):
+            image = config.finish(image, params)
     extra = {"registration": front.registration, **front.extra}
     init_psnr = mean_psnr(capture, init)
     if init_psnr is not None:

@@ -10,7 +10,9 @@ import pytest
 import torch
 
 from capssim.errors import CapssimError, InputError
+from capssim.physical_validity import project_to_physical
 from capssim.reconstruct import reconstruct
+from capssim.reconstruct.model.polarization_filter import apply_chosen_filter
 from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, denoiser_dtype
 from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
@@ -49,8 +51,11 @@ def test_the_final_image_is_the_chosen_blend_and_count_run_with_every_pixel(capt
     params = record["params"]
     fixed, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
                            denoiser_sigma_steps=15, denoiser_blend=params["denoiser_blend"],
-                           iterations=params["iterations"])
-    np.testing.assert_allclose(out.image, fixed.image, atol=1e-6)
+                           iterations=params["iterations"], physical_projection=False)
+    # then the polarization filter the held-out pixels chose, then the physical projection
+    filtered = apply_chosen_filter(torch.from_numpy(fixed.image), params["polarization_filter_choice"]).numpy()
+    expected, _ = project_to_physical(filtered, unobserved=fixed.unobserved)
+    np.testing.assert_allclose(out.image, expected, atol=1e-6)
 
 
 def test_a_candidate_validation_is_the_same_as_that_blend_validated_alone(capture, tiny_denoiser_weights, chosen):
