@@ -1,6 +1,6 @@
 """``caps-plus``: the CAPS pipeline with a structure-aware data term, a start that takes the polarization
-differences from the demosaicked apertures where the analyzers disagree, and an ADMM iteration count chosen by
-held-out raw pixels.
+differences from the demosaicked apertures where the analyzers disagree, and an ADMM iteration count and a
+polarization filter chosen by held-out raw pixels.
 Not the paper's method: capssim's own configuration beside it.
 
 Each ingredient answers a loss of ``caps`` that the error budget measured (docs: notes/beyond-the-paper.md):
@@ -28,6 +28,11 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
    a quarter of a run at 512 px. ``-p stopping=noise`` takes the count from the raw frames' noise level
    instead, ``clip(10 + 1000 sigma, 10, 50)`` (:func:`noise_adaptive_iterations`; ``caps-plus``'s rule before
    2026-11-27, and what a tiled run uses for every tile); ``-p iterations=N`` (or a ``preset``) fixes the count.
+
+4. **A polarization filter chosen by the held-out pixels** (``-p polarization_filter=holdout``, the default;
+   :mod:`capssim.reconstruct.model.polarization_filter`): the validation also tries a guided filter of the
+   polarization part by the intensity on its best iterate, and the final image gets the one that predicts the
+   held-out pixels better by more than one standard error (else none); ``none`` turns it off.
 
 Everything else is ``caps``: the registration, the operator ``M``, CAGF's confidence (eq. 12-14), NLSTR
 (section 3.3) and ADMM (eq. 20-30); ``-p`` options of ``caps`` apply (e.g. ``-p iterations=25``,
