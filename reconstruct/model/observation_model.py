@@ -29,7 +29,7 @@ from capssim.homography import registration_error_hr_px
 from capssim.psf import PSF
 from capssim.threads import registration_threads
 
-from ..registration.estimate import estimate_lr_homographies
+from ..registration.estimate import estimate_lr_homographies, identity_fallbacks
 from ..registration.parameters import registration_parameters
 from ..registration.store import stored_or_computed
 from ..run_context import RunContext
@@ -174,8 +174,7 @@ def _registration_record(result, mode: str) -> dict:
     record = {"source": "estimated (capssim.reconstruct.registration)", "mode": mode,
               "luminance": diagnostics.get("luminance"), "time_s": diagnostics.get("time_s"),
               "warnings": list(diagnostics.get("warnings", [])),
-              "fallbacks": {str(a["aperture"]): a["fallback"] for a in diagnostics.get("apertures", [])
-                            if a.get("fallback") not in ("none", "reference")}}
+              "fallbacks": {str(n): why for n, why in identity_fallbacks(diagnostics.get("apertures", [])).items()}}
     for key in ("intensity_texture_ratio", "polarization_cue", "wide_window_retry"):
         if key in diagnostics:
             record[key] = diagnostics[key]

@@ -72,7 +72,7 @@ from .plausibility import aperture_warp, implausible_apertures, is_plausible
 from .polarization_cue import check_polarization_only
 
 __all__ = ["REGISTRATION_MODES", "RegistrationParameters", "RegistrationResult", "estimate_lr_homographies",
-           "registration_parameters"]
+           "identity_fallbacks", "registration_parameters"]
 
 log = logging.getLogger(__name__)
 
@@ -322,6 +322,11 @@ def _accept_warps(reg: StackRegistration, active: list[int], parameters: Registr
 
 
 # -- public API -----------------------------------------------------------------------------------------
+def identity_fallbacks(apertures: list[dict]) -> dict[int, str]:
+    """``{aperture: why}`` for the apertures of ``diagnostics["apertures"]`` whose warp fell back to the identity."""
+    return {a["aperture"]: a["fallback"] for a in apertures if a.get("fallback") not in ("none", "reference")}
+
+
 def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, parameters: RegistrationParameters | None = None,
                              device="cpu") -> RegistrationResult:
     """Estimate the 16 HR reference -> sub-image homographies from the 16 Bayer sub-images.
@@ -378,9 +383,8 @@ def estimate_lr_homographies(lr_images, *, hr_shape, saturated=None, parameters:
         reg = _retry_wider_windows(reg, raw, lum, valid, active, model, parameters, diag)
         _accept_warps(reg, active, parameters, aperture, per_ap, diag)
         if len(active) == 3:
-            fallbacks = frozenset(a["aperture"] for a in per_ap if a["fallback"] not in ("none", "reference"))
             aperture = check_polarization_only(reg, lum, valid, aperture, model, parameters, diag, warn=_warn,
-                                               fallbacks=fallbacks)
+                                               fallbacks=frozenset(identity_fallbacks(per_ap)))
         diag["engine"] = reg.info
     diag["apertures"] = per_ap
     diag["time_s"] = time.perf_counter() - t_start
