@@ -42,7 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from capssim.conventions import split_bayer
+from capssim.conventions import N_CHANNELS, split_bayer
 from capssim.errors import InputError
 
 from .polarization_filter import choose_polarization_filter
@@ -228,7 +228,7 @@ class HoldoutValidation:
                "holdout_best_iteration": self.best_iteration, "holdout_chosen_iteration": chosen,
                "holdout_rule": self.rule, "holdout_error": self.best_error,
                "holdout_iterations_run": self.last_iteration}
-        if self.choose_filter and self.best_image is not None and self.best_image.shape[0] == 12:
+        if self.choose_filter and self.best_image is not None and self.best_image.shape[0] == N_CHANNELS:
             if self._filter_choice is None:
                 self._filter_choice = choose_polarization_filter(self.held_out_errors, self.best_image)
             out["polarization_filter_choice"] = self._filter_choice

@@ -25,6 +25,7 @@ from typing import Callable
 
 import torch
 
+from capssim.conventions import N_CHANNELS
 from capssim.errors import InputError
 
 from .cagf import box_mean
@@ -37,10 +38,6 @@ __all__ = ["POLARIZATION_FILTERS", "POLARIZATION_FILTER_MODES", "apply_chosen_fi
 POLARIZATION_FILTERS = ((1, 1e-4), (2, 1e-4), (2, 1e-3), (4, 1e-4), (4, 1e-3), (4, 1e-2))
 #: ``-p polarization_filter=NAME``: ``holdout`` (chosen by the held-out pixels, where a validation runs) or ``none``
 POLARIZATION_FILTER_MODES = ("holdout", "none")
-#: the number of channels the step works on (3 colours x 4 analyzers, channel ``c = 3 p + k``)
-_CHANNELS = 12
-
-
 def check_polarization_filter(mode: str) -> str:
     """``mode`` if it is one of :data:`POLARIZATION_FILTER_MODES`; :class:`InputError` naming the option otherwise."""
     name = str(mode).strip()
@@ -53,7 +50,7 @@ def check_polarization_filter(mode: str) -> str:
 def filter_polarization(image: torch.Tensor, radius: int, eps: float) -> torch.Tensor:
     """``(12, H, W)``: ``image`` (channel ``c = 3 p + k``) with each analyzer's deviation from its colour's analyzer
     mean guided-filtered by that mean (module docstring); the analyzer means unchanged. ``radius`` 0 returns a copy."""
-    if image.ndim != 3 or image.shape[0] != _CHANNELS:
+    if image.ndim != 3 or image.shape[0] != N_CHANNELS:
         raise InputError("image", f"shape {tuple(image.shape)}", "(12, H, W), channel c = 3 p + k")
     if int(radius) <= 0:
         return image.clone()
@@ -94,6 +91,6 @@ def choose_polarization_filter(sample_errors: Callable[[torch.Tensor], torch.Ten
 def apply_chosen_filter(image: torch.Tensor, choice) -> torch.Tensor:
     """``image`` filtered as ``choice`` (:func:`choose_polarization_filter`'s result) names; unchanged for ``None``,
     radius 0 or an image that is not 12-channel."""
-    if not choice or int(choice.get("radius", 0)) <= 0 or image.ndim != 3 or image.shape[0] != _CHANNELS:
+    if not choice or int(choice.get("radius", 0)) <= 0 or image.ndim != 3 or image.shape[0] != N_CHANNELS:
         return image
     return filter_polarization(image, int(choice["radius"]), float(choice["eps"]))
