@@ -38,6 +38,8 @@ __all__ = ["POLARIZATION_FILTERS", "POLARIZATION_FILTER_MODES", "apply_chosen_fi
 POLARIZATION_FILTERS = ((1, 1e-4), (2, 1e-4), (2, 1e-3), (4, 1e-4), (4, 1e-3), (4, 1e-2))
 #: ``-p polarization_filter=NAME``: ``holdout`` (chosen by the held-out pixels, where a validation runs) or ``none``
 POLARIZATION_FILTER_MODES = ("holdout", "none")
+
+
 def check_polarization_filter(mode: str) -> str:
     """``mode`` if it is one of :data:`POLARIZATION_FILTER_MODES`; :class:`InputError` naming the option otherwise."""
     name = str(mode).strip()
