@@ -29,10 +29,12 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
    instead, ``clip(10 + 1000 sigma, 10, 50)`` (:func:`noise_adaptive_iterations`; ``caps-plus``'s rule before
    2026-11-27, and what a tiled run uses for every tile); ``-p iterations=N`` (or a ``preset``) fixes the count.
 
-4. **A polarization filter chosen by the held-out pixels** (``-p polarization_filter=holdout``, the default;
-   :mod:`capssim.reconstruct.model.polarization_filter`): the validation also tries a guided filter of the
-   polarization part by the intensity on its best iterate, and the final image gets the one that predicts the
-   held-out pixels better by more than one standard error (else none); ``none`` turns it off.
+4. **A polarization filter** (``-p polarization_filter=auto``, the default;
+   :mod:`capssim.reconstruct.model.polarization_filter`): where the analyzers' aligned images show no
+   polarization structure (the Stokes-consistency test, :mod:`capssim.reconstruct.model.polarization_evidence`),
+   the final image's polarization part gets the most smoothing guided filter; elsewhere the validation tries
+   each filter on its best iterate and the final image gets the one that predicts the held-out pixels better by
+   more than one standard error (else none). ``holdout`` skips the test; ``none`` turns both off.
 
 Everything else is ``caps``: the registration, the operator ``M``, CAGF's confidence (eq. 12-14), NLSTR
 (section 3.3) and ADMM (eq. 20-30); ``-p`` options of ``caps`` apply (e.g. ``-p iterations=25``,
@@ -55,7 +57,8 @@ from capssim.errors import InputError
 from ..model.data_term import ConfidenceDataTerm
 from ..model.holdout import HoldoutValidation, check_holdout_rule, holdout_mask, split_held_out
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
-from ..model.polarization_filter import apply_chosen_filter, check_polarization_filter
+from ..model.polarization_evidence import problem_polarization_evidence
+from ..model.polarization_filter import UNSTRUCTURED_FILTER, apply_chosen_filter, check_polarization_filter
 from ..model.polarization_split import angle_mean
 from ..model.rearrange import observations_from_capture
 from ..model.window_capture import WINDOW_ALIGN, crop_window
@@ -102,7 +105,7 @@ def demosaicked_initialization(capture, context: RunContext, geometry, *, held_o
 def caps_plus_observations(capture, context: RunContext, options, *, init: str = "agree", stopping: str = "holdout",
                            holdout_fraction: float = 0.05, patience: int = 5, holdout_refit: bool = True,
                            holdout_rule: str = "min", blend_candidates: str = "",
-                           polarization_filter: str = "holdout") -> FrontEnd:
+                           polarization_filter: str = "auto") -> FrontEnd:
     """``caps``'s front end (:func:`~capssim.reconstruct.pipeline.front_end.caps_observations`) with the
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
@@ -120,19 +123,23 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     validates in place, keeps the configured blend and says so in ``blend_note``). ``polarization_filter="holdout"``:
     the validation also chooses the guided filter of the final image's polarization part
     (:mod:`capssim.reconstruct.model.polarization_filter`; ``polarization_filter_choice`` in the record, applied by
-    :func:`polarization_filter_finish`); ``none``, or no validation, leaves the solver's image as it is."""
+    :func:`polarization_filter_finish`); ``auto``: the same where the analyzers show polarization structure, the
+    most smoothing filter where they do not (:func:`polarization_structure_shown`); ``none``, or ``holdout`` without
+    a validation, leaves the solver's image as it is."""
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
                          "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
     stopping = check_stopping(stopping, holdout_fraction, patience, holdout_rule)
-    choose_filter = check_polarization_filter(polarization_filter) == "holdout"
+    filter_mode = check_polarization_filter(polarization_filter)
     given = given_option_names(context.options)
     if given & COUNT_OPTIONS and "stopping" not in given:  # a count given fixes the count: nothing to validate
         stopping = "noise"
     candidates = blend_choices(blend_candidates, options, given)
     front = caps_observations(capture, context, options)
     full = front.problems[0]
+    choose_filter = filter_mode == "holdout" or (filter_mode == "auto" and
+                                                 polarization_structure_shown(front, options, context.timer.stage))
     if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates,
                                                    rule=holdout_rule, choose_filter=choose_filter):
         stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
@@ -146,6 +153,21 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
             problem.init = agreement_initialization(capture, context, front, problem, options, name, held_out=mask)
     front.params["init"] = name
     return front
+
+
+def polarization_structure_shown(front: FrontEnd, options, stage) -> bool:
+    """``-p polarization_filter=auto``: the Stokes-consistency test on the front end's problem, over CAGF's window
+    (:func:`~capssim.reconstruct.model.polarization_evidence.problem_polarization_evidence`; kept in
+    ``front.params["polarization_evidence"]``). Where it finds no polarization structure the final image gets
+    :data:`~capssim.reconstruct.model.polarization_filter.UNSTRUCTURED_FILTER` (``polarization_filter_choice``) and
+    False is returned: the held-out pixels choose no filter."""
+    with stage("polarization_evidence"):
+        evidence = problem_polarization_evidence(front.problems[0], radius=options.cagf.radius)
+    front.params["polarization_evidence"] = evidence
+    if not evidence["structure"]:
+        radius, eps = UNSTRUCTURED_FILTER
+        front.params["polarization_filter_choice"] = {"radius": radius, "eps": eps, "chosen_by": "stokes-consistency"}
+    return evidence["structure"]
 
 
 def agreement_initialization(capture, context: RunContext, front: FrontEnd, problem, options, name: str, *,
@@ -339,13 +361,14 @@ def noise_adaptive_schedule(front: FrontEnd, options: CapsOptions, given: frozen
 
 
 def frame_iterations(capture, options: dict) -> dict:
-    """What a tiled run fixes once for the whole frame: ``{"stopping": "noise", "iterations": N}``, ``N`` of
-    :func:`noise_adaptive_iterations` for the whole frame's raw noise, so that every tile runs the same
-    schedule (held-out validation per tile could choose a different count in each); ``{}`` when
-    ``iterations``, ``preset`` or ``stopping`` is among ``options`` (``-p stopping=holdout`` validates each tile)."""
+    """What a tiled run fixes once for the whole frame: ``{"stopping": "noise", "iterations": N, "polarization_filter":
+    "none"}``, ``N`` of :func:`noise_adaptive_iterations` for the whole frame's raw noise, so that every tile runs the
+    same schedule and filter (held-out validation or the Stokes-consistency test per tile could choose differently in
+    each); ``{}`` when ``iterations``, ``preset`` or ``stopping`` is among ``options`` (``-p stopping=holdout``
+    validates each tile)."""
     if given_option_names(options) & (COUNT_OPTIONS | {"stopping"}):
         return {}
-    return {"stopping": "noise",
+    return {"stopping": "noise", "polarization_filter": "none",
             "iterations": noise_adaptive_iterations(raw_noise_sigma(observations_from_capture(capture).images))}
 
 
@@ -360,7 +383,7 @@ CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
                            defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
                            front_end_options={"init": "agree", "stopping": "holdout", "holdout_fraction": 0.05,
                                               "patience": 5, "holdout_refit": True, "holdout_rule": "min",
-                                              "polarization_filter": "holdout"},
+                                              "polarization_filter": "auto"},
                            schedule=noise_adaptive_schedule, finish=polarization_filter_finish)
 
 

@@ -1,5 +1,6 @@
 """The polarization part of a 12-channel image, guided-filtered by its intensity, with the filter chosen by
-held-out raw pixels (``caps-plus``'s last step, ``-p polarization_filter=holdout``; not the paper's).
+held-out raw pixels or by the Stokes-consistency test (``caps-plus``'s last step, ``-p polarization_filter=auto``;
+not the paper's).
 
 Write the image of colour ``k`` as its analyzer mean ``m_k = (1/4) sum_p I_{p,k}`` (intensity, ``S0 / 2``) and
 each analyzer's deviation from it, ``d_{p,k} = I_{p,k} - m_k`` (the polarization part: ``S1``, ``S2`` seen through
@@ -16,6 +17,14 @@ candidate of :data:`POLARIZATION_FILTERS` is applied to the held-out validation'
 ``M`` (eq. 15), and the candidate with the lowest mean error is taken only if it lowers the error by more than one
 standard error of the paired per-sample differences (else no filter). The chosen filter is then applied to the
 final image, before the physical projection.
+
+The held-out pixels cannot judge a capture whose analyzers differ only by the apertures' own errors: the raw frames
+differ by detail the HR grid cannot hold (aliasing each aperture samples differently), the 12-channel image can only
+explain it as polarization, and the held-out pixels reward that false polarization (docs: notes/beyond-the-paper.md,
+sections 16-18). So ``auto`` first asks the Stokes-consistency test
+(:mod:`capssim.reconstruct.model.polarization_evidence`) whether the analyzers show polarization structure at all;
+where they do not, the final image gets :data:`UNSTRUCTURED_FILTER`, the most smoothing candidate, and the held-out
+pixels choose nothing.
 """
 
 from __future__ import annotations
@@ -30,14 +39,18 @@ from capssim.errors import InputError
 
 from .cagf import box_mean
 
-__all__ = ["POLARIZATION_FILTERS", "POLARIZATION_FILTER_MODES", "apply_chosen_filter", "check_polarization_filter",
-           "choose_polarization_filter", "filter_polarization"]
+__all__ = ["POLARIZATION_FILTERS", "POLARIZATION_FILTER_MODES", "UNSTRUCTURED_FILTER", "apply_chosen_filter",
+           "check_polarization_filter", "choose_polarization_filter", "filter_polarization"]
 
 #: the candidate ``(radius HR px, eps)`` pairs, from the lightest to the most smoothing (``eps`` in intensity
 #: units squared, on the [0, 1] scale; ``eps = 1e-2`` is close to a box mean)
 POLARIZATION_FILTERS = ((1, 1e-4), (2, 1e-4), (2, 1e-3), (4, 1e-4), (4, 1e-3), (4, 1e-2))
-#: ``-p polarization_filter=NAME``: ``holdout`` (chosen by the held-out pixels, where a validation runs) or ``none``
-POLARIZATION_FILTER_MODES = ("holdout", "none")
+#: ``-p polarization_filter=NAME``: ``auto`` (:data:`UNSTRUCTURED_FILTER` where the analyzers' differences show no
+#: polarization structure, :mod:`capssim.reconstruct.model.polarization_evidence`; else as ``holdout``), ``holdout``
+#: (chosen by the held-out pixels, where a validation runs) or ``none``
+POLARIZATION_FILTER_MODES = ("auto", "holdout", "none")
+#: the filter of a capture whose analyzers show no polarization structure: the most smoothing candidate
+UNSTRUCTURED_FILTER = POLARIZATION_FILTERS[-1]
 
 
 def check_polarization_filter(mode: str) -> str:
@@ -45,7 +58,8 @@ def check_polarization_filter(mode: str) -> str:
     name = str(mode).strip()
     if name not in POLARIZATION_FILTER_MODES:
         raise InputError("option polarization_filter", repr(mode), "one of " + ", ".join(POLARIZATION_FILTER_MODES),
-                         "Use -p polarization_filter=holdout (chosen by held-out pixels) or -p polarization_filter=none.")
+                         "Use -p polarization_filter=auto (the default), -p polarization_filter=holdout (held-out pixels "
+                         "only) or -p polarization_filter=none.")
     return name
 
 

@@ -151,7 +151,7 @@ def test_caps_plus_takes_its_iterations_from_the_noise_unless_given(capture):
     assert params["iterations_from"] == "noise" and 0.005 < params["noise_sigma_estimate"] < 0.03
     assert params["iterations"] == noise_adaptive_iterations(params["noise_sigma_estimate"])
     assert len(out.history) == params["iterations"]
-    assert frame_iterations(capture, {}) == {"stopping": "noise", "iterations": params["iterations"]}  # a tiled run
+    assert frame_iterations(capture, {}) == {"stopping": "noise", "polarization_filter": "none", "iterations": params["iterations"]}  # a tiled run
     assert frame_iterations(capture, {"stopping": "holdout"}) == {}
     for given, count in (({"iterations": 3}, 3), ({"preset": "fast"}, 7)):
         out, record = reconstruct(capture, "caps-plus", true_warps=True, **given)

@@ -1,5 +1,6 @@
 """The polarization filter of ``caps-plus`` (``-p polarization_filter=holdout``): a guided filter of each analyzer's
-deviation from its colour's analyzer mean, chosen per capture by held-out raw pixels."""
+deviation from its colour's analyzer mean, chosen per capture by held-out raw pixels. The Stokes-consistency test
+that ``auto`` asks first: tests/reconstruction/test_polarization_evidence.py."""
 
 from __future__ import annotations
 
@@ -102,7 +103,7 @@ def test_the_validation_records_its_choice_only_when_asked():
 
 def test_caps_plus_records_and_applies_the_choice(smooth_random_scene):
     capture = simulate_capture(smooth_random_scene(48, seed=5), make_sensor("gaussian", sigma=0.02), seed=5)
-    out, record = reconstruct(capture, "caps-plus", true_warps=True)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="holdout")
     choice = record["params"]["polarization_filter_choice"]
     assert {"radius", "eps", "candidates"} <= set(choice)
     plain, plain_record = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="none")
@@ -112,7 +113,7 @@ def test_caps_plus_records_and_applies_the_choice(smooth_random_scene):
         np.testing.assert_array_equal(out.image, plain.image)
     else:
         assert not np.array_equal(out.image, plain.image)
-    fixed, fixed_record = reconstruct(capture, "caps-plus", true_warps=True, iterations=5)
+    fixed, fixed_record = reconstruct(capture, "caps-plus", true_warps=True, iterations=5, polarization_filter="holdout")
     assert "polarization_filter_choice" not in fixed_record["params"]  # no validation, nothing chosen
 
 

@@ -231,7 +231,7 @@ def test_a_tiled_caps_plus_fixes_its_noise_adaptive_iterations_once_for_the_fram
     _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, runner=recording_runner,
                                   prior="none")
     assert calls == [frame] * 4 and record["options"]["iterations"] == frame
-    assert record["frame_options"] == {"stopping": "noise", "iterations": frame}
+    assert record["frame_options"] == {"stopping": "noise", "polarization_filter": "none", "iterations": frame}
     _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, iterations=1)
     assert record["options"]["iterations"] == 1 and record["params"]["iterations"] == 1
     assert record["frame_options"] == {}

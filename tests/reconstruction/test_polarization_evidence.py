@@ -1,0 +1,102 @@
+"""The Stokes-consistency test of ``caps-plus``'s ``-p polarization_filter=auto``
+(:mod:`capssim.reconstruct.model.polarization_evidence`): the ratio ``T`` of the local variance of
+``I_0 - I_45 + I_90 - I_135`` to that of the polarization differences, below 1 where the analyzers show
+polarization structure."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from capssim.errors import InputError
+from capssim.reconstruct import reconstruct
+from capssim.reconstruct.model.observation_model import unmix_analyzer
+from capssim.reconstruct.model.polarization_evidence import STRUCTURE_THRESHOLD, stokes_inconsistency_ratio
+from capssim.reconstruct.model.polarization_filter import UNSTRUCTURED_FILTER, filter_polarization
+from capssim.sensor import make_sensor
+from capssim.simulate import simulate_capture
+
+ANGLES = torch.tensor([0.0, 45.0, 90.0, 135.0]) * torch.pi / 180
+
+
+def _analyzer_images(s0: torch.Tensor, s1: torch.Tensor, s2: torch.Tensor) -> torch.Tensor:
+    """``(12, H, W)`` ideal analyzers' images ``(S0 + S1 cos 2t + S2 sin 2t) / 2`` of ``(3, H, W)`` Stokes images."""
+    c, s = torch.cos(2 * ANGLES)[:, None, None, None], torch.sin(2 * ANGLES)[:, None, None, None]
+    return (0.5 * (s0[None] + c * s1[None] + s * s2[None])).reshape(12, *s0.shape[1:])
+
+
+def _texture(size: int, seed: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    return torch.nn.functional.interpolate(torch.rand(1, 3, size // 4, size // 4, generator=g, dtype=torch.float64),
+                                           size=(size, size), mode="bicubic", align_corners=False)[0]
+
+
+def test_exact_stokes_images_are_consistent_and_unpolarized_errors_give_about_one():
+    size = 96
+    s0 = 0.4 + 0.4 * _texture(size, 0)
+    s1, s2 = 0.3 * (_texture(size, 1) - 0.5), 0.3 * (_texture(size, 2) - 0.5)
+    polarized = _analyzer_images(s0, s1, s2)
+    assert stokes_inconsistency_ratio(polarized) < 1e-12  # c = 0 exactly; d carries S1, S2
+    g = torch.Generator().manual_seed(3)
+    errors = 0.02 * torch.randn(12, size, size, generator=g, dtype=torch.float64)  # independent per analyzer
+    unpolarized = _analyzer_images(s0, 0 * s1, 0 * s2) + errors
+    assert 0.9 < stokes_inconsistency_ratio(unpolarized) < 1.1  # E var(c) = E var(d): the test's null value
+    noisy_polarized = polarized + errors
+    assert stokes_inconsistency_ratio(noisy_polarized) < 0.5 * STRUCTURE_THRESHOLD  # structure above the errors
+
+
+def test_analyzers_that_do_not_differ_tell_nothing_and_a_bad_shape_is_refused():
+    same = _texture(32, 4).repeat(4, 1, 1)
+    assert stokes_inconsistency_ratio(same.float()) == 1.0
+    with pytest.raises(InputError, match="channels"):
+        stokes_inconsistency_ratio(same[:6])
+
+
+def test_the_ratio_of_a_calibrated_analyzer_is_that_of_the_ideal_images_after_unmixing():
+    size = 64
+    ideal = _analyzer_images(0.5 + 0.3 * _texture(size, 5), 0.2 * (_texture(size, 6) - 0.5), 0 * _texture(size, 7))
+    rng = np.random.default_rng(8)
+    block = np.eye(4) + 0.05 * rng.standard_normal((4, 4))  # angle errors and finite extinction, mixed
+    analyzer = np.zeros((12, 12))
+    for k in range(3):
+        analyzer[np.ix_(range(k, 12, 3), range(k, 12, 3))] = block
+    seen = torch.einsum("ij,jhw->ihw", torch.as_tensor(analyzer), ideal)
+    assert stokes_inconsistency_ratio(seen) > 1e-3  # the mixing reads as inconsistency ...
+    assert stokes_inconsistency_ratio(unmix_analyzer(seen, analyzer)) < 1e-12  # ... which unmixing removes
+
+
+def _unpolarized_capture(size: int, seed: int):
+    """A rendered-like texture whose four analyzers see the same image (S1 = S2 = 0), sigma 0.01."""
+    s0 = (0.2 + 0.6 * _texture(size, seed)).float()
+    fine = torch.Generator().manual_seed(seed + 1)
+    s0 = (s0 + 0.15 * torch.rand(1, size, size, generator=fine) * (torch.arange(size) % 3 == 0)).clamp(0, 1)
+    gt = s0.repeat(4, 1, 1).numpy()  # channel 3 p + k: every analyzer p sees the same colour image
+    return simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=seed)
+
+
+def test_caps_plus_smooths_the_polarization_of_a_capture_without_polarization_structure():
+    capture = _unpolarized_capture(64, seed=9)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=8, physical_projection=False)
+    params = record["params"]
+    evidence = params["polarization_evidence"]
+    assert evidence["stokes_inconsistency"] >= STRUCTURE_THRESHOLD and evidence["structure"] is False
+    choice = params["polarization_filter_choice"]
+    assert (choice["radius"], choice["eps"], choice["chosen_by"]) == (*UNSTRUCTURED_FILTER, "stokes-consistency")
+    plain, plain_record = reconstruct(capture, "caps-plus", true_warps=True, iterations=8, physical_projection=False,
+                                      polarization_filter="none")
+    assert "polarization_evidence" not in plain_record["params"]
+    expected = filter_polarization(torch.from_numpy(plain.image), *UNSTRUCTURED_FILTER).numpy()
+    np.testing.assert_allclose(out.image, expected, atol=1e-6, rtol=0)
+    held, held_record = reconstruct(capture, "caps-plus", true_warps=True, iterations=8, polarization_filter="holdout")
+    assert "polarization_evidence" not in held_record["params"]  # held-out pixels only: the test is not asked
+
+
+def test_polarization_structure_is_left_to_the_held_out_pixels(smooth_random_scene):
+    capture = simulate_capture(smooth_random_scene(48, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True)
+    params = record["params"]
+    assert params["polarization_evidence"]["structure"] is True
+    assert "candidates" in params["polarization_filter_choice"]  # chosen by the held-out pixels
+    held, _ = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="holdout")
+    np.testing.assert_array_equal(out.image, held.image)
