@@ -42,12 +42,14 @@ __all__ = ["STRUCTURE_THRESHOLD", "polarization_evidence", "problem_polarization
 
 #: ``T`` below this: the analyzers' differences show polarization structure (the test's null value, module docstring)
 STRUCTURE_THRESHOLD = 1.0
+#: a local variance per sample (intensity units squared) below which the analyzers do not differ at all
+VARIANCE_FLOOR = 1e-20
 
 
 def stokes_inconsistency_ratio(channels: torch.Tensor, *, radius: int = DEFAULT_RADIUS) -> float:
     """``T`` (module docstring) of aligned channel images ``channels`` ``(12, h, w)`` (channel ``c = 3 p + k``, the
     ideal analyzers' images), local variances over ``(2 radius + 1)^2`` windows; 1.0 for images whose analyzers
-    do not differ at all (nothing to tell)."""
+    do not differ at all (nothing to tell), and always finite."""
     if channels.ndim != 3 or channels.shape[0] != N_CHANNELS:
         raise InputError("channels", f"shape {tuple(channels.shape)}", "(12, h, w) aligned channel images, c = 3 p + k")
     x = channels.double().reshape(4, 3, *channels.shape[1:])  # analyzers 0, 45, 90, 135 deg; colours
@@ -58,9 +60,10 @@ def stokes_inconsistency_ratio(channels: torch.Tensor, *, radius: int = DEFAULT_
 
     inconsistency = float(local_variance(x[0] - x[1] + x[2] - x[3]).sum())
     difference = float((local_variance(x[0] - x[2]) + local_variance(x[1] - x[3])).sum())
-    if difference <= 0.0:
-        return 1.0 if inconsistency <= 0.0 else float("inf")
-    return inconsistency / difference
+    floor = VARIANCE_FLOOR * x[0].numel()  # below it a sum of local variances is rounding, not structure
+    if inconsistency <= floor and difference <= floor:
+        return 1.0
+    return inconsistency / max(difference, floor)
 
 
 def polarization_evidence(images: torch.Tensor, homographies, channel_of: torch.Tensor, *,

@@ -100,3 +100,31 @@ def test_polarization_structure_is_left_to_the_held_out_pixels(smooth_random_sce
     assert "candidates" in params["polarization_filter_choice"]  # chosen by the held-out pixels
     held, _ = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="holdout")
     np.testing.assert_array_equal(out.image, held.image)
+
+
+def test_the_ratio_is_finite_when_only_the_inconsistency_varies():
+    base = _texture(32, 10)
+    pair = base + 0.1 * (_texture(32, 11) - 0.5)  # the 45 and 135 deg analyzers: same image, another than 0 and 90
+    channels = torch.stack([base, pair, base, pair]).reshape(12, 32, 32)  # d = 0 everywhere, c varies
+    ratio = stokes_inconsistency_ratio(channels)
+    assert np.isfinite(ratio) and ratio > 1e6
+
+
+@pytest.mark.parametrize("case", ["black", "constant", "dark", "saturated", "tiny", "odd"])
+def test_the_test_on_hard_captures_gives_a_finite_record_and_image(case, smooth_random_scene):
+    size = {"tiny": 16, "odd": 40}.get(case, 32)
+    gt = smooth_random_scene(size, seed=12)
+    if case == "black":
+        gt = np.zeros_like(gt)
+    elif case == "constant":
+        gt = np.full_like(gt, 0.37)
+    elif case == "dark":
+        gt = gt * 1e-3  # S0 near 0
+    elif case == "saturated":
+        gt = gt * 4.0  # most of the frame above full scale
+    sigma = 0.0 if case in ("black", "constant") else 0.01
+    capture = simulate_capture(gt.astype(np.float32), make_sensor("gaussian", sigma=sigma) if sigma else None, seed=12)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
+    evidence = record["params"]["polarization_evidence"]
+    assert np.isfinite(evidence["stokes_inconsistency"]) and evidence["structure"] in (True, False)
+    assert np.isfinite(out.image).all()
