@@ -42,7 +42,7 @@ import torch
 from capssim.errors import InputError
 
 from ..registration.image_ops import noise_sigma
-from .cagf import DEFAULT_EPS, DEFAULT_RADIUS, align_to_reference, box_mean, channel_images, resize_to_hr
+from .cagf import DEFAULT_EPS, DEFAULT_RADIUS, aligned_channel_images, box_mean, resize_to_hr
 from .data_term import confidence_mix
 from .polarization_split import N_ANGLES, PolarizationSplitDataTerm, split_confidence_mix
 
@@ -82,8 +82,7 @@ def analyzer_agreement_map(images: torch.Tensor, homographies, channel_of: torch
     """``alpha`` ``(H, W)`` on the HR grid from the observations ``images`` ``(N, h, w)``, aligned onto the
     reference image as CAGF aligns them (:func:`~capssim.reconstruct.model.cagf.cagf_confidence`, same
     arguments)."""
-    aligned, aligned_w = align_to_reference(images, homographies, reference=reference, weights=weights)
-    chans = channel_images(aligned, aligned_w, channel_of, n_channels)
+    chans = aligned_channel_images(images, homographies, channel_of, n_channels, weights=weights, reference=reference)
     alpha = analyzer_agreement(chans, radius=radius, eps=eps)
     return resize_to_hr(alpha, np.asarray(homographies)[reference], hr_shape).clamp(0.0, 1.0)
 

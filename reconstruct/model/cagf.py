@@ -172,6 +172,15 @@ def channel_images(aligned: torch.Tensor, aligned_weights: torch.Tensor, channel
     return torch.where(den > 0, num / den.clamp(min=1e-12), plain / cnt)
 
 
+def aligned_channel_images(images: torch.Tensor, homographies, channel_of: torch.Tensor, n_channels: int, *,
+                           weights: torch.Tensor | None = None, reference: int = 0) -> torch.Tensor:
+    """``(C, h, w)``: the observations ``images`` ``(N, h, w)`` aligned onto image ``reference``'s grid
+    (:func:`align_to_reference`) and averaged per channel (:func:`channel_images`); the channel images CAGF's
+    confidence, the analyzers' agreement and the Stokes-consistency test read."""
+    aligned, aligned_weights = align_to_reference(images, homographies, reference=reference, weights=weights)
+    return channel_images(aligned, aligned_weights, channel_of, n_channels)
+
+
 def resize_to_hr(maps: torch.Tensor, reference_homography, hr_shape: tuple[int, int]) -> torch.Tensor:
     """Bilinear resize of ``(..., h, w)`` maps on the reference grid to the HR grid ``(..., H, W)``.
 
@@ -194,11 +203,10 @@ def cagf_confidence(images: torch.Tensor, homographies, channel_of: torch.Tensor
     reference frame to each observation's pixels, ``channel_of`` ``(N,)`` gives each
     observation's channel.
     """
-    aligned, aligned_w = align_to_reference(images, homographies, reference=reference, weights=weights)
-    chans = channel_images(aligned, aligned_w, channel_of, n_channels)
+    chans = aligned_channel_images(images, homographies, channel_of, n_channels, weights=weights, reference=reference)
     conf_lr = pairwise_confidence(chans, nu=nu, radius=radius, eps=eps)
     return resize_to_hr(conf_lr, np.asarray(homographies)[reference], hr_shape)
 
 
-__all__ = ["CAGFParameters", "align_to_reference", "box_mean", "cagf_confidence", "channel_images", "guided_filter_residual",
-           "pairwise_confidence", "resize_to_hr", "window_count"]
+__all__ = ["CAGFParameters", "align_to_reference", "aligned_channel_images", "box_mean", "cagf_confidence",
+           "channel_images", "guided_filter_residual", "pairwise_confidence", "resize_to_hr", "window_count"]

@@ -35,7 +35,7 @@ import torch
 from capssim.conventions import N_CHANNELS
 from capssim.errors import InputError
 
-from .cagf import DEFAULT_RADIUS, align_to_reference, box_mean, channel_images
+from .cagf import DEFAULT_RADIUS, aligned_channel_images, box_mean
 from .observation_model import unmix_analyzer
 
 __all__ = ["STRUCTURE_THRESHOLD", "polarization_evidence", "problem_polarization_evidence", "stokes_inconsistency_ratio"]
@@ -70,12 +70,11 @@ def polarization_evidence(images: torch.Tensor, homographies, channel_of: torch.
                           weights: torch.Tensor | None = None, unmix: np.ndarray | None = None,
                           radius: int = DEFAULT_RADIUS, reference: int = 0) -> dict:
     """The test of the module docstring on the observations ``images`` ``(N, h, w)`` of a 12-channel problem,
-    aligned onto the reference image as CAGF aligns them (:func:`~capssim.reconstruct.model.cagf.align_to_reference`;
+    aligned onto the reference image as CAGF aligns them (:func:`~capssim.reconstruct.model.cagf.aligned_channel_images`;
     ``homographies``, ``channel_of``, ``weights`` as there), unmixed by ``unmix`` ``(12, 12)`` when given.
 
     Returns ``{"stokes_inconsistency": T, "structure": T < 1}``."""
-    aligned, aligned_weights = align_to_reference(images, homographies, reference=reference, weights=weights)
-    channels = channel_images(aligned, aligned_weights, channel_of, N_CHANNELS)
+    channels = aligned_channel_images(images, homographies, channel_of, N_CHANNELS, weights=weights, reference=reference)
     if unmix is not None:
         channels = unmix_analyzer(channels, unmix)
     ratio = stokes_inconsistency_ratio(channels, radius=radius)
