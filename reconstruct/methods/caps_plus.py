@@ -5,13 +5,15 @@ Not the paper's method: capssim's own configuration beside it.
 
 Each ingredient answers a loss of ``caps`` that the error budget measured (docs: notes/beyond-the-paper.md):
 
-1. **Structure-aware CAGF data term** (``data_term=cagf-agree``,
-   :mod:`capssim.reconstruct.model.analyzer_agreement`): the residual's mean over the four analyzers is
+1. **Structure-aware CAGF data term in the Stokes subspace** (``data_term=cagf-stokes``,
+   :mod:`capssim.reconstruct.model.stokes_subspace`): the residual's mean over the four analyzers is
    shared by every channel with CAGF's weights, as in eq. 26; its polarization part is shared across
-   analyzers only where their aligned images agree (a noise-corrected local correlation ``alpha``), and
-   otherwise only between the colours of one analyzer (``data_term=cagf-split``,
-   :mod:`capssim.reconstruct.model.polarization_split`). ``caps`` shares all of it with positive weights and
-   smears structure that only some analyzers see (polarization-star, the cellphone cases).
+   analyzers only where their aligned images agree (a noise-corrected local correlation ``alpha``,
+   ``data_term=cagf-agree``, :mod:`capssim.reconstruct.model.analyzer_agreement`), otherwise only between the
+   colours of one analyzer (``data_term=cagf-split``), and kept to images that obey
+   ``I_0 - I_45 + I_90 - I_135 = 0``, so that the 0 and 90 deg apertures both inform ``S1`` (45 and 135 deg
+   ``S2``). ``caps`` shares all of it with positive weights and smears structure that only some analyzers see
+   (polarization-star, the cellphone cases).
 2. **Agreement initialization** (``-p init=agree``, the default): the analyzer mean of each colour from the
    fusion of eq. 24 (``caps``'s start, ``init=fusion``); the polarization differences from the fusion where
    the analyzers agree and from the demosaicked apertures where they do not (``init=naive``: each aperture's
@@ -22,7 +24,7 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
    from ``mu0 = 0.25`` with ``c2 = 0.01`` (``caps``: 0.5, 0.02; eq. 27-28). Past its best iteration the PSNR
    falls as the prior keeps smoothing, and where that iteration lies depends on the scene and the noise. A
    fixed 5 % of the raw pixels is left out of a validation run, which predicts them through ``M`` (eq. 15)
-   after every iteration and stops 5 iterations after their prediction error stopped falling (60 at most);
+   after every iteration and stops 5 iterations after their prediction error stopped falling (100 at most);
    the whole problem is then solved again, with every pixel, for the best iteration's count. A frame larger
    than 256 px validates on its central 256 px window (:data:`HOLDOUT_WINDOW`), so that the validation costs
    a quarter of a run at 512 px. ``-p stopping=noise`` takes the count from the raw frames' noise level
@@ -110,7 +112,7 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
     polarization-split data term splits its residual; ``agree``: ``P fusion + (I - P) (alpha fusion +
-    (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``).
+    (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``/``cagf-stokes``).
     ``stopping="holdout"`` (the default unless ``iterations`` or ``preset`` is given) holds out
     ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`; a frame
     larger than :data:`HOLDOUT_WINDOW` is validated on its central window, :func:`window_validation`).
@@ -192,7 +194,7 @@ STOPPING_RULES = ("noise", "holdout")
 #: the fewest usable held-out samples a validation runs on; below, the noise rule chooses the count
 MIN_HELD_OUT = 32
 #: the most iterations ``stopping=holdout`` runs when ``iterations`` is not given
-HOLDOUT_MAX_ITERATIONS = 60
+HOLDOUT_MAX_ITERATIONS = 100
 
 
 def check_stopping(stopping: str, fraction: float, patience: int, holdout_rule: str = "min") -> str:
@@ -380,7 +382,7 @@ def polarization_filter_finish(image: torch.Tensor, params: dict) -> torch.Tenso
 
 #: caps-plus: the pipeline's slots and schedule (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_plus_observations,
-                           defaults={"data_term": "cagf-agree", "iterations": 50, "mu0": 0.25, "c2": 0.01},
+                           defaults={"data_term": "cagf-stokes", "iterations": 50, "mu0": 0.25, "c2": 0.01},
                            front_end_options={"init": "agree", "stopping": "holdout", "holdout_fraction": 0.05,
                                               "patience": 5, "holdout_refit": True, "holdout_rule": "min",
                                               "polarization_filter": "auto"},

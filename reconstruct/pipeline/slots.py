@@ -13,7 +13,8 @@ Built in:
   ``cagf-split``, CAGF with the residual's polarization part shared only within one analyzer (not the
   paper's; ``caps-plus``, :mod:`capssim.reconstruct.model.polarization_split`), and ``cagf-agree``, the split
   coupled across analyzers where their images agree (not the paper's;
-  :mod:`capssim.reconstruct.model.analyzer_agreement`);
+  :mod:`capssim.reconstruct.model.analyzer_agreement`), and ``cagf-stokes``, that direction kept to images
+  linear polarization can produce (not the paper's; ``caps-plus``, :mod:`capssim.reconstruct.model.stokes_subspace`);
 * priors: ``nlstr``, the nonlocal sparse tensor of section 3.3 (``caps``); ``tikhonov``, a quadratic
   smoothness prior (not the paper's; ``-p tikhonov_weight=W``); ``nlstr-denoiser``, NLSTR with its analyzer
   mean blended with a learned denoiser's (not the paper's; ``caps-plus-pnp``); ``none``, the data term alone, solved
@@ -38,6 +39,7 @@ from ..model.analyzer_agreement import AgreementDataTerm, analyzer_agreement_map
 from ..model.cagf import cagf_confidence
 from ..model.data_term import ConfidenceDataTerm
 from ..model.polarization_split import PolarizationSplitDataTerm
+from ..model.stokes_subspace import StokesAgreementDataTerm
 from ..priors.nlstr import NonlocalSparseTensor
 from ..priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, denoiser_model
 from ..priors.nlstr_prior import NLSTRPrior
@@ -264,6 +266,14 @@ def agreement_data_term(problem: Problem, *, options, stage: StageFactory) -> Ag
                              agreement=problem_agreement(problem, options=options, stage=stage))
 
 
+def stokes_data_term(problem: Problem, *, options, stage: StageFactory) -> StokesAgreementDataTerm:
+    """``cagf-agree``'s direction projected onto the images linear polarization can produce, ``I_0 - I_45 + I_90 -
+    I_135 = 0`` (:mod:`capssim.reconstruct.model.stokes_subspace`; not the paper's)."""
+    return StokesAgreementDataTerm(problem.obs, problem.operator, mixing=problem.mixing,
+                                   confidence=problem_confidence(problem, options=options, stage=stage),
+                                   agreement=problem_agreement(problem, options=options, stage=stage))
+
+
 def plain_data_term(problem: Problem, *, options, stage: StageFactory) -> ConfidenceDataTerm:
     """Eq. 15 without CAGF: each channel sees its own observations only (the ``caps-no-cagf`` ablation)."""
     return ConfidenceDataTerm(problem.obs, problem.operator, confidence=None, mixing=problem.mixing)
@@ -277,6 +287,9 @@ register_data_term("cagf-split", split_data_term,
 register_data_term("cagf-agree", agreement_data_term,
                    description="cagf-split coupled across analyzers where their images agree (structure-aware "
                                "coupling; not the paper's)")
+register_data_term("cagf-stokes", stokes_data_term,
+                   description="cagf-agree kept to the Stokes subspace I0 - I45 + I90 - I135 = 0 (not the paper's; "
+                               "caps-plus)")
 register_data_term("plain", plain_data_term,
                    description="data term of each channel's own observations (eq. 15, no CAGF)")
 

@@ -85,7 +85,7 @@ def test_caps_plus_runs_and_records_its_ingredients(capture):
     out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=6)
     assert out.image.shape == (12, SIZE, SIZE) and out.image.dtype == np.float32 and np.isfinite(out.image).all()
     params = record["params"]
-    assert params["data_term"] == "cagf-agree" and params["init"] == "agree"
+    assert params["data_term"] == "cagf-stokes" and params["init"] == "agree"
     assert params["mu0"] == 0.25 and params["c2"] == 0.01 and params["iterations"] == 6
     assert "init_demosaic" in record["stages_s"]
     assert score(out.image, capture.gt, with_ssim=False)["psnr_mean"] > 25
