@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from support.confidence import per_pixel_matrix
 
 from capssim.errors import CapssimError
 from capssim.reconstruct import reconstruct
@@ -88,12 +89,7 @@ def test_the_mixed_direction_is_symmetric_positive_semidefinite(random_confidenc
     """alpha L + (1 - alpha) T per pixel: a descent direction with the same fixed points, for any alpha in [0, 1]."""
     conf = random_confidence(12, 3, 4, seed=6)
     alpha = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
-    cols = []
-    for j in range(12):
-        e = torch.zeros(12, 3, 4, dtype=torch.float64)
-        e[j] = 1
-        cols.append(agreement_confidence_mix(conf, e, alpha))
-    t = torch.stack(cols, dim=1).permute(2, 3, 0, 1)
+    t = per_pixel_matrix(lambda e: agreement_confidence_mix(conf, e, alpha), 12, 3, 4)
     assert torch.allclose(t, t.transpose(-1, -2), atol=1e-12)
     assert torch.linalg.eigvalsh(t).min() > -1e-10
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from support.confidence import per_pixel_matrix
 
 from capssim.errors import CapssimError
 from capssim.reconstruct import reconstruct
@@ -61,12 +62,7 @@ def test_the_direction_is_symmetric_positive_semidefinite_in_the_subspace(random
     """Q T Q per pixel, T cagf-agree's mixing: a descent direction of the same data term, inside the subspace."""
     conf = random_confidence(12, 3, 4, seed=6)
     alpha = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
-    cols = []
-    for j in range(12):
-        e = torch.zeros(12, 3, 4, dtype=torch.float64)
-        e[j] = 1
-        cols.append(stokes_projection(agreement_confidence_mix(conf, stokes_projection(e), alpha)))
-    t = torch.stack(cols, dim=1).permute(2, 3, 0, 1)
+    t = per_pixel_matrix(lambda e: stokes_projection(agreement_confidence_mix(conf, stokes_projection(e), alpha)), 12, 3, 4)
     assert torch.allclose(t, t.transpose(-1, -2), atol=1e-12)
     assert torch.linalg.eigvalsh(t).min() > -1e-10
     n = torch.tensor(STOKES_NULL_VECTOR, dtype=torch.float64).repeat_interleave(3)

@@ -13,3 +13,14 @@ def random_confidence(c, h, w, *, seed=0, dtype=torch.float64):
     d = torch.diagonal(m, dim1=-2, dim2=-1).sqrt()
     m = m / (d[..., :, None] * d[..., None, :])
     return m.permute(2, 3, 0, 1).contiguous()
+
+
+def per_pixel_matrix(direction, c, h, w, *, dtype=torch.float64):
+    """The ``(H, W, C, C)`` matrix of a per-pixel linear map ``direction`` ``(C, H, W) -> (C, H, W)``, read column by
+    column from its response to each unit channel (for the symmetric / positive semi-definite checks)."""
+    cols = []
+    for j in range(c):
+        e = torch.zeros(c, h, w, dtype=dtype)
+        e[j] = 1
+        cols.append(direction(e))
+    return torch.stack(cols, dim=1).permute(2, 3, 0, 1)
