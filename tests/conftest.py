@@ -50,6 +50,13 @@ def random_confidence():
 
 
 @pytest.fixture(scope="session")
+def per_pixel_matrix():
+    """:func:`support.confidence.per_pixel_matrix`: ``(direction, C, H, W) -> (H, W, C, C)``, a per-pixel linear
+    map's matrix read from its response to each unit channel."""
+    return confidence.per_pixel_matrix
+
+
+@pytest.fixture(scope="session")
 def smooth_random_scene():
     """:func:`support.scenes.smooth_random_scene`: ``(size=64, *, seed=0, dolp_max=0.6) -> (12, size, size)``."""
     return scenes.smooth_random_scene

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from support.confidence import per_pixel_matrix
 
 from capssim.errors import CapssimError
 from capssim.reconstruct import reconstruct
@@ -85,7 +84,7 @@ def test_the_mix_is_eq26_at_one_and_the_split_at_zero(random_confidence):
     assert torch.allclose(agreement_confidence_mix(conf, b, zeros), split_confidence_mix(conf, b), atol=1e-12)
 
 
-def test_the_mixed_direction_is_symmetric_positive_semidefinite(random_confidence):
+def test_the_mixed_direction_is_symmetric_positive_semidefinite(random_confidence, per_pixel_matrix):
     """alpha L + (1 - alpha) T per pixel: a descent direction with the same fixed points, for any alpha in [0, 1]."""
     conf = random_confidence(12, 3, 4, seed=6)
     alpha = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))

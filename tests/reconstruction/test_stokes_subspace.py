@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from support.confidence import per_pixel_matrix
 
 from capssim.errors import CapssimError
 from capssim.reconstruct import reconstruct
@@ -58,7 +57,7 @@ def test_a_wrong_channel_count_is_refused():
         stokes_projection(torch.zeros(6, 3, 3))
 
 
-def test_the_direction_is_symmetric_positive_semidefinite_in_the_subspace(random_confidence):
+def test_the_direction_is_symmetric_positive_semidefinite_in_the_subspace(random_confidence, per_pixel_matrix):
     """Q T Q per pixel, T cagf-agree's mixing: a descent direction of the same data term, inside the subspace."""
     conf = random_confidence(12, 3, 4, seed=6)
     alpha = torch.rand(3, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(7))
