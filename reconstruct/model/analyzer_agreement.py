@@ -113,9 +113,6 @@ class AgreementDataTerm(PolarizationSplitDataTerm):
                              f"the confidence's HR shape {tuple(confidence.shape[-2:])}")
         self.agreement = agreement.to(confidence.dtype)
 
-    def descent_direction(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:
-        """``D`` ``(C, H, W)`` (module docstring) and ``f(x)``, from one residual."""
-        r = self.residual(x)
-        value = 0.5 * float(r.square().sum())
-        b = self.backprojection(x, r)
-        return agreement_confidence_mix(self.confidence, b, self.agreement, self.n_angles), value
+    def mix(self, b: torch.Tensor) -> torch.Tensor:
+        """``D`` ``(C, H, W)`` (module docstring) from the back-projection ``b``."""
+        return agreement_confidence_mix(self.confidence, b, self.agreement, self.n_angles)

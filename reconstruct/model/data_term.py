@@ -171,14 +171,19 @@ class ConfidenceDataTerm:
         r = self.residual(x) if residual is None else residual
         return self.adjoint(r * self.obs.weights)
 
+    def mix(self, b: torch.Tensor) -> torch.Tensor:
+        """The direction ``D`` ``(C, H, W)`` from the back-projection ``B`` ``(C, H, W)``: eq. 26's
+        :func:`confidence_mix` with CAGF's confidence, ``B`` itself without it. The one step the structure-aware
+        data terms (``cagf-split``, ``cagf-agree``, ``cagf-stokes``) change."""
+        if self.confidence is None:
+            return b
+        return confidence_mix(self.confidence, b)
+
     def descent_direction(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:
-        """Eq. 16 / 26 data part ``D`` ``(C, H, W)`` and the value ``f(x)`` (from the same residual)."""
+        """Eq. 16 / 26 data part ``D = mix(B)`` ``(C, H, W)`` and the value ``f(x)`` (from the same residual)."""
         r = self.residual(x)
         value = 0.5 * float(r.square().sum())
-        b = self.backprojection(x, r)
-        if self.confidence is None:
-            return b, value
-        return confidence_mix(self.confidence, b), value
+        return self.mix(self.backprojection(x, r)), value
 
 
 def confidence_mix(confidence: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -78,7 +78,7 @@ class PolarizationSplitDataTerm(ConfidenceDataTerm):
 
     Same observations, operator, value ``f(x)`` and back-projection as
     :class:`~capssim.reconstruct.model.data_term.ConfidenceDataTerm`; only
-    :meth:`descent_direction` differs. ``confidence`` ``(C, C, H, W)`` is required.
+    :meth:`mix` differs. ``confidence`` ``(C, C, H, W)`` is required.
     """
 
     def __init__(self, obs, operator, *, confidence: torch.Tensor, mixing=None, n_angles: int = N_ANGLES):
@@ -90,8 +90,6 @@ class PolarizationSplitDataTerm(ConfidenceDataTerm):
             raise InputError("channels", self.n_channels, f"a multiple of the {n_angles} analyzer angles")
         self.n_angles = n_angles
 
-    def descent_direction(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:
-        """``D`` ``(C, H, W)`` (module docstring) and ``f(x)``, from one residual."""
-        r = self.residual(x)
-        value = 0.5 * float(r.square().sum())
-        return split_confidence_mix(self.confidence, self.backprojection(x, r), self.n_angles), value
+    def mix(self, b: torch.Tensor) -> torch.Tensor:
+        """``D`` ``(C, H, W)`` (module docstring) from the back-projection ``b``."""
+        return split_confidence_mix(self.confidence, b, self.n_angles)

@@ -37,7 +37,7 @@ import torch
 
 from capssim.errors import InputError
 
-from .analyzer_agreement import AgreementDataTerm, agreement_confidence_mix
+from .analyzer_agreement import AgreementDataTerm
 
 __all__ = ["STOKES_NULL_VECTOR", "StokesAgreementDataTerm", "stokes_projection"]
 
@@ -71,10 +71,6 @@ class StokesAgreementDataTerm(AgreementDataTerm):
         super().__init__(obs, operator, confidence=confidence, agreement=agreement, mixing=mixing,
                          n_angles=len(STOKES_NULL_VECTOR))
 
-    def descent_direction(self, x: torch.Tensor) -> tuple[torch.Tensor, float]:
-        """``D`` ``(C, H, W)`` (module docstring) and ``f(x)``, from one residual."""
-        r = self.residual(x)
-        value = 0.5 * float(r.square().sum())
-        b = stokes_projection(self.backprojection(x, r))
-        mixed = agreement_confidence_mix(self.confidence, b, self.agreement, self.n_angles)
-        return stokes_projection(mixed), value
+    def mix(self, b: torch.Tensor) -> torch.Tensor:
+        """``D = Q T Q b`` ``(C, H, W)`` (module docstring) from the back-projection ``b``."""
+        return stokes_projection(super().mix(stokes_projection(b)))
