@@ -12,8 +12,8 @@ from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, apply_
 
 def budget(
     suites: List[str] = typer.Argument(..., metavar="SUITE...",
-                                       help="Suite name(s) (eval/suites/NAME.yaml) or YAML path(s); each runs "
-                                            "into OUTPUT/NAME."),
+                                       help="Suite name(s) (eval/suites/NAME.yaml) or YAML path(s); one suite runs "
+                                            "into OUTPUT itself, several each into OUTPUT/NAME."),
     output: Path = typer.Option(..., "-o", "--output", help="Output folder (resumed if it exists)."),
     methods: Optional[List[str]] = typer.Option(None, "--method", "-m", metavar="METHOD",
                                                 help="Method label or name (repeatable; default: the suite's "
@@ -28,7 +28,7 @@ def budget(
     no_plots: bool = typer.Option(False, "--no-plots", help="Skip the waterfall plots."),
     report_only: bool = typer.Option(False, "--report-only", help="Run nothing: rewrite budget.md, the plots and "
                                                                    "the results page from the stored budget.jsonl."),
-    cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: OUTPUT/NAME/cache; "
+    cache: Optional[Path] = typer.Option(None, "--cache", help="Capture cache folder (default: cache/ in the suite's output folder; "
                                                                "a suite run's cache can be shared)."),
     fresh: bool = typer.Option(False, "--fresh", help="Redo the cases this run plans (all, or those of -m and "
                                                       "--scene) although OUTPUT has them; other cases' results stay."),
@@ -43,8 +43,8 @@ def budget(
     """Error budget: each case's ladder of oracles (as captured -> true warps -> model-exact -> noise-free).
 
     Each step is what one imperfection costs; the steps sum to the gap between the method as run and
-    its ceiling. Writes OUTPUT/NAME/budget.jsonl (one line per case, as it finishes; run again to
-    resume), budget.md and a waterfall plot per case.
+    its ceiling. Writes budget.jsonl (one line per case, as it finishes; run again to resume), budget.md
+    and a waterfall plot per case into OUTPUT for one suite, into OUTPUT/NAME for each of several.
     """
     from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
     from capssim.eval.error_budget.budget_report import write_report, write_results_page

@@ -143,7 +143,7 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     choose_filter = filter_mode == "holdout" or (filter_mode == "auto" and
                                                  polarization_structure_shown(front, options, context.timer.stage))
     if stopping == "holdout" and window_validation(capture, context, front, options, candidates=candidates,
-                                                   rule=holdout_rule, choose_filter=choose_filter):
+                                                   rule=holdout_rule, choose_filter=choose_filter, init=name):
         stopping = "window"  # the count is chosen: the whole frame runs it with all its pixels
     elif candidates:  # a count, the noise rule, a calibration or too few pixels: nothing validates the blends
         front.params["blend_note"] = (f"no blend chosen (stopping {stopping}, calibrated "
@@ -269,12 +269,12 @@ def blend_choices(text: str, options, given: frozenset) -> tuple[dict, ...]:
     return tuple({"denoiser_blend": w} for w in blends)
 
 
-def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
-                      candidates: tuple[dict, ...] = (), rule: str = "min", choose_filter: bool = False) -> bool:
+def window_validation(capture, context: RunContext, front: FrontEnd, options, *, candidates: tuple[dict, ...] = (),
+                      rule: str = "min", choose_filter: bool = False, init: str = "agree") -> bool:
     """For a frame larger than :data:`HOLDOUT_WINDOW` on either side, or any frame when ``candidates`` are given
     (uncalibrated): run ``caps-plus`` with ``stopping=holdout`` and no final solve on the central window's
     capture (:func:`~capssim.reconstruct.model.window_capture.crop_window`, the front end's warps re-based to
-    it; the whole frame when it is no larger), once per candidate (prior option overrides, e.g.
+    it; the whole frame when it is no larger; from the start ``init``), once per candidate (prior option overrides, e.g.
     ``{"denoiser_blend": 0.5}``; none: once as configured) in their order until the held-out error rises (the
     error is taken to be unimodal along the candidates: one past the lowest is not worth validating), and
     record the count ``rule`` names (:class:`~capssim.reconstruct.model.holdout.HoldoutValidation`) of the run
@@ -295,7 +295,7 @@ def window_validation(capture, context: RunContext, front: FrontEnd, options, *,
     for overrides in candidates or ({},):
         sub = RunContext(device=context.device, timer=StageTimer(), true_warps=True,
                          options={**given, "stopping": "holdout", "holdout_refit": False, "holdout_rule": rule,
-                                  "polarization_filter": "holdout" if choose_filter else "none",
+                                  "polarization_filter": "holdout" if choose_filter else "none", "init": init,
                                   "prior": options.prior, "data_term": options.data_term, **own, **overrides})
         with context.timer.stage("holdout_validation"):
             params = run_pipeline(crop, sub, CAPS_PLUS).params
