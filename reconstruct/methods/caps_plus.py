@@ -18,8 +18,9 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
    fusion of eq. 24 (``caps``'s start, ``init=fusion``); the polarization differences from the fusion where
    the analyzers agree and from the demosaicked apertures where they do not (``init=naive``: each aperture's
    raw frame demosaicked on its own, Menon et al. 2007 as ``caps-naive``, resampled onto the HR grid through
-   the same registration, bicubic; ``init=split``: all differences from them). The fusion averages the
-   analyzers' differences away, which is right only where they agree.
+   the same registration, bicubic; ``init=split``: all differences from them; ``init=agree-all``: the agreement's
+   blend for the analyzer mean as well, ``caps-plus-cv``'s start). The fusion averages the analyzers' differences
+   away, which is right only where they agree.
 3. **Held-out stopping** (``-p stopping=holdout``, the default; :mod:`capssim.reconstruct.model.holdout`): ADMM
    from ``mu0 = 0.25`` with ``c2 = 0.01`` (``caps``: 0.5, 0.02; eq. 27-28). Past its best iteration the PSNR
    falls as the prior keeps smoothing, and where that iteration lies depends on the scene and the noise. A
@@ -30,7 +31,6 @@ Each ingredient answers a loss of ``caps`` that the error budget measured (docs:
    a quarter of a run at 512 px. ``-p stopping=noise`` takes the count from the raw frames' noise level
    instead, ``clip(10 + 1000 sigma, 10, 50)`` (:func:`noise_adaptive_iterations`; ``caps-plus``'s rule before
    2026-11-27, and what a tiled run uses for every tile); ``-p iterations=N`` (or a ``preset``) fixes the count.
-
 4. **A polarization filter** (``-p polarization_filter=auto``, the default;
    :mod:`capssim.reconstruct.model.polarization_filter`): where the analyzers' aligned images show no
    polarization structure (the Stokes-consistency test, :mod:`capssim.reconstruct.model.polarization_evidence`),
@@ -80,9 +80,9 @@ __all__ = ["CAPS_PLUS", "COUNT_OPTIONS", "INITIALIZATIONS", "NOISE_ITERATIONS", 
            "polarization_filter_finish", "raw_noise_sigma"]
 
 #: ``-p init=NAME``: ``agree`` (the default: ``split`` with the fusion's polarization part where the analyzer
-#: images agree), ``naive`` (demosaicked apertures), ``fusion`` (``caps``'s, eq. 24) or ``split`` (the analyzer
-#: mean of the fusion, the polarization part of the demosaicked apertures)
-INITIALIZATIONS = ("naive", "fusion", "split", "agree")
+#: images agree), ``naive`` (demosaicked apertures), ``fusion`` (``caps``'s, eq. 24), ``split`` (the analyzer
+#: mean of the fusion, the polarization part of the demosaicked apertures) or ``agree-all`` (all of it blended)
+INITIALIZATIONS = ("naive", "fusion", "split", "agree", "agree-all")
 #: the Bayer demosaicking of the initialization (``caps-naive``'s default)
 INIT_BAYER_METHOD = "menon2007"
 
@@ -112,7 +112,8 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     initial estimate of ``init`` (``naive``: :func:`demosaicked_initialization`; ``fusion``: eq. 24;
     ``split``: ``P fusion + (I - P) naive``, ``P`` the mean over the analyzers of each colour, as the
     polarization-split data term splits its residual; ``agree``: ``P fusion + (I - P) (alpha fusion +
-    (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``/``cagf-stokes``).
+    (1 - alpha) naive)``, ``alpha`` ``(H, W)`` the analyzers' agreement of ``data_term=cagf-agree``/``cagf-stokes``;
+    ``agree-all``: ``alpha fusion + (1 - alpha) naive``).
     ``stopping="holdout"`` (the default unless ``iterations`` or ``preset`` is given) holds out
     ``holdout_fraction`` of the raw pixels for the solver's stopping rule (:func:`hold_out_pixels`; a frame
     larger than :data:`HOLDOUT_WINDOW` is validated on its central window, :func:`window_validation`).
@@ -131,7 +132,7 @@ def caps_plus_observations(capture, context: RunContext, options, *, init: str =
     name = str(init).strip()
     if name not in INITIALIZATIONS:
         raise InputError("option init", repr(init), "one of " + ", ".join(INITIALIZATIONS),
-                         "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split or -p init=agree.")
+                         "Use -p init=naive (demosaicked apertures), -p init=fusion (caps's), -p init=split, agree or agree-all.")
     stopping = check_stopping(stopping, holdout_fraction, patience, holdout_rule)
     filter_mode = check_polarization_filter(polarization_filter)
     given = given_option_names(context.options)
@@ -178,12 +179,14 @@ def agreement_initialization(capture, context: RunContext, front: FrontEnd, prob
     ``held_out``: raw pixels the demosaicked apertures must not see."""
     with context.timer.stage("init_demosaic"):
         start = demosaicked_initialization(capture, context, front.geometry, held_out=held_out)
-        if name in ("split", "agree"):  # the fusion's analyzer mean, the demosaicked apertures' polarization
+        if name in ("split", "agree", "agree-all"):  # the fusion's analyzer mean, the apertures' polarization
             fusion = fused_initialization(problem)
-            if name == "agree":  # ... the fusion's polarization where the analyzers agree
+            if name != "split":  # ... the fusion's polarization where the analyzers agree (agree-all: all of it)
                 alpha = problem_agreement(problem, options=options, stage=context.timer.stage)
                 start = start + alpha * (fusion - start)
-            start = (angle_mean(fusion) + start - angle_mean(start)).clamp(0.0, 1.0)
+            if name != "agree-all":
+                start = angle_mean(fusion) + start - angle_mean(start)
+            start = start.clamp(0.0, 1.0)
         return start.contiguous()
 
 

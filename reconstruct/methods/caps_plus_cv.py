@@ -14,10 +14,12 @@ problem with every pixel once, with the ``w`` and the iteration count of the low
 one fold; Stone, "Cross-validatory choice and assessment of statistical predictions", J. R. Stat. Soc. B 36(2)
 1974).
 
-It starts from the demosaicked apertures (``-p init=naive``: each aperture's Bayer frame demosaicked, registered
-and resampled to the HR grid, as ``caps-naive`` does), where ``caps-plus`` starts from the agreement blend of
-the fusion and the apertures (``init=agree``); ``-p init=agree`` restores that start. Neither start wins on every
-scene: the results page (docs: results/caps-plus.md) gives both on every benchmark capture and on held-out renders.
+Its start blends the whole image by the analyzers' agreement ``alpha`` (``-p init=agree-all``: ``alpha`` times
+eq. 24's fusion plus ``1 - alpha`` times the demosaicked apertures, each aperture's Bayer frame demosaicked,
+registered and resampled to the HR grid as ``caps-naive`` does). ``caps-plus`` (``init=agree``) blends only the
+polarization part and always takes the fusion's analyzer mean, which averages the four apertures' sampling of
+detail that only some analyzers see; where the analyzers disagree (polarization-only structure) ``agree-all``
+takes the apertures' own mean instead. ``-p init=agree`` restores ``caps-plus``'s start.
 
 The denoiser's noise level falls from 0.05 to 0.005 over the first 15 iterations and then stays
 (``denoiser_sigma_steps=15``), so that iteration ``k`` of a validation run is a ``k``-iteration run, which
@@ -44,19 +46,19 @@ BLEND_CANDIDATES = "0,0.5,0.75"
 #: iterations over which the denoiser's noise level falls (then it stays at its end level)
 DENOISER_SIGMA_STEPS = 15
 
-#: caps-plus from the demosaicked apertures with the ``nlstr-denoiser`` prior, whose blend and count the held-out
-#: pixels choose
+#: caps-plus from the agreement blend of the whole start with the ``nlstr-denoiser`` prior, whose blend and count
+#: the held-out pixels choose
 CAPS_PLUS_CV = replace(CAPS_PLUS,
                        defaults={**CAPS_PLUS.defaults, "prior": "nlstr-denoiser",
                                  "denoiser_sigma_steps": DENOISER_SIGMA_STEPS},
                        front_end_options={**CAPS_PLUS.front_end_options, "blend_candidates": BLEND_CANDIDATES,
-                                          "init": "naive"})
+                                          "init": "agree-all"})
 
 
 @register_method("caps-plus-cv", input_kind="caps", frame_options=frame_iterations,
                  reference=CAPS_REFERENCE + " with capssim's changes and a learned denoiser (not the paper's)",
-                 description="caps-plus from the demosaicked apertures, whose prior (NLSTR alone, or blended with a "
-                             "learned denoiser) and iteration count are chosen per capture by held-out raw pixels "
-                             "(not the paper's)")
+                 description="caps-plus with the whole start blended by the analyzers' agreement, whose prior (NLSTR "
+                             "alone, or blended with a learned denoiser) and iteration count are chosen per capture "
+                             "by held-out raw pixels (not the paper's)")
 def caps_plus_cv(capture, *, context: RunContext) -> MethodOutput:
     return run_pipeline(capture, context, CAPS_PLUS_CV)
