@@ -137,3 +137,22 @@ def test_the_start_and_the_data_term_share_one_agreement_map(capture, monkeypatc
     monkeypatch.setattr(slots, "analyzer_agreement_map", lambda *a, **k: computed.append(1) or original(*a, **k))
     reconstruct(capture, "caps-plus", true_warps=True, iterations=2)
     assert len(computed) == 1
+
+
+def test_the_agree_all_initialization_blends_the_analyzer_mean_too(capture):
+    """-p init=agree-all (caps-plus-cv's start): per pixel ``alpha fusion + (1 - alpha) naive`` for every channel,
+    so it lies between the two starts, keeps init=agree's polarization part and differs from it only in the
+    analyzer mean (read through 0 iterations, inside a 4 px border)."""
+    start = {"true_warps": True, "prior": "none", "iterations": 0, "physical_projection": False}
+    images = {}
+    for init in ("agree-all", "agree", "naive", "fusion"):
+        out, record = reconstruct(capture, "caps-plus", init=init, **start)
+        assert record["params"]["init"] == init
+        images[init] = torch.from_numpy(out.image[:, 4:-4, 4:-4]).double()
+    blend, agree, naive, fusion = images["agree-all"], images["agree"], images["naive"], images["fusion"]
+    lo, hi = torch.minimum(naive, fusion), torch.maximum(naive, fusion)
+    assert bool(((blend >= lo - 1e-5) & (blend <= hi + 1e-5)).all())
+    interior = ((agree > 1e-4) & (agree < 1 - 1e-4) & (blend > 1e-4) & (blend < 1 - 1e-4)).all(dim=0)  # no clamp
+    assert torch.allclose((blend - angle_mean(blend))[:, interior], (agree - angle_mean(agree))[:, interior], atol=1e-5)
+    assert not torch.allclose(angle_mean(blend), angle_mean(fusion), atol=1e-4)
+    assert not torch.allclose(blend, naive, atol=1e-4)

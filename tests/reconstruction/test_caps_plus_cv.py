@@ -46,9 +46,9 @@ def test_every_candidate_is_validated_and_the_lowest_held_out_error_wins(chosen)
     assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
 
 
-def test_the_start_is_the_demosaicked_apertures_and_init_agree_restores_caps_plus_s(capture, tiny_denoiser_weights,
-                                                                                     chosen):
-    assert chosen[1]["params"]["init"] == "naive"
+def test_the_start_is_the_whole_agreement_blend_and_init_agree_restores_caps_plus_s(capture, tiny_denoiser_weights,
+                                                                                      chosen):
+    assert chosen[1]["params"]["init"] == "agree-all"
     plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5)
     agree, record = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=5, denoiser_blend=0.0,
                                 init="agree", denoiser_weights=str(tiny_denoiser_weights))
@@ -60,7 +60,7 @@ def test_the_final_image_is_the_chosen_blend_and_count_run_with_every_pixel(capt
     out, record = chosen
     params = record["params"]
     fixed, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
-                           denoiser_sigma_steps=15, denoiser_blend=params["denoiser_blend"], init="naive",
+                           denoiser_sigma_steps=15, denoiser_blend=params["denoiser_blend"], init="agree-all",
                            iterations=params["iterations"], physical_projection=False)
     # then the polarization filter the held-out pixels chose, then the physical projection
     filtered = apply_chosen_filter(torch.from_numpy(fixed.image), params["polarization_filter_choice"]).numpy()
@@ -74,13 +74,13 @@ def test_a_candidate_validation_is_the_same_as_that_blend_validated_alone(captur
     for candidate in record["params"]["holdout_candidates"]:
         _, alone = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
                                denoiser_sigma_steps=15, denoiser_blend=candidate["denoiser_blend"],
-                               stopping="holdout", init="naive")
+                               stopping="holdout", init="agree-all")
         assert alone["params"]["holdout_error"] == pytest.approx(candidate["holdout_error"], rel=1e-5)
         assert alone["params"]["iterations"] == candidate["iterations"]
 
 
-def test_blend_zero_is_caps_plus_from_the_demosaicked_apertures_exactly(capture, tiny_denoiser_weights):
-    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5, init="naive")
+def test_blend_zero_is_caps_plus_from_the_same_start_exactly(capture, tiny_denoiser_weights):
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5, init="agree-all")
     zero, _ = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=5, denoiser_blend=0.0,
                           denoiser_weights=str(tiny_denoiser_weights))
     np.testing.assert_array_equal(zero.image, plus.image)
@@ -156,7 +156,7 @@ def test_bfloat16_denoising_stays_close_to_float32(capture):
 def test_another_prior_drops_the_choice_and_the_denoiser_defaults(capture):
     """-p prior=nlstr: caps-plus-cv's denoiser defaults and its blend candidates fall away: caps-plus from its
     start exactly."""
-    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=4, init="naive")
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=4, init="agree-all")
     other, record = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=4, prior="nlstr")
     np.testing.assert_array_equal(other.image, plus.image)
     assert record["params"]["prior"] == "nlstr" and "denoiser_sigma_steps" not in record["params"]
