@@ -79,9 +79,8 @@ __all__ = ["CAPS_PLUS", "COUNT_OPTIONS", "INITIALIZATIONS", "NOISE_ITERATIONS", 
            "demosaicked_initialization", "frame_iterations", "noise_adaptive_iterations", "noise_adaptive_schedule",
            "polarization_filter_finish", "raw_noise_sigma"]
 
-#: ``-p init=NAME``: ``agree`` (the default: ``split`` with the fusion's polarization part where the analyzer
-#: images agree), ``naive`` (demosaicked apertures), ``fusion`` (``caps``'s, eq. 24), ``split`` (the analyzer
-#: mean of the fusion, the polarization part of the demosaicked apertures) or ``agree-all`` (all of it blended)
+#: ``-p init=NAME``: ``agree`` (the default), ``naive``, ``fusion``, ``split`` or ``agree-all``
+#: (:func:`caps_plus_observations` says what each is)
 INITIALIZATIONS = ("naive", "fusion", "split", "agree", "agree-all")
 #: the Bayer demosaicking of the initialization (``caps-naive``'s default)
 INIT_BAYER_METHOD = "menon2007"
