@@ -178,12 +178,12 @@ def agreement_initialization(capture, context: RunContext, front: FrontEnd, prob
     ``held_out``: raw pixels the demosaicked apertures must not see."""
     with context.timer.stage("init_demosaic"):
         start = demosaicked_initialization(capture, context, front.geometry, held_out=held_out)
-        if name in ("split", "agree", "agree-all"):  # the fusion's analyzer mean, the apertures' polarization
+        if name in ("split", "agree", "agree-all"):
             fusion = fused_initialization(problem)
-            if name != "split":  # ... the fusion's polarization where the analyzers agree (agree-all: all of it)
+            if name in ("agree", "agree-all"):  # the fusion where the analyzers agree, the apertures where not
                 alpha = problem_agreement(problem, options=options, stage=context.timer.stage)
                 start = start + alpha * (fusion - start)
-            if name != "agree-all":
+            if name in ("split", "agree"):  # the analyzer mean from the fusion everywhere
                 start = angle_mean(fusion) + start - angle_mean(start)
             start = start.clamp(0.0, 1.0)
         return start.contiguous()

@@ -258,20 +258,20 @@ def problem_agreement(problem: Problem, *, options, stage: StageFactory) -> torc
     return problem.derived[key]
 
 
-def agreement_data_term(problem: Problem, *, options, stage: StageFactory) -> AgreementDataTerm:
+def agreement_data_term(problem: Problem, *, options, stage: StageFactory,
+                        term: type[AgreementDataTerm] = AgreementDataTerm) -> AgreementDataTerm:
     """``alpha L^H B + (1 - alpha)`` the split direction, ``alpha`` the analyzers' agreement
-    (:mod:`capssim.reconstruct.model.analyzer_agreement`; not the paper's)."""
-    return AgreementDataTerm(problem.obs, problem.operator, mixing=problem.mixing,
-                             confidence=problem_confidence(problem, options=options, stage=stage),
-                             agreement=problem_agreement(problem, options=options, stage=stage))
+    (:mod:`capssim.reconstruct.model.analyzer_agreement`; not the paper's); ``term`` a subclass that changes only
+    the mixing (``cagf-stokes``)."""
+    return term(problem.obs, problem.operator, mixing=problem.mixing,
+                confidence=problem_confidence(problem, options=options, stage=stage),
+                agreement=problem_agreement(problem, options=options, stage=stage))
 
 
 def stokes_data_term(problem: Problem, *, options, stage: StageFactory) -> StokesAgreementDataTerm:
     """``cagf-agree``'s direction projected onto the images linear polarization can produce, ``I_0 - I_45 + I_90 -
     I_135 = 0`` (:mod:`capssim.reconstruct.model.stokes_subspace`; not the paper's)."""
-    return StokesAgreementDataTerm(problem.obs, problem.operator, mixing=problem.mixing,
-                                   confidence=problem_confidence(problem, options=options, stage=stage),
-                                   agreement=problem_agreement(problem, options=options, stage=stage))
+    return agreement_data_term(problem, options=options, stage=stage, term=StokesAgreementDataTerm)
 
 
 def plain_data_term(problem: Problem, *, options, stage: StageFactory) -> ConfidenceDataTerm:

@@ -46,8 +46,8 @@ def test_every_candidate_is_validated_and_the_lowest_held_out_error_wins(chosen)
     assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
 
 
-def test_the_start_is_the_whole_agreement_blend_and_init_agree_restores_caps_plus_s(capture, tiny_denoiser_weights,
-                                                                                      chosen):
+def test_the_start_is_the_whole_agreement_blend_and_init_agree_gives_caps_plus_start(capture, tiny_denoiser_weights,
+                                                                                       chosen):
     assert chosen[1]["params"]["init"] == "agree-all"
     plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5)
     agree, record = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=5, denoiser_blend=0.0,
