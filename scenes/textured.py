@@ -25,7 +25,8 @@ from capssim.render.scene_base import SceneInfo, d65, evaluate_pattern, pattern,
 from ._targets import FacingCardScene, rectangle, view_half_width
 
 IMAGES = ("astronaut", "coffee", "chelsea", "rocket", "immunohistochemistry", "hubble_deep_field", "retina",
-          "brick", "grass", "gravel", "camera", "moon")  # the last five are grey (shown neutral)
+          "brick", "grass", "gravel", "camera", "moon",  # the last five are grey (shown neutral)
+          "motorcycle")  # the left view of skimage.data.stereo_motorcycle: kept for the frozen test suite only
 CARD = 1.15  # card half-size / view half-width
 
 
@@ -35,7 +36,7 @@ def load_image(name: str) -> np.ndarray:
 
     if name not in IMAGES:
         raise InputError("scene_params.image", name, f"one of {', '.join(IMAGES)}")
-    img = np.asarray(getattr(skimage.data, name)())
+    img = np.asarray(skimage.data.stereo_motorcycle()[0] if name == "motorcycle" else getattr(skimage.data, name)())
     img = (np.repeat(img[..., None], 3, axis=-1) if img.ndim == 2 else img[..., :3]).astype(np.float64) / 255.0
     h, w = img.shape[:2]
     s = min(h, w)

@@ -55,6 +55,9 @@ from .rigs import METHOD_CALIBRATIONS
 
 SUITES_DIR = Path(__file__).resolve().parents[1] / "suites"
 SCENE_SOURCES = ("render", "shared-gt", "gt", "synthetic")
+#: ``role:`` of a suite: ``development`` (defaults may be chosen on it; the default of a suite file that names
+#: none) or ``test`` (frozen: run to report, never to choose a default, a count or a candidate)
+SUITE_ROLES = ("development", "test")
 #: largest seed (numpy's SeedSequence takes any integer >= 0; 63 bits keep it an int64 everywhere, as --seed)
 MAX_SEED = 2**63 - 1
 #: default HR size of a synthetic and of a rendered scene
@@ -242,13 +245,14 @@ def _check_gt_path(scene: dict, path: str) -> None:
 
 SUITE_SPEC = Mapping({
     "name": String(),
+    "role": String(choices=list(SUITE_ROLES)),
     "description": String(),
     "convention": String(choices=list(CONVENTIONS)),
     "seeds": Sequence(Integer(minimum=0, maximum=MAX_SEED), min_length=1, what="seeds"),
     "noise": Sequence(NoiseSpec(), min_length=1, what="noise levels"),
     "methods": Sequence(MethodEntrySpec(), min_length=1, what="methods"),
     "scenes": Sequence(SceneSpec(), min_length=1, what="scenes"),
-}, required=("methods", "scenes"), what="a suite (name, description, convention, seeds, noise, methods, scenes)")
+}, required=("methods", "scenes"), what="a suite (name, role, description, convention, seeds, noise, methods, scenes)")
 
 
 def _unique(values: list, path: str, key: str | None, what: str, fix: str) -> None:
@@ -266,6 +270,7 @@ def check_suite(spec: dict) -> dict:
     defaults; raises :class:`ConfigError` (without the file: :func:`load_suite` adds it)."""
     spec = SUITE_SPEC.check(spec, "")
     spec.setdefault("convention", "capssim")
+    spec.setdefault("role", "development")
     spec.setdefault("seeds", [0])
     spec.setdefault("noise", [{"name": "clean", "noise": "none"}])
     _unique(spec["seeds"], "seeds", None, "seeds", "Remove the repeated seed (each seed is one noise draw).")
