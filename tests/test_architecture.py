@@ -135,7 +135,7 @@ RECONSTRUCT_ROOMS = (
     ("priors",),
     ("pipeline",),
     ("registry",),
-    ("methods",),
+    ("methods", "plugins"),  # plug-in methods and priors from other packages, registered beside the built-ins
     ("training",),
     ("tiles",),  # full frames in tiles: runs any registered method per tile
     ("",),  # the package's face, capssim.reconstruct itself

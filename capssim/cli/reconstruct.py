@@ -109,12 +109,9 @@ def reconstruct(
     device: str = DeviceOption,
 ) -> None:
     """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
-    from capssim.reconstruct import available_methods  # start-up time
-
     apply_compute(threads, device)
     if list_methods:
-        for name, spec in available_methods().items():
-            typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}")
+        echo_method_list()
         return
     if capture is None:
         raise typer.BadParameter("missing the CAPTURE folder (e.g. 'capssim reconstruct runs/cap -m caps'); "
@@ -145,6 +142,20 @@ def reconstruct(
         typer.echo("method                    wall time (s)")
         for name, wall in rows:
             typer.echo(f"{name:24s}  {wall:10.2f}")
+
+
+def echo_method_list() -> None:
+    """``--list``: every registered method, a plug-in's package after it; plug-ins that could not register."""
+    from capssim.reconstruct import available_methods  # start-up time
+    from capssim.reconstruct.plugins import broken_plugins
+
+    methods = available_methods()
+    for name, spec in methods.items():
+        source = "" if spec.plugin is None else f"  (plug-in: {spec.plugin.label().split('(', 1)[1]}"
+        typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}{source}")
+    for name, message in broken_plugins().items():  # plug-ins that could not take their name
+        if name not in methods or methods[name].plugin is None:
+            typer.echo(f"{name:24s} [broken] {message}")
 
 
 def check_recon_outputs(capture: Path, names: list[str]) -> None:

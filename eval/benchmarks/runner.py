@@ -14,8 +14,9 @@ the rest:
 * **the registration order**: a camera-array method that estimates the warps waits for the first case
   on the same capture that registers it the same way, and reuses its stored warps;
 * **the case hash** (``case_id``): the capture's content key, the method entry, the device, the
-  convention and the task's ``identity`` (code fingerprints, options); a case with an ``ok`` record of
-  the same hash in the results file is not run again;
+  convention and the task's ``identity`` (code fingerprints, options), and a plug-in method's package and
+  version (its record's ``plugin``); a case with an ``ok`` record of the same hash in the results file is
+  not run again;
 * **the results log** (:class:`~.results.ResultsLog`): each case's line appended as it finishes, the
   file rewritten in plan order at the end; **notes** (a fallback scene used, notes a task returns in
   ``notes_for_run``), and freeing the captures this process keeps.
@@ -181,10 +182,17 @@ class CaseRun:
         return (self.registered[method["name"]].input_kind == "caps" and not method.get("true_warps")
                 and method.get("calibration", "ideal") == "ideal")
 
+    def plugin(self, method: dict) -> dict | None:
+        """The package and version of a plug-in method (:mod:`capssim.reconstruct.plugins`); None: built in."""
+        spec = self.registered.get(method["name"])
+        return None if spec is None or spec.plugin is None else spec.plugin.record()
+
     def case_id(self, entry, method: dict) -> str:
-        """The case hash (module docstring)."""
+        """The case hash (module docstring); a plug-in's package version is part of it."""
+        plugin = self.plugin(method)
         return content_hash({"capture": entry.key, "method": method, "device": self.device,
-                             "convention": self.convention, **self.task.identity})[:20]
+                             "convention": self.convention, **self.task.identity,
+                             **({"plugin": plugin} if plugin else {})})[:20]
 
     def submit_cases(self, executor, g: int, entry, scene: dict) -> None:
         """Every method on the capture of group ``g``: those done in an earlier run are taken from it.
@@ -201,6 +209,8 @@ class CaseRun:
             rec = dict(self.base(noise, seed), scene=scene["name"], requested_scene=requested["name"],
                        method=m["label"], method_name=m["name"], key=key, case_id=cid, capture=str(entry.path),
                        capture_key=entry.key, scene_source=scene["source"])
+            if self.plugin(m):
+                rec["plugin"] = self.plugin(m)
             previous = self.results.done(cid)
             if previous is not None:
                 self.finish_case(index, previous, new=False)
