@@ -1,6 +1,6 @@
 """The house: one import namespace, floors that import only downwards, no import circles.
 
-Floors (DESIGN.md "Data flow"), lowest first; a module may import its own floor and the ones
+Floors (docs/architecture.md, "The floors"), lowest first; a module may import its own floor and the ones
 below. Within a floor, the import graph must still have no circle.
 """
 
