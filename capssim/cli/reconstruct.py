@@ -87,6 +87,9 @@ def reconstruct(
     param: List[str] = typer.Option([], "--param", "-p", metavar="KEY=VALUE",
                                     help="Method option KEY=VALUE (repeatable), e.g. -p c1=0.002."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
+    show_options: Optional[str] = typer.Option(None, "--options", metavar="METHOD",
+                                               help="List every -p option of METHOD (name, default, valid values, "
+                                                    "meaning) and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
     reuse_registration: bool = typer.Option(
         True, "--reuse-registration/--no-reuse-registration",
@@ -109,12 +112,10 @@ def reconstruct(
     device: str = DeviceOption,
 ) -> None:
     """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
-    from capssim.reconstruct import available_methods  # start-up time
 
     apply_compute(threads, device)
-    if list_methods:
-        for name, spec in available_methods().items():
-            typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}")
+    if list_methods or show_options is not None:
+        typer.echo(method_list_lines() if list_methods else method_option_lines(show_options))
         return
     if capture is None:
         raise typer.BadParameter("missing the CAPTURE folder (e.g. 'capssim reconstruct runs/cap -m caps'); "
@@ -145,6 +146,30 @@ def reconstruct(
         typer.echo("method                    wall time (s)")
         for name, wall in rows:
             typer.echo(f"{name:24s}  {wall:10.2f}")
+
+
+def method_list_lines() -> str:
+    """What ``capssim reconstruct --list`` prints: every registered method, its input and what its defaults were
+    tuned on."""
+    from capssim.reconstruct import available_methods  # start-up time
+
+    lines = []
+    for name, spec in available_methods().items():
+        tuned = f" (defaults tuned on: {', '.join(spec.tuned_on)})" if spec.tuned_on else ""
+        lines.append(f"{name:24s} [{spec.input_kind}] {spec.description}{tuned}")
+    return "\n".join(lines)
+
+
+def method_option_lines(name: str) -> str:
+    """What ``capssim reconstruct --options NAME`` prints: every ``-p`` option of the method, one per line."""
+    from capssim.reconstruct import get_method  # start-up time
+    from capssim.reconstruct.pipeline.option_table import format_options
+
+    spec = get_method(name)
+    if spec.options is None:
+        return (f"{name}: lists no options here; its reference ({spec.reference}) and the methods guide describe "
+                "what it takes.")
+    return format_options(name, spec.options())
 
 
 def check_recon_outputs(capture: Path, names: list[str]) -> None:
