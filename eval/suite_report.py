@@ -18,8 +18,10 @@ import numpy as np
 
 from capssim.capture import read_capture
 from capssim.imageio import atomic_write_text, read_tiff
+from capssim.reconstruct.registry import available_methods
 
 from . import plots as P
+from .benchmarks.compare import DEFAULT_METRICS, comparison_markdown, paired_rows, summarize
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +70,37 @@ def group_records(records: list[dict]) -> dict[tuple[str, str], list[dict]]:
     return dict(groups)
 
 
-def results_table(recs: list[dict], methods: list[str]) -> str:
+#: the mark of a method's score on a suite its defaults were tuned on (:func:`tuned_labels`)
+TUNED_MARK = "‡"
+TUNED_LEGEND = (f"{TUNED_MARK}: the method's defaults were chosen on this suite (its `tuned_on`, "
+                "`capssim reconstruct --list`): its scores here are not evidence of what it is worth elsewhere.")
+
+
+def tuned_labels(spec: dict) -> set[str]:
+    """The method labels of ``spec`` whose method lists the suite's name in its ``tuned_on``."""
+    methods = available_methods()
+    return {m["label"] for m in spec.get("methods", [])
+            if m["name"] in methods and spec.get("name") in methods[m["name"]].tuned_on}
+
+
+def paired_section(spec: dict, recs: list[dict]) -> list[str]:
+    """The "Paired comparison" lines of a suite whose ``paired:`` names a method label: that method against every
+    other method of the suite, per-case differences with their mean and paired standard error
+    (:mod:`capssim.eval.benchmarks.compare`); ``[]`` without ``paired:``."""
+    reference = spec.get("paired")
+    if not reference:
+        return []
+    ok = [r for r in recs if r["status"] == "ok"]
+    rows = [(reference, m["label"], summarize(paired_rows(ok, ok, reference, m["label"], metric), metric))
+            for metric in DEFAULT_METRICS for m in spec["methods"] if m["label"] != reference]
+    return ["## Paired comparison", "",
+            f"`{reference}` against every other method over the cases both scored: per-case differences (dB), their "
+            "mean and its paired standard error, wins / losses / ties (a tie: within 0.001 dB), and the worst case "
+            f"(`capssim bench compare OUTPUT -m {reference} --against LABEL` gives the same and every case).", "",
+            comparison_markdown(rows), ""]
+
+
+def results_table(recs: list[dict], methods: list[str], tuned: set[str] = frozenset()) -> str:
     have = [c for c in TABLE_COLUMNS if any(r["metrics"].get(c[0]) is not None for r in recs)]
     cuda = any(r.get("cuda_peak_mb") is not None for r in recs)
     header = ["method"] + [h for _, h, _ in have] + ["time (s)", "memory (MB)"] + (["CUDA peak (MB)"] if cuda else [])
@@ -81,7 +113,8 @@ def results_table(recs: list[dict], methods: list[str]) -> str:
         rs = by_method.get(m)
         if not rs:
             continue
-        cells = [m] + [_fmt(_mean(r["metrics"].get(k) for r in rs), d) for k, _, d in have]
+        cells = [f"{m} {TUNED_MARK}" if m in tuned else m] + [_fmt(_mean(r["metrics"].get(k) for r in rs), d)
+                                                                for k, _, d in have]
         cells += [_fmt(_mean(r.get("wall_time_s") for r in rs), 2), _fmt(_mean(r.get("peak_rss_delta_mb") for r in rs), 0)]
         cells += [_fmt(_mean(r.get("cuda_peak_mb") for r in rs), 0)] if cuda else []
         cells.append(str(len(rs)))
@@ -240,11 +273,13 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
     methods = [m["label"] for m in run.spec["methods"]]
     recs = run.records
     ok = [r for r in recs if r["status"] == "ok"]
+    tuned = tuned_labels(run.spec)
     lines = _report_header(run, verdict)
-    lines += ["## Results", "", TABLE_LEGEND, ""]
+    lines += paired_section(run.spec, recs)
+    lines += ["## Results", "", TABLE_LEGEND, ""] + ([TUNED_LEGEND, ""] if tuned else [])
     speed_plots = _speed_plots(ok, plot_dir, methods) if plots and ok else []
     for (scene, noise), rs in sorted(group_records(recs).items()):
-        lines += [f"### {scene} / {noise}", "", results_table(rs, methods), ""]
+        lines += [f"### {scene} / {noise}", "", results_table(rs, methods, tuned), ""]
         lines += [dark_scene_line(rs), ""] if dark_scene_line(rs) else []
         st = stage_table(rs, methods)
         if st:
@@ -293,9 +328,11 @@ def results_page(run, *, verdict=None, written: str | None = None) -> str:
                   f"({len(verdict.compared)} case(s) compared, {len(verdict.failures)} failure(s)).", ""]
     if run.notes:
         lines += ["## Substitutions", ""] + [f"- {n}" for n in run.notes] + [""]
-    lines += ["## Results", "", TABLE_LEGEND, ""]
+    tuned = tuned_labels(spec)
+    lines += paired_section(spec, recs)
+    lines += ["## Results", "", TABLE_LEGEND, ""] + ([TUNED_LEGEND, ""] if tuned else [])
     for (scene, noise), rs in sorted(group_records(recs).items()):
-        lines += [f"### {scene} / {noise}", "", results_table(rs, methods), ""]
+        lines += [f"### {scene} / {noise}", "", results_table(rs, methods, tuned), ""]
         lines += [dark_scene_line(rs), ""] if dark_scene_line(rs) else []
         stages = stage_table(rs, methods)
         if stages:

@@ -51,9 +51,16 @@ class MethodSpec:
     module: str
     #: for DoFP methods, the plain array function ``fn(mosaic, *, layout, device, timer)`` behind the method
     array_function: Callable | None = None
-    #: ``frame_options(capture, options) -> dict``: options the method derives from the whole frame, fixed once
-    #: before a tiled run cuts it (each tile then runs with them as if given); None: none
+    #: ``frame_options(capture, options, *, homographies, device) -> dict``: options the method derives from the whole
+    #: frame (``homographies`` ``(4, 3, 3)``: its aperture warps), fixed once before a tiled run cuts it (each tile
+    #: then runs with them as if given); None: none
     frame_options: Callable | None = None
+    #: the suites (names of eval/suites) or data its defaults were chosen on: a suite report marks its scores
+    #: there (docs: guides/benchmarks.md, "Development and test data"); () for none of capssim's
+    tuned_on: tuple[str, ...] = ()
+    #: ``options() -> [MethodOption]``: every ``-p`` option the method takes (``capssim reconstruct --options``);
+    #: None: the method lists none
+    options: Callable | None = None
     #: where a plug-in method comes from (:class:`capssim.reconstruct.plugins.Plugin`); None: built in
     plugin: object | None = None
 
@@ -63,11 +70,13 @@ _LOADED = False
 
 
 def register_method(name: str, *, input_kind: str, description: str, reference: str,
-                    array_function: Callable | None = None, frame_options: Callable | None = None):
+                    array_function: Callable | None = None, frame_options: Callable | None = None,
+                    tuned_on: tuple[str, ...] = (), options: Callable | None = None):
     """Decorator registering a reconstruction function under ``name``.
 
     ``array_function``: the method's plain array form, for ``capssim demosaic`` (DoFP mosaics).
     ``frame_options``: see :class:`MethodSpec` (options a tiled run fixes over the whole frame).
+    ``tuned_on``: the suites or data its defaults were chosen on; ``options``: its option list (:class:`MethodSpec`).
     """
     if input_kind not in ("caps", "dofp"):
         raise ValueError(f"input_kind must be 'caps' or 'dofp', got {input_kind!r}")
@@ -76,7 +85,7 @@ def register_method(name: str, *, input_kind: str, description: str, reference: 
         if name in _METHODS and _METHODS[name].function is not fn:
             raise ValueError(f"method {name!r} is registered twice ({_METHODS[name].module} and {fn.__module__})")
         _METHODS[name] = MethodSpec(name, fn, input_kind, description, reference, fn.__module__, array_function,
-                                    frame_options)
+                                    frame_options, tuple(tuned_on), options)
         return fn
 
     return wrap
@@ -262,7 +271,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         "method": method,
         "description": spec.description,
         "reference": spec.reference,
-        "input": spec.input_kind,
+        "input": spec.input_kind, "tuned_on": list(spec.tuned_on),
         "device": str(dev),
         "true_warps": true_warps,
         "options": options,
@@ -305,3 +314,45 @@ def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:
     out, record = reconstruct(capture, method, **kwargs)
     write_reconstruction(capture_path, method, out.image, record)
     return record
+
+
+class _OptionsParsed(BaseException):
+    """Raised by :class:`_ProbeCapture` at a method's first look at the capture: its options are parsed by then.
+    A BaseException, so that no ``except Exception`` of a method swallows it."""
+
+
+class _ProbeCapture:
+    """A capture with no data: any attribute stops the method (:class:`_OptionsParsed`)."""
+
+    def __getattr__(self, name):
+        raise _OptionsParsed(name)
+
+
+def check_method_options(name: str, options: dict) -> bool:
+    """Run method ``name`` with ``options`` up to its first look at the capture, on a capture with no data: every
+    method has parsed and checked its options by then, so an option it refuses is raised here, before any work
+    (``capssim reconstruct`` and a suite's per-method ``options`` are checked so before the first case).
+
+    Returns
+    -------
+    bool
+        True when the options were checked; False for a method that looks at the capture before its options (it
+        reports them when it runs).
+
+    Raises
+    ------
+    CapssimError
+        The method's own one-line error (an unknown option, a value out of range).
+    """
+    cpu = torch.device("cpu")
+    context = RunContext(device=cpu, timer=StageTimer(cpu), options=dict(options or {}))
+    try:
+        with torch.no_grad():
+            get_method(name).function(_ProbeCapture(), context=context)
+    except _OptionsParsed:
+        return True
+    except CapssimError:
+        raise
+    except Exception:  # noqa: BLE001 - not an option error: the method reports it when it runs
+        log.debug("options of %s not checked ahead", name, exc_info=True)
+    return False

@@ -134,6 +134,7 @@ RECONSTRUCT_ROOMS = (
     ("networks",),  # the learned networks: below the priors, which may hold one (nlstr-denoiser)
     ("priors",),
     ("pipeline",),
+    ("selection",),  # a method's data-driven choices, made once per frame before its solve
     ("registry",),
     ("methods", "plugins"),  # plug-in methods and priors from other packages, registered beside the built-ins
     ("training",),

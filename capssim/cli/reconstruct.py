@@ -87,6 +87,9 @@ def reconstruct(
     param: List[str] = typer.Option([], "--param", "-p", metavar="KEY=VALUE",
                                     help="Method option KEY=VALUE (repeatable), e.g. -p c1=0.002."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
+    show_options: Optional[str] = typer.Option(None, "--options", metavar="METHOD",
+                                               help="List every -p option of METHOD (name, default, valid values, "
+                                                    "meaning) and exit."),
     progress: bool = typer.Option(True, "--progress/--no-progress", help="Show a progress bar."),
     reuse_registration: bool = typer.Option(
         True, "--reuse-registration/--no-reuse-registration",
@@ -110,8 +113,8 @@ def reconstruct(
 ) -> None:
     """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
     apply_compute(threads, device)
-    if list_methods:
-        echo_method_list()
+    if list_methods or show_options is not None:
+        typer.echo(method_list_lines() if list_methods else method_option_lines(show_options))
         return
     if capture is None:
         raise typer.BadParameter("missing the CAPTURE folder (e.g. 'capssim reconstruct runs/cap -m caps'); "
@@ -144,18 +147,34 @@ def reconstruct(
             typer.echo(f"{name:24s}  {wall:10.2f}")
 
 
-def echo_method_list() -> None:
-    """``--list``: every registered method, a plug-in's package after it; plug-ins that could not register."""
+def method_list_lines() -> str:
+    """What ``capssim reconstruct --list`` prints: every registered method with what its defaults were tuned on, a
+    plug-in's package after it; then the plug-ins that could not register."""
     from capssim.reconstruct import available_methods  # start-up time
     from capssim.reconstruct.plugins import broken_plugins
 
     methods = available_methods()
+    lines = []
     for name, spec in methods.items():
+        tuned = f" (defaults tuned on: {', '.join(spec.tuned_on)})" if spec.tuned_on else ""
         source = "" if spec.plugin is None else f"  (plug-in: {spec.plugin.label().split('(', 1)[1]}"
-        typer.echo(f"{name:24s} [{spec.input_kind}] {spec.description}{source}")
+        lines.append(f"{name:24s} [{spec.input_kind}] {spec.description}{tuned}{source}")
     for name, message in broken_plugins().items():  # plug-ins that could not take their name
         if name not in methods or methods[name].plugin is None:
-            typer.echo(f"{name:24s} [broken] {message}")
+            lines.append(f"{name:24s} [broken] {message}")
+    return "\n".join(lines)
+
+
+def method_option_lines(name: str) -> str:
+    """What ``capssim reconstruct --options NAME`` prints: every ``-p`` option of the method, one per line."""
+    from capssim.reconstruct import get_method  # start-up time
+    from capssim.reconstruct.pipeline.option_table import format_options
+
+    spec = get_method(name)
+    if spec.options is None:
+        return (f"{name}: lists no options here; its reference ({spec.reference}) and the methods guide describe "
+                "what it takes.")
+    return format_options(name, spec.options())
 
 
 def check_recon_outputs(capture: Path, names: list[str]) -> None:

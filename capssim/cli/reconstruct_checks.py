@@ -16,22 +16,9 @@ from capssim.errors import CapssimError, InputError
 log = logging.getLogger("capssim.reconstruct")
 
 
-class _OptionsParsed(BaseException):
-    """Raised by :class:`_ProbeCapture` at the method's first look at the capture: its options are parsed.
-    A BaseException, so that no ``except Exception`` of a method swallows it."""
-
-
-class _ProbeCapture:
-    """A capture with no data: any attribute stops the method (:class:`_OptionsParsed`)."""
-
-    def __getattr__(self, name):
-        raise _OptionsParsed(name)
-
-
 def check_method_options(name: str, options: dict, *, shared: bool = False) -> None:
-    """Run method ``name`` with ``options`` up to its first look at the capture (where every method has
-    parsed and checked its options), on a capture with no data; an option it refuses is raised here, before
-    any method runs. A method that looks at the capture first is checked when it runs, as before.
+    """Method ``name`` parses and checks ``options`` before any method runs
+    (:func:`capssim.reconstruct.registry.check_method_options`).
 
     Raises
     ------
@@ -39,25 +26,15 @@ def check_method_options(name: str, options: dict, *, shared: bool = False) -> N
         The method's own one-line error (an unknown option, a value out of range); an unknown option names
         ``-m NAME`` when several methods share the ``-p`` options (``shared``).
     """
-    import torch
+    from capssim.reconstruct.registry import check_method_options as probe  # start-up time
 
-    from capssim.reconstruct import get_method  # start-up time
-    from capssim.reconstruct.run_context import RunContext, StageTimer
-
-    cpu = torch.device("cpu")
-    context = RunContext(device=cpu, timer=StageTimer(cpu), options=dict(options))
     try:
-        with torch.no_grad():
-            get_method(name).function(_ProbeCapture(), context=context)
-    except _OptionsParsed:
-        return
+        probe(name, options)
     except CapssimError as exc:
         if shared and "unknown option" in str(exc):
             raise InputError(f"-m {name}", str(exc).rstrip("."), "-p options that every -m method takes",
                              "The -p options go to every method: run the methods in separate commands.") from None
         raise
-    except Exception:  # noqa: BLE001 - not an option error: the method reports it when it runs
-        log.debug("options of %s not checked ahead", name, exc_info=True)
 
 
 def check_track_psnr(options: dict, folders: list[Path], *, tiled: bool) -> None:

@@ -23,9 +23,9 @@ from pathlib import Path
 
 from capssim.camera_setup import sensor_from_mapping
 from capssim.dataset.calibration_captures import MIN_POLARIZER_ANGLES
-from capssim.errors import InputError, UnknownNameError
+from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.reconstruct.registration.parameters import REGISTRATION_MODES
-from capssim.reconstruct.registry import available_methods
+from capssim.reconstruct.registry import available_methods, check_method_options
 from capssim.resources import check_scene_size
 from capssim.rig import RigModel
 from capssim.schema import (
@@ -252,7 +252,9 @@ SUITE_SPEC = Mapping({
     "noise": Sequence(NoiseSpec(), min_length=1, what="noise levels"),
     "methods": Sequence(MethodEntrySpec(), min_length=1, what="methods"),
     "scenes": Sequence(SceneSpec(), min_length=1, what="scenes"),
-}, required=("methods", "scenes"), what="a suite (name, role, description, convention, seeds, noise, methods, scenes)")
+    "paired": String(),
+}, required=("methods", "scenes"),
+   what="a suite (name, role, description, convention, seeds, noise, methods, scenes, paired)")
 
 
 def _unique(values: list, path: str, key: str | None, what: str, fix: str) -> None:
@@ -278,6 +280,14 @@ def check_suite(spec: dict) -> dict:
             "Give each noise level its own name.")
     _unique([m["label"] for m in spec["methods"]], "methods", "label", "method labels",
             "Give each variant of a method its own label: {name: caps, label: caps-10it, options: {...}}.")
+    for i, method in enumerate(spec["methods"]):
+        _check_method_entry_options(method, join(join("methods", i), "options"))
+    labels = [m["label"] for m in spec["methods"]]
+    if spec.get("paired") is not None and spec["paired"] not in labels:
+        close = difflib.get_close_matches(str(spec["paired"]), labels, n=1)
+        raise ConfigError("paired", show(spec["paired"]), f"a method label of this suite ({', '.join(labels)})",
+                          f"Did you mean {close[0]!r}?" if close else "Name the method the report compares with "
+                          "every other one, or remove 'paired'.")
     names = [s["name"] for s in spec["scenes"]]
     _unique(names, "scenes", "name", "scene names", "Give each scene its own name.")
     for i, scene in enumerate(spec["scenes"]):
@@ -287,6 +297,21 @@ def check_suite(spec: dict) -> dict:
             raise ConfigError(join(join("scenes", i), "fallback"), show(target),
                               f"another scene of this suite ({', '.join(others) or 'none'})")
     return spec
+
+
+def _check_method_entry_options(method: dict, path: str) -> None:
+    """A method entry's ``options`` parsed and checked by the method itself before the first case
+    (:func:`capssim.reconstruct.registry.check_method_options`), so that a typo fails at load, not in every case."""
+    options = dict(method.get("options") or {})
+    if not options:
+        return
+    try:
+        check_method_options(method["name"], options)
+    except InputError as exc:
+        raise ConfigError(path, f"{show(options)} ({exc.argument}: got {exc.received})", f"{exc.valid} "
+                          f"(the options of method {method['name']!r})", exc.fix) from None
+    except CapssimError as exc:
+        raise ConfigError(path, show(options), f"options that method {method['name']!r} takes ({exc})") from None
 
 
 def available_suites() -> list[str]:

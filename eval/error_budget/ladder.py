@@ -19,9 +19,12 @@ warps are true; without noise last, the noise step is measured on the exact mode
 differs. A DoFP method (one sensor, no registration) has rungs 1, 3 and 4 (``model-exact`` is then the
 DoFP mosaic of the operator): its ceiling is the demosaicking (mosaic) loss.
 
+A method with a selection layer (``caps-plus``: count, polarization filter; its record's ``resolved_options``)
+makes its choices once, on the as-captured rung; every later rung and view runs those values.
+
 Second views at the ceiling, where they apply (``views``): ``converged``: the noise-free, model-exact,
 true-warps case re-run with ``CONVERGED_FACTOR`` times the iterations (the solver's distance from its
-limit); ``prior-on-truth`` (``caps``): NLSTR's group estimate (paper eq. 21-23) of the true image
+limit; a selection layer's other choices unchanged); ``prior-on-truth`` (``caps``): NLSTR's group estimate (paper eq. 21-23) of the true image
 itself (what the prior alone cannot represent).
 """
 
@@ -68,8 +71,11 @@ def _run(capture, method: dict, scorer, *, true_warps: bool, device: str, option
     out, record = reconstruct(capture, method["name"], device=device, true_warps=true_warps,
                               registration=method.get("registration", "local-correlation"),
                               **{**(method.get("options") or {}), **(options or {})})
-    return {"scores": _scores(scorer, out.image), "wall_time_s": time.perf_counter() - t0,
-            "iterations": (record.get("params") or {}).get("iterations")}
+    result = {"scores": _scores(scorer, out.image), "wall_time_s": time.perf_counter() - t0,
+              "iterations": (record.get("params") or {}).get("iterations")}
+    if record.get("resolved_options"):  # a method with a selection layer: the values its solve ran with
+        result["resolved_options"] = record["resolved_options"]
+    return result
 
 
 def rung_captures(capture, rungs: tuple[str, ...]) -> dict:
@@ -166,7 +172,11 @@ def run_ladder(capture, method: dict, scorer, *, device: str = "cpu", views: boo
             # deterministic run, so its result is reused and the step is exactly 0
             rungs.append({**previous, "rung": name, "wall_time_s": 0.0, "same_input_as": previous["rung"]})
             continue
-        result = _run(captures[name], method, scorer, true_warps=name != "as-captured", device=device)
+        # every rung after the first runs the first rung's resolved choices (count, filter, blend): a step changes
+        # one imperfection, not what a selection layer would choose on the other input
+        resolved = rungs[0].get("resolved_options") if rungs else None
+        result = _run(captures[name], method, scorer, true_warps=name != "as-captured", device=device,
+                      options=resolved)
         rungs.append({"rung": name, **result})
     steps = telescoping_steps(rungs)
     out = {"rungs": rungs, "steps": steps, "telescoping_error": check_telescoping(rungs, steps),
@@ -185,7 +195,8 @@ def _views(noise_free, method: dict, scorer, ceiling: dict, *, device: str) -> d
     views = {}
     iterations = ceiling.get("iterations")
     if available_methods()[method["name"]].input_kind == "caps" and isinstance(iterations, int) and iterations > 0:
-        more = {"iterations": CONVERGED_FACTOR * iterations}
+        # only the count changes: the resolved choices of the ladder (if any) stay as they were
+        more = {**(ceiling.get("resolved_options") or {}), "iterations": CONVERGED_FACTOR * iterations}
         views["converged"] = {**_run(noise_free, method, scorer, true_warps=True, device=device, options=more),
                               "options": more}
     if method["name"] == "caps":

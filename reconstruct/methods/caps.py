@@ -33,6 +33,7 @@ the front end models the calibrated array (:mod:`capssim.reconstruct.pipeline.fr
 from __future__ import annotations
 
 from ..pipeline import PRESETS, CapsOptions, PipelineConfig, run_pipeline
+from ..pipeline.option_table import caps_method_options
 from ..registry import MethodOutput, RunContext, register_method
 
 __all__ = ["CAPS", "NO_CAGF", "NO_NLSTR", "PRESETS", "REFERENCE", "CapsOptions"]
@@ -47,20 +48,20 @@ NO_CAGF = PipelineConfig(defaults={"data_term": "plain"})
 NO_NLSTR = PipelineConfig(defaults={"prior": "none"})
 
 
-@register_method("caps", input_kind="caps", reference=REFERENCE,
+@register_method("caps", input_kind="caps", options=lambda: caps_method_options(CAPS.defaults), reference=REFERENCE,
                  description="CAPS: CAGF-confidence-guided data term + nonlocal sparse tensor regularization, ADMM "
                              "(joint demosaicking, 4x SR of each Bayer sub-image, denoising)")
 def caps(capture, *, context: RunContext) -> MethodOutput:
     return run_pipeline(capture, context, CAPS)
 
 
-@register_method("caps-no-cagf", input_kind="caps", reference=REFERENCE + " (ablation 'No CAGF', 5.2)",
+@register_method("caps-no-cagf", input_kind="caps", options=lambda: caps_method_options(NO_CAGF.defaults), reference=REFERENCE + " (ablation 'No CAGF', 5.2)",
                  description="CAPS ablation: the data term uses only the observations of the same channel")
 def caps_no_cagf(capture, *, context: RunContext) -> MethodOutput:
     return run_pipeline(capture, context, NO_CAGF)
 
 
-@register_method("caps-no-nlstr", input_kind="caps", reference=REFERENCE + " (ablation 'No NLSTR', 5.2)",
+@register_method("caps-no-nlstr", input_kind="caps", options=lambda: caps_method_options(NO_NLSTR.defaults), reference=REFERENCE + " (ablation 'No NLSTR', 5.2)",
                  description="CAPS ablation: confidence-guided data term only (no nonlocal sparse tensor prior)")
 def caps_no_nlstr(capture, *, context: RunContext) -> MethodOutput:
     return run_pipeline(capture, context, NO_NLSTR)

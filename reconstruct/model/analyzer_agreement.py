@@ -30,7 +30,8 @@ Without the noise correction, noise alone would read as disagreement, more the n
 
 For each pixel the matrix ``alpha L + (1 - alpha) S`` is a convex combination of two symmetric positive
 semi-definite matrices (``S`` is the split's; :mod:`.polarization_split`), so ``D`` stays a descent
-direction of the same data term ``f`` (eq. 15) with the same fixed points. Channel order: angle-major,
+direction of the same data term ``f`` (eq. 15). It is not ``f``'s gradient, so ADMM's fixed points move with it:
+``mu (Z - X) = -D grad f`` weighs data against prior pixel by pixel (docs: notes/caps-plus-model.md). Channel order: angle-major,
 ``c = p K + k``.
 """
 

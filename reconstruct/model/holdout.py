@@ -1,5 +1,5 @@
 """Held-out raw pixels: a stopping rule for the iterative solvers that reads the scene (not the paper's;
-``caps-plus -p stopping=holdout``).
+``caps-plus``'s selection layer, :mod:`capssim.reconstruct.selection`).
 
 A fixed random fraction of the raw pixels (every aperture, every Bayer site) is left out of the
 reconstruction: its data weight is 0 (eq. 15), the fused initialization (eq. 24) does not see it, and the

@@ -21,7 +21,7 @@ final image, before the physical projection.
 The held-out pixels cannot judge a capture whose analyzers differ only by the apertures' own errors: the raw frames
 differ by detail the HR grid cannot hold (aliasing each aperture samples differently), the 12-channel image can only
 explain it as polarization, and the held-out pixels reward that false polarization (docs: notes/beyond-the-paper.md,
-sections 16-18). So ``auto`` first asks the Stokes-consistency test
+sections 16-18). So the selection first asks the Stokes-consistency test
 (:mod:`capssim.reconstruct.model.polarization_evidence`) whether the analyzers show polarization structure at all;
 where they do not, the final image gets :data:`UNSTRUCTURED_FILTER`, the most smoothing candidate, and the held-out
 pixels choose nothing.
@@ -39,28 +39,14 @@ from capssim.errors import InputError
 
 from .cagf import box_mean
 
-__all__ = ["POLARIZATION_FILTERS", "POLARIZATION_FILTER_MODES", "UNSTRUCTURED_FILTER", "apply_chosen_filter",
-           "check_polarization_filter", "choose_polarization_filter", "filter_polarization"]
+__all__ = ["POLARIZATION_FILTERS", "UNSTRUCTURED_FILTER", "apply_chosen_filter", "choose_polarization_filter",
+           "filter_polarization"]
 
 #: the candidate ``(radius HR px, eps)`` pairs, from the lightest to the most smoothing (``eps`` in intensity
 #: units squared, on the [0, 1] scale; ``eps = 1e-2`` is close to a box mean)
 POLARIZATION_FILTERS = ((1, 1e-4), (2, 1e-4), (2, 1e-3), (4, 1e-4), (4, 1e-3), (4, 1e-2))
-#: ``-p polarization_filter=NAME``: ``auto`` (:data:`UNSTRUCTURED_FILTER` where the analyzers' differences show no
-#: polarization structure, :mod:`capssim.reconstruct.model.polarization_evidence`; else as ``holdout``), ``holdout``
-#: (chosen by the held-out pixels, where a validation runs) or ``none``
-POLARIZATION_FILTER_MODES = ("auto", "holdout", "none")
 #: the filter of a capture whose analyzers show no polarization structure: the most smoothing candidate
 UNSTRUCTURED_FILTER = POLARIZATION_FILTERS[-1]
-
-
-def check_polarization_filter(mode: str) -> str:
-    """``mode`` if it is one of :data:`POLARIZATION_FILTER_MODES`; :class:`InputError` naming the option otherwise."""
-    name = str(mode).strip()
-    if name not in POLARIZATION_FILTER_MODES:
-        raise InputError("option polarization_filter", repr(mode), "one of " + ", ".join(POLARIZATION_FILTER_MODES),
-                         "Use -p polarization_filter=auto (the default), -p polarization_filter=holdout (held-out pixels "
-                         "only) or -p polarization_filter=none.")
-    return name
 
 
 def filter_polarization(image: torch.Tensor, radius: int, eps: float) -> torch.Tensor:

@@ -22,7 +22,8 @@ the two parts with different couplings::
 
 ``D`` is ``T B`` with ``T`` symmetric and positive semi-definite when ``L^H`` is (``P`` and ``I - P``
 are orthogonal projections, and ``L^H_angle`` is ``L^H``'s block diagonal), so it is a descent
-direction of the same data term ``f`` (eq. 15) with the same fixed points; only the path changes.
+direction of the same data term ``f`` (eq. 15); as a direction other than the gradient it also moves ADMM's
+fixed points (``mu (Z - X) = -D grad f``, docs: notes/caps-plus-model.md).
 Where the analyzer images agree (``(I - P) B = 0``) it is eq. 26 projected on the angle mean.
 
 Channel order: angle-major, ``c = p K + k`` (``p`` the analyzer, ``k`` one of the ``K = C / A``

@@ -21,8 +21,8 @@ mixing (:func:`~capssim.reconstruct.model.analyzer_agreement.agreement_confidenc
 
 ``Q`` is the orthogonal projection onto (1), applied per HR pixel and colour (:func:`stokes_projection`). ``Q T
 Q`` is symmetric positive semi-definite where ``T`` is, so ``D`` is a descent direction of the same data term
-``f`` (eq. 15), now restricted to the subspace: its fixed points are the least-squares fits among images that
-obey (1). Only the direction changes; the value ``f``, the operator ``M`` and the back-projection are
+``f`` (eq. 15), now restricted to the subspace (not its gradient: ADMM's fixed points satisfy
+``mu (Z - X) = -D grad f``, docs: notes/caps-plus-model.md). Only the direction changes; the value ``f``, the operator ``M`` and the back-projection are
 ``cagf-agree``'s. The part of the image outside (1) (from the start or the prior) is left to the physical
 projection that ends every run (:mod:`capssim.physical_validity`). With a calibrated analyzer the variable is
 still the ideal analyzers' 12 channels (the calibration's mixing sits in the operator), so (1) holds as well.

@@ -1,5 +1,5 @@
 """A small noise-level-conditioned Gaussian denoiser of 12-channel images, the learned half of the
-``nlstr-denoiser`` prior (``caps-plus-pnp``). Not the paper's.
+``nlstr-denoiser`` prior (``caps-plus-cv``). Not the paper's.
 
 References: K. Zhang, W. Zuo, Y. Chen, D. Meng, L. Zhang, "Beyond a Gaussian denoiser: residual learning
 of deep CNN for image denoising", IEEE TIP 26(7) 2017 (DnCNN: a plain stack of 3x3 convolutions that

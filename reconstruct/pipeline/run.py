@@ -48,7 +48,7 @@ from .options import CapsOptions, coerce_option, explain_divergence, given_optio
 from .problem import FrontEnd, Problem
 from .slots import get_data_term, get_prior
 
-__all__ = ["PipelineConfig", "fused_initialization", "parse_pipeline_options", "run_pipeline"]
+__all__ = ["PipelineConfig", "fused_initialization", "parse_pipeline_options", "run_pipeline", "solve_front_end"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +142,20 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
     front = config.front_end(capture, context, opts, **front_options)
     if config.schedule is not None:
         opts = config.schedule(front, opts, given_option_names(context.options))
+    return solve_front_end(capture, context, front, opts, config)
+
+
+def solve_front_end(capture, context: RunContext, front: FrontEnd, opts: CapsOptions,
+                    config: PipelineConfig = PipelineConfig()) -> MethodOutput:
+    """Steps 2-5 of the pipeline (data term, initialization, prior, solver) and ``config.finish`` on the problems
+    of ``front``, with the options ``opts``: :func:`run_pipeline` after its front end, and what a method that
+    builds its own front end (``caps-plus``: the selection layer between front end and solve) runs.
+
+    Returns
+    -------
+    MethodOutput
+        As :func:`run_pipeline`.
+    """
     defaults = CapsOptions.from_options({}, **config.defaults)
     priors: dict[tuple, object] = {}  # one prior per image shape, shared by the problems of that shape
     # the iterations allocate the same large temporaries again and again: keep freed memory for reuse
@@ -151,7 +165,7 @@ def run_pipeline(capture, context: RunContext, config: PipelineConfig = Pipeline
     image = _assemble(solved, "image", capture.hr_shape)
     init = _assemble(solved, "init", capture.hr_shape)
     params = opts.to_dict()
-    params.update({"psf": front.psf, "use_cagf": opts.data_term == "cagf",
+    params.update({"psf": front.psf, "use_cagf": opts.data_term.startswith("cagf"),
                    "use_nlstr": opts.prior in ("nlstr", "nlstr-denoiser"), **front.params})
     for owner in [*priors.values(), *(s.stopping for s in solved)]:
         if callable(getattr(owner, "record", None)):

@@ -17,7 +17,7 @@ Built in:
   linear polarization can produce (not the paper's; ``caps-plus``, :mod:`capssim.reconstruct.model.stokes_subspace`);
 * priors: ``nlstr``, the nonlocal sparse tensor of section 3.3 (``caps``); ``tikhonov``, a quadratic
   smoothness prior (not the paper's; ``-p tikhonov_weight=W``); ``nlstr-denoiser``, NLSTR with its analyzer
-  mean blended with a learned denoiser's (not the paper's; ``caps-plus-pnp``); ``none``, the data term alone, solved
+  mean blended with a learned denoiser's (not the paper's; ``caps-plus-cv``); ``none``, the data term alone, solved
   by steepest descent (eq. 16, ``caps-no-nlstr``).
 
 A prior's factory is called once per image shape of a run, as
@@ -320,7 +320,7 @@ def tikhonov_prior(shape: tuple[int, int, int], *, parameters: TikhonovParameter
 
 def nlstr_denoiser_prior(shape: tuple[int, int, int], *, parameters: DenoiserParameters, options,
                          device: torch.device) -> NLSTRDenoiserPrior:
-    """NLSTR with its analyzer mean blended with the learned denoiser's (not the paper's; ``caps-plus-pnp``,
+    """NLSTR with its analyzer mean blended with the learned denoiser's (not the paper's; ``caps-plus-cv``,
     :mod:`capssim.reconstruct.priors.nlstr_denoiser`)."""
     denoiser = denoiser_model(parameters.denoiser_weights, device)
     if shape[0] != denoiser.channels:
@@ -336,5 +336,5 @@ register_prior("tikhonov", tikhonov_prior, parameters=TikhonovParameters,
                description="quadratic smoothness lambda/2 ||grad X||^2 (not the paper's; -p tikhonov_weight=W)")
 register_prior("nlstr-denoiser", nlstr_denoiser_prior, parameters=DenoiserParameters,
                description="NLSTR, its analyzer mean blended with a learned denoiser's (not the paper's; "
-                           "caps-plus-pnp; -p denoiser_blend=W)")
+                           "caps-plus-cv; -p denoiser_blend=W)")
 register_prior("none", None, description="no prior: the data term alone, by steepest descent (eq. 16)")

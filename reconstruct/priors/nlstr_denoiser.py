@@ -1,5 +1,5 @@
 """``nlstr-denoiser``: NLSTR with its intensity part blended with a learned denoiser's (plug-and-play).
-Not the paper's; the prior of ``caps-plus-pnp``.
+Not the paper's; the prior of ``caps-plus-cv``.
 
 At ADMM iteration ``i`` of ``n`` (``Z = I - L``, ``(12, H, W)``, channel ``c = 3 p + k``)::
 

@@ -8,7 +8,8 @@ whole-frame warps), blends the tiles (:mod:`.blend`) and projects the frame onto
 What the paper adapts is global already: the ADMM penalties follow the fixed schedule of eq. 27 (iteration
 count only), ``c1``, ``c2`` and CAGF's ``nu`` are constants, and ``caps`` estimates no noise level; the
 NLSTR thresholds are per coefficient (local). A method that adapts options to the whole frame (``caps-plus``'s
-iteration count, from the raw noise level) declares them (``frame_options`` of its registration) and they
+iteration count and polarization filter, chosen on the frame's central window by its selection layer,
+:mod:`capssim.reconstruct.selection`) declares them (``frame_options`` of its registration) and they
 are fixed once, before the frame is cut. So every tile solves the whole frame's problem restricted
 to its window. Finished tiles can be kept in a parts folder (``parts``) and are skipped on a rerun.
 """
@@ -270,7 +271,8 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     if layout is None:
         return None
     # what the method adapts to the whole frame is fixed once, for every tile (not when the frame runs untiled)
-    frame = spec.frame_options(capture, options) if spec.frame_options is not None else {}
+    frame = ({} if spec.frame_options is None else
+             spec.frame_options(capture, options, homographies=homographies, device=device))
     options = {**frame, **options}
     store = PartStore(parts, job_key(capture, method, layout, homographies, options, str(device)))
     blender, records = _run_tiles(capture, method, layout, homographies, store, str(device), options, runner,

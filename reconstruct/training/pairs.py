@@ -13,7 +13,7 @@ capssim dataset (:class:`capssim.dataset.torch.CaptureDataset`, whole captures):
   where ``caps-sisr`` puts the network's output. Pixels whose source lies within
   :data:`BORDER_HR_PX` of the ground truth's border are masked out of the loss.
 * ``noisy-gt``: the ground truth ``(12, H, W)`` with white Gaussian noise added at every step, and the noise
-  level, as the denoiser of ``caps-plus-pnp`` reads them; target the ground truth
+  level, as the denoiser of ``caps-plus-cv`` reads them; target the ground truth
   (:class:`NoisyGtPairs`).
 """
 
