@@ -20,15 +20,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from capssim.camera_setup import CameraSetup, as_setup
-from capssim.capture import Capture, build_meta
+from capssim.camera.camera_setup import CameraSetup, as_setup
+from capssim.camera.homography import random_aperture_homographies
+from capssim.camera.psf import PSF
+from capssim.camera.rig import RigModel
+from capssim.camera.sensor import Sensor
+from capssim.captures.capture import Capture, build_meta
 from capssim.errors import InputError
-from capssim.homography import random_aperture_homographies
-from capssim.imageio import centre_crop
-from capssim.measurement import CameraArrayMeasurement
-from capssim.psf import PSF
-from capssim.rig import RigModel
-from capssim.sensor import Sensor
+from capssim.files.imageio import centre_crop
+from capssim.operators.measurement import CameraArrayMeasurement
 
 log = logging.getLogger(__name__)
 
@@ -103,8 +103,8 @@ def simulate_capture(gt: np.ndarray, setup: CameraSetup | Sensor | None = None, 
                      rig: RigModel | None = None) -> Capture:
     """Simulate the CAPS raw frames and the DoFP raw frame of a ground truth: ``y = sensor(A x)`` (paper eq. 9).
 
-    The measurement is :meth:`~capssim.measurement.CameraArrayMeasurement.from_setup`;
-    ``seed``'s three independent streams (:func:`~capssim.measurement.seed_streams`) draw the poses, the CAPS
+    The measurement is :meth:`~capssim.operators.measurement.CameraArrayMeasurement.from_setup`;
+    ``seed``'s three independent streams (:func:`~capssim.operators.measurement.seed_streams`) draw the poses, the CAPS
     noise and the DoFP noise, so a capture is reproducible.
 
     Parameters
@@ -113,9 +113,9 @@ def simulate_capture(gt: np.ndarray, setup: CameraSetup | Sensor | None = None, 
         ``(12, 2H, 2W)`` intensities on [0, 1], channel ``c = 3 p + k``; values above full scale are kept
         with a warning (they saturate the sensor), negative ones refused (:func:`prepare_ground_truth`).
     setup : CameraSetup or Sensor, optional
-        The camera set-up (a bare :class:`~capssim.sensor.Sensor` takes the default set-up around it;
+        The camera set-up (a bare :class:`~capssim.camera.sensor.Sensor` takes the default set-up around it;
         None: the default set-up). The four options below, when given, replace its fields
-        (:func:`~capssim.camera_setup.as_setup`).
+        (:func:`~capssim.camera.camera_setup.as_setup`).
     psf : PSF or dict, optional
         The optical PSF on the HR grid (``sigma_hr_px`` in HR pixels).
     dofp_layout : str, optional

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.imageio import write_png
-from capssim.polarization import aop_deg, dolp, stokes_from_12
+from capssim.files.imageio import write_png
+from capssim.stokes.polarization import aop_deg, dolp, stokes_from_12
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
@@ -219,7 +219,7 @@ def panel_figure(image12: np.ndarray, *, white: float | None = None, dolp_max: f
 
 def preview_panel(image12: np.ndarray, *, white: float | None = None, dolp_max: float = 0.5,
                   title: str = "") -> np.ndarray:
-    """:func:`panel_figure` rendered: ``(h, w, 3)`` float in [0, 1], ready for :func:`capssim.imageio.write_png`."""
+    """:func:`panel_figure` rendered: ``(h, w, 3)`` float in [0, 1], ready for :func:`capssim.files.imageio.write_png`."""
     fig = panel_figure(image12, white=white, dolp_max=dolp_max, title=title)
     fig.canvas.draw()
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].astype(np.float64) / 255.0

@@ -25,11 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from capssim.capture import list_reconstructions, read_capture
+from capssim.captures.capture import list_reconstructions, read_capture
 from capssim.conventions import CHANNEL_NAMES, N_CHANNELS
-from capssim.data_range import warn_out_of_range
 from capssim.errors import CapssimError, CaptureFormatError, InputError
-from capssim.imageio import atomic_write_json, read_tiff
+from capssim.files.imageio import atomic_write_json, read_tiff
+from capssim.runtime.data_range import warn_out_of_range
 
 from . import metrics as M
 from .metric_records import flatten, json_safe

@@ -50,9 +50,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from capssim.camera.homography import rotation_and_scale
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
-from capssim.homography import rotation_and_scale
 from capssim.reconstruct.registration.engine import register_stack
 from capssim.reconstruct.registration.motion import spline_coefficients, spline_sample
 
@@ -70,7 +70,7 @@ MIN_WEAKLY_POLARIZED_SHARE = 0.2
 def _check_gt(gt) -> np.ndarray:
     arr = np.asarray(gt)
     if arr.dtype == object or not np.issubdtype(arr.dtype, np.floating):
-        raise InputError("gt", f"dtype {arr.dtype}", "a float array on [0, 1] (capssim.imageio.read_gt_scene)")
+        raise InputError("gt", f"dtype {arr.dtype}", "a float array on [0, 1] (capssim.files.imageio.read_gt_scene)")
     if arr.ndim != 3 or arr.shape[0] != 12:
         raise InputError("gt", f"shape {arr.shape}", "shape (12, H, W), channels c = 3 p + k")
     if min(arr.shape[1:]) < 32:

@@ -64,7 +64,7 @@ import numpy as np
 
 from capssim.conventions import CHANNEL_NAMES, COLOURS, N_CHANNELS, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError, UnknownNameError
-from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
+from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
 from .metric_records import METRIC_SPECS
 
@@ -113,7 +113,7 @@ def _as_float_array(x, argument: str) -> np.ndarray:
     arr = np.asarray(x)
     if not (np.issubdtype(arr.dtype, np.floating)):
         raise InputError(argument, f"dtype {arr.dtype}", "a float array on [0, 1] full scale",
-                         "Convert integer images with capssim.imageio.read_gt_scene or divide by the white level.")
+                         "Convert integer images with capssim.files.imageio.read_gt_scene or divide by the white level.")
     return arr.astype(np.float64, copy=False)
 
 

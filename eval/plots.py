@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.imageio import atomic_write_bytes
-from capssim.polarization import dolp, stokes_from_12
+from capssim.files.imageio import atomic_write_bytes
+from capssim.stokes.polarization import dolp, stokes_from_12
 from capssim.visualize import aop_image, dolp_image, draw_aop_key, draw_dolp_key, draw_intensity_key, intensity_image
 
 _MARKERS = "osD^v<>pP*hX"

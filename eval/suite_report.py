@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.capture import read_capture
-from capssim.imageio import atomic_write_text, read_tiff
+from capssim.captures.capture import read_capture
+from capssim.files.imageio import atomic_write_text, read_tiff
 from capssim.reconstruct.registry import available_methods
 
 from . import plots as P

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter
 
 from capssim.errors import UnknownNameError
-from capssim.polarization import twelve_from_stokes
+from capssim.stokes.polarization import twelve_from_stokes
 
 from .star import sinusoidal_star
 

@@ -17,10 +17,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.capture import Capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.rig import RIG_FORMAT_VERSION, RigModel, read_rig_json
+from capssim.captures.capture import Capture
 from capssim.errors import InputError
-from capssim.rig import RIG_FORMAT_VERSION, RigModel, read_rig_json
 
 IDEAL_NAMES = ("ideal", "none")
 

@@ -1,7 +1,7 @@
 """Plug-in methods and priors: bring your own reconstruction, from any package, without editing capssim.
 
 **The contract.** A plug-in *method* is a callable ``fn(capture, **options)``: ``capture`` is the
-:class:`~capssim.capture.Capture` that :func:`capssim.reconstruct.reconstruct` takes (raw frames
+:class:`~capssim.captures.capture.Capture` that :func:`capssim.reconstruct.reconstruct` takes (raw frames
 ``caps_raw`` ``(4, H, W)``, ``dofp_raw`` ``(2H, 2W)``, ``meta``, ``hr_shape`` ``(2H, 2W)``, ``caps_float()``...),
 ``options`` the run's ``-p KEY=VALUE`` options (strings from the command line, a suite's values as written).
 It returns the ``(12, 2H, 2W)`` floating-point image, channel ``c = 3 p + k`` (polarizer p over 0/45/90/135 deg,

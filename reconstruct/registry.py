@@ -25,10 +25,10 @@ from typing import Callable
 import numpy as np
 import torch
 
-from capssim.capture import Capture, read_capture, write_reconstruction
+from capssim.captures.capture import Capture, read_capture, write_reconstruction
 from capssim.conventions import flip_to_rggb
 from capssim.errors import CapssimError, CaptureFormatError, InputError, UnknownNameError
-from capssim.physical_validity import project_to_physical
+from capssim.stokes.physical_validity import project_to_physical
 
 from .calibration_model import resolve_calibration
 from .pipeline.options import wants_ground_truth

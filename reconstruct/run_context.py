@@ -16,7 +16,7 @@ from typing import Callable, Iterator
 import numpy as np
 import torch
 
-from capssim.threads import adapt_threads
+from capssim.runtime.threads import adapt_threads
 
 from .calibration_model import CalibrationModel
 

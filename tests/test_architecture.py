@@ -19,10 +19,19 @@ REPO = Path(__file__).resolve().parents[1]
 ROOTS = {"capssim": "capssim", "capssim.reconstruct": "reconstruct", "capssim.eval": "eval",
          "capssim.scenes": "scenes"}
 
-PHYSICS = ("capssim", "capssim.errors", "capssim.conventions", "capssim.homography", "capssim.array_geometry",
-           "capssim.psf", "capssim.measurement", "capssim.imageio", "capssim.sensor", "capssim.capture",
-           "capssim.polarization", "capssim.physical_validity", "capssim.design", "capssim.visualize", "capssim.operators", "capssim.resources", "capssim.rig",
-           "capssim.threads", "capssim.allocator", "capssim.camera_setup", "capssim.capture_meta", "capssim.rig_parts")
+#: capssim's rooms (sub-packages) and root modules on the physics floor (docs/architecture.md, "The rooms of
+#: capssim/"), lowest first; test_capssim_rooms_import_only_downwards pins their order
+CAPSSIM_ROOMS = (
+    ("capssim", "capssim.errors", "capssim.conventions"),
+    ("capssim.runtime",),
+    ("capssim.files",),
+    ("capssim.stokes",),
+    ("capssim.camera",),
+    ("capssim.operators",),
+    ("capssim.captures",),
+    ("capssim.visualize",),
+)
+PHYSICS = tuple(name for room in CAPSSIM_ROOMS for name in room)
 #: (floor name, module prefixes), lowest floor first
 FLOORS = (
     ("physics", PHYSICS),
@@ -159,6 +168,23 @@ def test_reconstruct_rooms_import_only_downwards():
     upward = [f"{MODULES[m].relative_to(REPO)}:{line} imports {t}" for m in inside for t, _, line in GRAPH[m]
               if t.startswith("capssim.reconstruct") and reconstruct_room(t) > reconstruct_room(m)]
     assert not upward, "imports that run up a room of reconstruct/:\n" + "\n".join(upward)
+
+
+def capssim_room(module: str) -> int:
+    for rank, names in enumerate(CAPSSIM_ROOMS):
+        if any(module == name or (name != "capssim" and module.startswith(name + ".")) for name in names):
+            return rank
+    raise AssertionError(f"{module} is in no room: add it to CAPSSIM_ROOMS in {Path(__file__).name}")
+
+
+def test_capssim_rooms_import_only_downwards():
+    inside = [m for m in MODULES if floor_of(m) == 0]
+    root_modules = [m for m in MODULES if m.count(".") == 1 and MODULES[m].name != "__init__.py"
+                    and m != "capssim.__main__"]
+    assert len(root_modules) <= 12, f"capssim/ holds {len(root_modules)} modules at its root (at most 12)"
+    upward = [f"{MODULES[m].relative_to(REPO)}:{line} imports {t}" for m in inside for t, _, line in GRAPH[m]
+              if floor_of(t) == 0 and capssim_room(t) > capssim_room(m)]
+    assert not upward, "imports that run up a room of capssim/:\n" + "\n".join(upward)
 
 
 def test_renderer_never_imports_the_scenes():

@@ -25,9 +25,9 @@ SECTION = re.compile(r"^(\w[\w ]*)\n-{3,}\n(.*?)(?=^\w[\w ]*\n-{3,}\n|\Z)", re.M
 
 #: methods the guides and the gallery call on objects the API returns (``capture.lr_images()``, ...)
 RETURNED_OBJECTS = (
-    "capssim.capture.Capture",
-    "capssim.capture.Capture.lr_images",
-    "capssim.rig.RigModel.flat_field",
+    "capssim.captures.capture.Capture",
+    "capssim.captures.capture.Capture.lr_images",
+    "capssim.camera.rig.RigModel.flat_field",
     "capssim.render.render_capture",
     "capssim.reconstruct.registration.parameters.RegistrationParameters.replace",
 )
@@ -120,7 +120,7 @@ def test_the_manual_uses_the_api():
     """The collection finds the entry points that the README and the gallery show."""
     names = set(manual_names())
     for expected in ("capssim.simulate.simulate_capture", "capssim.reconstruct.reconstruct",
-                     "capssim.eval.metrics.score", "capssim.sensor.make_sensor"):
+                     "capssim.eval.metrics.score", "capssim.camera.sensor.make_sensor"):
         assert expected in names
     assert len(CALLABLES) >= 30
 

@@ -54,8 +54,8 @@ def main() -> None:
     except CapssimError as exc:
         typer.echo(f"error: {exc}", err=True)
         sys.exit(2)
-    except OSError as exc:  # a file-system error no writer named (capssim.output_paths): still one line
-        from capssim.output_paths import describe_os_error
+    except OSError as exc:  # a file-system error no writer named (capssim.files.output_paths): still one line
+        from capssim.files.output_paths import describe_os_error
 
         where = f" ({exc.filename})" if exc.filename else ""
         typer.echo(f"error: file system{where}: {describe_os_error(exc)}.", err=True)

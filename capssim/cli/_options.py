@@ -9,7 +9,7 @@ from typing import Callable, Optional
 import typer
 
 from capssim.errors import InputError
-from capssim.resources import check_scene_size
+from capssim.runtime.resources import check_scene_size
 
 #: largest ``--seed`` (numpy's ``SeedSequence`` takes any integer >= 0; 63 bits keep it an int64 everywhere)
 MAX_SEED = 2**63 - 1
@@ -44,7 +44,7 @@ def each(check: Callable) -> Callable:
 
 def check_hr_size(option: str) -> Callable:
     """A callback refusing an HR ``size`` whose scene alone would pass the memory limit (the resource guard,
-    :func:`capssim.resources.check_scene_size`, as suite scenes)."""
+    :func:`capssim.runtime.resources.check_scene_size`, as suite scenes)."""
     def check(size):
         if size is not None:
             check_scene_size(option, size, fix=f"Use a smaller {option}.")
@@ -86,7 +86,7 @@ ThreadsOption = typer.Option(None, "--threads", callback=number_in("--threads", 
 def apply_threads(threads: Optional[int], *, renderer: bool = False) -> int:
     """Set the compute threads from ``--threads`` (else ``$CAPSSIM_THREADS``, else the default);
     ``renderer``: Dr.Jit's (Mitsuba's) too."""
-    from capssim.threads import set_threads  # start-up time: pulls torch
+    from capssim.runtime.threads import set_threads  # start-up time: pulls torch
 
     return set_threads(threads, renderer=renderer)
 

@@ -1,4 +1,4 @@
-"""The camera set-up options, declared once (:class:`capssim.camera_setup.CameraSetup`).
+"""The camera set-up options, declared once (:class:`capssim.camera.camera_setup.CameraSetup`).
 
 Every command that makes captures (``simulate``, ``render``, ``calibration-captures``) takes them:
 it declares one parameter ``setup_options: SetupOptions`` and is decorated with
@@ -20,17 +20,17 @@ from typing import Optional
 
 import typer
 
-from capssim.camera_setup import (
+from capssim.camera.camera_setup import (
     DEFAULT_DOFP_LAYOUT,
     DEFAULT_NOISE,
     DEFAULT_SIGMA_HR_PX,
     CameraSetup,
     sensor_from_options,
 )
+from capssim.camera.psf import PSF
+from capssim.camera.rig import RigModel, read_rig_json
 from capssim.cli._options import number_in, seed_in_range
 from capssim.errors import InputError, UnknownNameError
-from capssim.psf import PSF
-from capssim.rig import RigModel, read_rig_json
 
 # -- sensor, optics, DoFP ------------------------------------------------------------------------------
 NoiseOption = typer.Option(DEFAULT_NOISE, "--noise", help="Sensor noise model: none | gaussian | poisson-gaussian.")
@@ -204,7 +204,7 @@ class SetupOptions:
                                 extinction_ratio=self.extinction_ratio)
 
     def optical_psf(self):
-        """The :class:`capssim.psf.PSF` of ``--psf`` and its parameters."""
+        """The :class:`capssim.camera.psf.PSF` of ``--psf`` and its parameters."""
         kind = self.psf.lower()
         if kind == "gaussian":
             return PSF.gaussian(self.psf_sigma_hr_px)
@@ -215,7 +215,7 @@ class SetupOptions:
         raise InputError("--psf", repr(self.psf), " | ".join(PSF_KINDS), "For example --psf gaussian.")
 
     def camera_setup(self, rig=None):
-        """The :class:`capssim.camera_setup.CameraSetup` of these options, with ``rig`` (from :meth:`rig_model`)."""
+        """The :class:`capssim.camera.camera_setup.CameraSetup` of these options, with ``rig`` (from :meth:`rig_model`)."""
         try:
             sensor = sensor_from_options(self.noise, sigma=self.sigma, preset=self.sensor)
         except UnknownNameError as exc:

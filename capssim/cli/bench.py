@@ -49,10 +49,10 @@ ScenesOption = typer.Option(None, "--scene", metavar="SCENE", help="Scene (repea
 
 
 def _set_threads(threads: Optional[int], device: str, *, adaptive: bool = False):
-    """--threads, else $CAPSSIM_THREADS, else capssim.threads' default, inherited by workers; returns the
+    """--threads, else $CAPSSIM_THREADS, else capssim.runtime.threads' default, inherited by workers; returns the
     ``torch.device`` of --device. Benchmarks other than ``reconstruct`` (the default's own benchmark) keep
     one fixed count, so that their timings compare within a run: the default ``auto`` is then its starting count."""
-    from capssim.threads import resolve_threads  # start-up time: pulls torch
+    from capssim.runtime.threads import resolve_threads  # start-up time: pulls torch
 
     return apply_compute(threads if adaptive or threads is not None else resolve_threads(None), device)
 
@@ -71,7 +71,7 @@ def parse_hr_size(text) -> "int | tuple[int, int]":
     """``--size`` of ``bench reconstruct``: ``N`` (``N x N``) or ``WxH`` (width x height, HR pixels), multiples of 4
     of at least 16 whose scene fits the memory limit; ``N`` stays an int, ``WxH`` becomes ``(W, H)``."""
     from capssim.errors import InputError
-    from capssim.resources import SCENE_BYTES_PER_HR_PIXEL, check_memory
+    from capssim.runtime.resources import SCENE_BYTES_PER_HR_PIXEL, check_memory
 
     parts = str(text).strip().lower().replace("×", "x").split("x")
     if len(parts) > 2 or not all(p.strip().isdigit() for p in parts):
@@ -302,7 +302,7 @@ def dataset(
 
     _set_threads(threads, device)
     if keep is not None:  # before any work: a file, a link loop or an unwritable place in the way
-        from capssim.output_paths import resolve_output
+        from capssim.files.output_paths import resolve_output
 
         keep = resolve_output(keep, kind="folder", overwrite=True, argument="--keep")
     rows = run_dataset_benchmark(config, list(workers), keep=keep)

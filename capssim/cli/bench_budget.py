@@ -103,8 +103,8 @@ def budget(
     from capssim.eval.benchmarks.output_claim import BUDGET_OUTPUT, claim_output
     from capssim.eval.error_budget.budget_report import write_report
     from capssim.eval.error_budget.runner import load_budget, run_budget
-    from capssim.output_paths import resolve_output
-    from capssim.threads import resolve_threads
+    from capssim.files.output_paths import resolve_output
+    from capssim.runtime.threads import resolve_threads
 
     specs = _checked_suites(suites, methods=methods, scenes=scenes, workers=workers, scheduler=scheduler,
                             report_only=report_only)

@@ -44,7 +44,7 @@ def _check_inputs(spec: dict, *, methods, scenes, workers, scheduler, check, upd
     from capssim.eval.benchmarks.baseline import baseline_to_update, load_baseline
     from capssim.eval.benchmarks.executors import check_execution
     from capssim.eval.benchmarks.suite import plan
-    from capssim.imageio import check_output_file
+    from capssim.files.imageio import check_output_file
 
     plan(spec, methods=methods, scenes=scenes, emit=lambda kind, **info: None)  # -m, --scene, scene memory
     check_execution(workers=workers, scheduler=scheduler)
@@ -127,7 +127,7 @@ def suite(
     from capssim.eval.benchmarks.baseline import check_against_baseline
     from capssim.eval.benchmarks.output_claim import claim_output
     from capssim.eval.benchmarks.suite import load_suite, run_suite
-    from capssim.threads import resolve_threads
+    from capssim.runtime.threads import resolve_threads
 
     spec = load_suite(name)
     baseline, previous = _check_inputs(spec, methods=methods or None, scenes=scenes or None, workers=workers,

@@ -11,7 +11,7 @@ import typer
 
 from capssim.cli._options import DeviceOption, ThreadsOption, apply_compute
 from capssim.errors import InputError
-from capssim.imageio import check_output_file
+from capssim.files.imageio import check_output_file
 
 
 def calibrate(
@@ -32,7 +32,7 @@ def calibrate(
         raise InputError("-o/--output", str(output), "a file that does not exist yet", "Pass --overwrite to replace it.")
     output = check_output_file(output, argument="-o/--output")  # links followed; a folder in the way refused
     if report is not None:
-        from capssim.output_paths import resolve_output
+        from capssim.files.output_paths import resolve_output
 
         report = resolve_output(report, kind="folder", overwrite=True, argument="--report")
     from capssim.eval.calibration import calibrate_captures  # pulls torch

@@ -9,6 +9,7 @@ from typing import Optional
 
 import typer
 
+from capssim.camera.design import DesignInputs, system_design
 from capssim.cli._options import (
     DeviceOption,
     OverwriteOption,
@@ -17,8 +18,7 @@ from capssim.cli._options import (
     apply_compute,
 )
 from capssim.cli._setup_options import SetupOptions, check_rig_psfs, rig_homographies, with_setup_options
-from capssim.design import DesignInputs, system_design
-from capssim.imageio import check_output_free, read_gt_scene
+from capssim.files.imageio import check_output_free, read_gt_scene
 
 
 @with_setup_options
@@ -42,7 +42,7 @@ def simulate(
     apply_compute(threads, device)
     rig_model, rig_geometry = setup_options.rig_model()
     # these pull torch and the operators: loaded when the command runs (start-up time)
-    from capssim.capture import write_capture
+    from capssim.captures.capture import write_capture
     from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
 
     t0 = time.perf_counter()

@@ -13,7 +13,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 from capssim.cli._options import DeviceOption, apply_compute, number_in
 from capssim.errors import InputError
-from capssim.output_paths import resolve_output
+from capssim.files.output_paths import resolve_output
 
 
 def _fmt_duration(seconds: float | None) -> str:
@@ -150,7 +150,7 @@ DISK_ESTIMATE_SAMPLES = 256
 def _check_disk(cfg, where: Path) -> None:
     """Refuse a ``samples`` count whose files cannot fit on the disk that would hold them."""
     from capssim.dataset.sample import sample_bytes_estimate  # start-up time
-    from capssim.resources import check_disk, format_bytes
+    from capssim.runtime.resources import check_disk, format_bytes
 
     largest = max(sample_bytes_estimate(cfg.sample_spec(i)) for i in range(min(cfg.samples, DISK_ESTIMATE_SAMPLES)))
     check_disk("samples", float(cfg.samples) * largest, where, what=f"{cfg.samples} samples of up to {format_bytes(largest)} each",

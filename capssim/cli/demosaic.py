@@ -12,11 +12,11 @@ import typer
 
 from capssim.cli._options import DeviceOption, OverwriteOption, ThreadsOption, apply_compute
 from capssim.conventions import DEFAULT_DOFP_LAYOUT, dofp_layout, dofp_layout_name
-from capssim.data_range import warn_out_of_range
 from capssim.errors import InputError, UnknownNameError
-from capssim.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
-from capssim.physical_validity import project_to_physical
-from capssim.resources import MEMORY_LIMIT_ENV, check_image_memory
+from capssim.files.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
+from capssim.runtime.data_range import warn_out_of_range
+from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_image_memory
+from capssim.stokes.physical_validity import project_to_physical
 
 DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2", "dofp-jcpd", "cpdnet")
 #: peak bytes per raw mosaic pixel of ``capssim demosaic`` (the float copies of the mosaic, the (12, H, W)

@@ -13,8 +13,8 @@ import typer
 from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, apply_compute, number_in
 from capssim.conventions import CHANNEL_NAMES
 from capssim.errors import InputError
-from capssim.imageio import read_image
-from capssim.resources import MEMORY_LIMIT_ENV, check_image_memory
+from capssim.files.imageio import read_image
+from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_image_memory
 
 #: peak bytes per stored value of a capture's largest image while ``capssim evaluate`` scores it (the ground
 #: truth, one estimate, the metric and MTF working arrays; measured about 50)
@@ -89,7 +89,7 @@ def evaluate(
 
     check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
     check_capture_memory(capture, methods)
-    from capssim.output_paths import check_files_in
+    from capssim.files.output_paths import check_files_in
 
     check_files_in(capture, ["metrics.json"], argument="CAPTURE")  # before scoring: a folder in the way refused
     lpips = None

@@ -10,7 +10,7 @@ import typer
 
 from capssim.cli._options import DeviceOption, ThreadsOption, apply_compute, echo_json
 from capssim.errors import InputError
-from capssim.imageio import read_gt_scene, write_tiff
+from capssim.files.imageio import read_gt_scene, write_tiff
 
 
 def gt_check(
@@ -34,7 +34,7 @@ def gt_check(
     if write_aligned is not None and write_aligned.suffix.lower() not in (".tif", ".tiff"):
         raise InputError("--write-aligned", str(write_aligned), "a .tif or .tiff path")
     if write_aligned is not None:  # before any work: an existing file, a folder in the way, a link loop
-        from capssim.output_paths import resolve_output
+        from capssim.files.output_paths import resolve_output
 
         write_aligned = resolve_output(write_aligned, kind="file", overwrite=overwrite, argument="--write-aligned")
     dev = apply_compute(threads, device)

@@ -49,7 +49,7 @@ def parse_options(pairs: List[str]) -> dict:
 def expand_methods(names: List[str], capture_path: Path) -> list[str]:
     """Resolve ``all`` (every method the capture has input for) and check each name."""
     # start-up time: the capture format and the registry pull torch
-    from capssim.capture import read_meta
+    from capssim.captures.capture import read_meta
     from capssim.reconstruct import available_methods, get_method
 
     meta = read_meta(capture_path)
@@ -180,7 +180,7 @@ def method_option_lines(name: str) -> str:
 def check_recon_outputs(capture: Path, names: list[str]) -> None:
     """Before any work: refuse a file or folder in the way of ``recon/NAME.tiff`` / ``recon/NAME.json`` of every
     method, in the capture (or in each capture of a folder of captures)."""
-    from capssim.output_paths import check_files_in
+    from capssim.files.output_paths import check_files_in
     from capssim.reconstruct.tiles.frames import capture_folders  # start-up time
 
     for folder in capture_folders(capture) or [capture]:

@@ -42,7 +42,7 @@ def check_track_psnr(options: dict, folders: list[Path], *, tiled: bool) -> None
     frames, PSNR per iteration in the record), and the run must be untiled (tiles carry no ground truth)."""
     if "track_psnr" not in options:
         return
-    from capssim.capture import read_meta  # start-up time
+    from capssim.captures.capture import read_meta  # start-up time
     from capssim.reconstruct.pipeline.options import coerce_option
 
     if not coerce_option("track_psnr", options["track_psnr"], bool):
@@ -66,8 +66,8 @@ def warn_raw_range(folder: Path, kinds: set[str]) -> None:
     as they are."""
     import numpy as np
 
-    from capssim.capture import read_capture, read_meta  # start-up time
-    from capssim.data_range import warn_out_of_range
+    from capssim.captures.capture import read_capture, read_meta  # start-up time
+    from capssim.runtime.data_range import warn_out_of_range
 
     if not _has_float_frames(Path(folder), read_meta(folder), kinds):
         return  # integer frames (the usual case): nothing to warn about, and the frames are read once, by the method

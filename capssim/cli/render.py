@@ -21,7 +21,7 @@ from capssim.cli._options import (
 )
 from capssim.cli._setup_options import SetupOptions, check_rig_psfs, rig_homographies, with_setup_options
 from capssim.errors import InputError
-from capssim.imageio import check_output_file, check_output_free, write_png
+from capssim.files.imageio import check_output_file, check_output_free, write_png
 
 
 def _parse_pairs(pairs: Optional[List[str]], option: str) -> dict:
@@ -101,7 +101,7 @@ def render(
     check_rig_psfs(rig_model, (size, size), aperture_psf_sigmas=setup_options.aperture_psf_sigmas)
     homographies = rig_homographies(rig_geometry, (size, size), fix="render at that --size")
     # these pull torch, the operators and the scene library: loaded when the command runs (start-up time)
-    from capssim.capture import write_capture
+    from capssim.captures.capture import write_capture
 
     t0 = time.perf_counter()
     check_output_free(output, overwrite=overwrite)

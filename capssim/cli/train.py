@@ -28,7 +28,7 @@ def train(
     dev = apply_compute(threads, device)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from capssim.output_paths import resolve_output
+    from capssim.files.output_paths import resolve_output
     from capssim.reconstruct.training.config import check_model_memory, load_train_config
     from capssim.reconstruct.training.trainer import check_run_folder
     from capssim.reconstruct.training.trainer import train as run_training

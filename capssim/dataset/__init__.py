@@ -13,6 +13,6 @@ The CLI is ``capssim dataset CONFIG -o OUT`` (docs: guides/datasets.md).
 from capssim.dataset.config import DatasetConfig, load_config, parse_config
 from capssim.dataset.generate import generate_dataset
 from capssim.dataset.verify import verify_dataset
-from capssim.schema import ConfigError
+from capssim.files.schema import ConfigError
 
 __all__ = ["ConfigError", "DatasetConfig", "generate_dataset", "load_config", "parse_config", "verify_dataset"]

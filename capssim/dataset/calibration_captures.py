@@ -26,15 +26,15 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.camera_setup import CameraSetup, as_setup
-from capssim.capture import Capture, write_capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.camera_setup import CameraSetup, as_setup
+from capssim.camera.homography import random_aperture_homographies
+from capssim.camera.rig import RigModel, write_rig_json
+from capssim.camera.sensor import Sensor
+from capssim.captures.capture import Capture, write_capture
 from capssim.errors import InputError
-from capssim.homography import random_aperture_homographies
-from capssim.imageio import atomic_write_json, check_output_free
+from capssim.files.imageio import atomic_write_json, check_output_free
 from capssim.render import render_capture
-from capssim.rig import RigModel, write_rig_json
-from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
 
 TARGETS = ("flat", "polarizer", "geometry", "star")

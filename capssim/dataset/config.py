@@ -43,7 +43,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from capssim.camera_setup import DEFAULT_DOFP_LAYOUT, DEFAULT_NOISE, DEFAULT_SENSOR_PRESET
+from capssim.camera.camera_setup import DEFAULT_DOFP_LAYOUT, DEFAULT_NOISE, DEFAULT_SENSOR_PRESET
+from capssim.camera.psf import DEFAULT_SIGMA_HR_PX
+from capssim.camera.rig import RigModel
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.dataset.config_specs import (  # noqa: F401  (re-exported: the config's keys and limits)
     DEFAULT_SCENE_SIZE,
@@ -58,11 +60,9 @@ from capssim.dataset.config_specs import (  # noqa: F401  (re-exported: the conf
 )
 from capssim.dataset.distributions import Choice, Const, Dist, draw_tree, key_rng
 from capssim.errors import InputError
-from capssim.imageio import GT_IMAGE_SUFFIXES
-from capssim.psf import DEFAULT_SIGMA_HR_PX
+from capssim.files.imageio import GT_IMAGE_SUFFIXES
+from capssim.files.schema import ConfigError, join, show
 from capssim.render import list_scenes
-from capssim.rig import RigModel
-from capssim.schema import ConfigError, join, show
 from capssim.simulate import PoseRanges
 
 log = logging.getLogger(__name__)
@@ -178,7 +178,7 @@ class DatasetConfig:
 
 
 def rig_model(spec: dict | None, *, key_path: str = "rig") -> RigModel | None:
-    """The :class:`~capssim.rig.RigModel` of a drawn ``rig`` entry (``None``: the ideal array);
+    """The :class:`~capssim.camera.rig.RigModel` of a drawn ``rig`` entry (``None``: the ideal array);
     errors name ``key_path`` and the quantity."""
     if not spec:
         return None

@@ -2,16 +2,17 @@
 
 :mod:`capssim.dataset.config` reads a config against :data:`TOP_SPEC` and the source specs. The
 camera set-up keys (:data:`SETUP_KEYS_IN_DATASETS`) are spelled as
-:class:`capssim.camera_setup.CameraSetup` spells them; ``pose`` (the random aperture errors of
+:class:`capssim.camera.camera_setup.CameraSetup` spells them; ``pose`` (the random aperture errors of
 ground-truth sources) is the dataset's own.
 """
 
 from __future__ import annotations
 
-from capssim.camera_setup import SETUP_KEYS
+from capssim.camera.camera_setup import SETUP_KEYS
+from capssim.camera.sensor import NOISE_MODELS, SENSOR_PRESETS
 from capssim.conventions import dofp_layout, dofp_layout_name
 from capssim.dataset.distributions import Distribution
-from capssim.schema import (
+from capssim.files.schema import (
     AnyMapping,
     Anything,
     Boolean,
@@ -23,12 +24,11 @@ from capssim.schema import (
     Sequence,
     String,
 )
-from capssim.sensor import NOISE_MODELS, SENSOR_PRESETS
 
 MIN_SIZE = 16
 SIZE_MULTIPLE = 4
 DEFAULT_SCENE_SIZE = 64
-#: the camera set-up keys a dataset config takes (:data:`capssim.camera_setup.SETUP_KEYS`)
+#: the camera set-up keys a dataset config takes (:data:`capssim.camera.camera_setup.SETUP_KEYS`)
 SETUP_KEYS_IN_DATASETS = tuple(k for k in SETUP_KEYS if k not in ("psf", "seed_rule"))
 #: keys a source may take over from ``defaults``
 SHARED_KEYS = (*SETUP_KEYS_IN_DATASETS, "pose")
@@ -63,7 +63,7 @@ POSE_SPEC = Mapping({
 }, what="aperture pose error ranges (shift_max_px, rotation_max_deg, scale_max)")
 
 _ER = Distribution(Number(minimum=1, exclusive_minimum=True))
-#: an imperfect array (capssim.rig.RigModel): a preset's draw, then per-quantity overrides (lists as in the CLI)
+#: an imperfect array (capssim.camera.rig.RigModel): a preset's draw, then per-quantity overrides (lists as in the CLI)
 RIG_SPEC = Mapping({
     "preset": Distribution(String(choices=["ideal", "realistic"])),
     "seed": Distribution(Integer(minimum=0)),

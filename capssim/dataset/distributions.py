@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from capssim.schema import ConfigError, Integer, Nullable, Number, Spec, join, show
+from capssim.files.schema import ConfigError, Integer, Nullable, Number, Spec, join, show
 
 DISTRIBUTION_KINDS = ("const", "choice", "uniform", "log_uniform", "int_uniform", "normal")
 _MODIFIERS = {"choice": ("weights",), "normal": ("clip",)}
@@ -275,7 +275,7 @@ def _parse_normal(value: dict, inner: Spec, path: str) -> Normal:
 
 
 class Distribution(Spec):
-    """Schema spec (:mod:`capssim.schema`): a constant value of ``inner`` or a distribution over such values."""
+    """Schema spec (:mod:`capssim.files.schema`): a constant value of ``inner`` or a distribution over such values."""
 
     def __init__(self, inner: Spec):
         self.inner = inner

@@ -6,7 +6,7 @@
   compute threads per worker = cores // workers), on an existing cluster (``scheduler``
   address), on a :class:`distributed.Client` you pass, or in this process (``workers=0``);
 * each task writes its capture folder under a temporary name and renames it when complete
-  (:func:`capssim.capture.write_capture`), then returns the checksums; this process appends the
+  (:func:`capssim.captures.capture.write_capture`), then returns the checksums; this process appends the
   sample's line to the manifest (fsync'ed). A worker that dies mid-sample loses that sample only:
   Dask reschedules the task on another worker, and its temporary folder is swept at the end;
 * a rerun skips the samples listed in the manifest (whose folder exists), removes leftovers
@@ -45,8 +45,8 @@ from capssim.dataset.manifest import (
 )
 from capssim.dataset.sample import generate_sample
 from capssim.errors import CapssimError, InputError
-from capssim.resources import check_memory, check_range
-from capssim.threads import CHILD_ENV_VARS, available_cores
+from capssim.runtime.resources import check_memory, check_range
+from capssim.runtime.threads import CHILD_ENV_VARS, available_cores
 
 log = logging.getLogger(__name__)
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from capssim import __version__
 from capssim.errors import CaptureFormatError, InputError
-from capssim.imageio import append_line_durably, atomic_write_bytes, atomic_write_json
+from capssim.files.imageio import append_line_durably, atomic_write_bytes, atomic_write_json
 
 log = logging.getLogger(__name__)
 

@@ -21,21 +21,21 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capssim.camera_setup import CameraSetup
-from capssim.capture import write_capture
+from capssim.camera.camera_setup import CameraSetup
+from capssim.captures.capture import write_capture
 from capssim.dataset.augment import rotate_flip_twelve
 from capssim.dataset.config import rig_model
 from capssim.dataset.config_specs import SETUP_KEYS_IN_DATASETS
 from capssim.errors import InputError
-from capssim.imageio import read_gt_scene
+from capssim.files.imageio import read_gt_scene
 from capssim.render import render_capture
 from capssim.render.pipeline import check_render
+from capssim.runtime.threads import set_threads
 from capssim.simulate import PoseRanges, simulate_capture
-from capssim.threads import set_threads
 
 log = logging.getLogger(__name__)
 
-#: thread variables of libraries beyond those :func:`capssim.threads.set_threads` exports
+#: thread variables of libraries beyond those :func:`capssim.runtime.threads.set_threads` exports
 EXTRA_THREAD_ENV_VARS = ("NUMEXPR_NUM_THREADS", "VECLIB_MAXIMUM_THREADS", "DRJIT_NUM_THREADS")
 _render_threads: int | None = None
 
@@ -142,7 +142,7 @@ def fsync_folder(folder: Path) -> None:
 
 
 def sample_setup(params: dict) -> CameraSetup:
-    """The :class:`~capssim.camera_setup.CameraSetup` of a sample's drawn parameters
+    """The :class:`~capssim.camera.camera_setup.CameraSetup` of a sample's drawn parameters
     (:meth:`DatasetConfig.sample_spec`): its set-up keys, as the config spells them; a key drawn as
     ``None`` takes the set-up's default. Errors name the key, as in ``defaults.rig.gain``."""
     mapping = {k: params[k] for k in SETUP_KEYS_IN_DATASETS if params.get(k) is not None}
@@ -152,7 +152,7 @@ def sample_setup(params: dict) -> CameraSetup:
 
 
 def build_capture(spec: dict):
-    """The :class:`~capssim.capture.Capture` of a sample spec, and a timing dict (seconds)."""
+    """The :class:`~capssim.captures.capture.Capture` of a sample spec, and a timing dict (seconds)."""
     params = spec["params"]
     src = params["source"]
     setup = sample_setup(params)

@@ -53,13 +53,13 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.capture import read_capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.sensor import noise_sigma_estimate
+from capssim.captures.capture import read_capture
 from capssim.conventions import split_bayer
 from capssim.dataset.manifest import MANIFEST, SAMPLES_DIR, read_manifest
 from capssim.dataset.sample import file_sha256
 from capssim.errors import CaptureFormatError, InputError
-from capssim.sensor import noise_sigma_estimate
 
 CROP_MULTIPLE = 4
 
@@ -68,7 +68,7 @@ def crop_homographies(geometry: ArrayGeometry, top: int, left: int, hr_shape) ->
     """Homographies of a capture cropped to ``hr_shape`` at HR offset (``top``, ``left``), multiples of 4.
 
     Returns ``(4, 3, 3)`` HR reference -> aperture-HR and ``(16, 3, 3)`` HR reference -> sub-image
-    pixels, both in the crop's coordinates (:meth:`capssim.array_geometry.ArrayGeometry.cropped`).
+    pixels, both in the crop's coordinates (:meth:`capssim.camera.array_geometry.ArrayGeometry.cropped`).
     """
     crop = geometry.cropped(top, left, hr_shape)  # refuses offsets that are not multiples of 4
     return crop.aperture_homographies.copy(), crop.lr_homographies

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from capssim.capture import read_meta
+from capssim.captures.capture import read_meta
 from capssim.dataset.manifest import (
     MANIFEST,
     SAMPLES_DIR,

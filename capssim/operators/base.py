@@ -5,7 +5,7 @@ Every operator has a fixed ``input_shape`` and ``output_shape``, a ``forward`` a
 them passes :func:`adjointness_error` (the dot-product test) in float64.
 
 Noise, clipping and quantization are never part of an operator: they live in
-:mod:`capssim.sensor` and are applied after it.
+:mod:`capssim.camera.sensor` and are applied after it.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ Low-resolution image m = 4n + q (eq. 11, ``M_m``), for its channel's HR image::
     y_m = Decimate_2^{(oy_q, ox_q)}( IntegrateDecimate_2( Blur_psf( Warp_{H_n}(x_c(m)) ) ) )  -> (h, w)
 
 with ``h = H/2`` and ``n = m // 4``: its pixels land where the sub-image homography
-``H_m = S_q @ H_n`` of :class:`capssim.array_geometry.ArrayGeometry` says, so ``BayerSplit(raw)``
+``H_m = S_q @ H_n`` of :class:`capssim.camera.array_geometry.ArrayGeometry` says, so ``BayerSplit(raw)``
 equals the 16 ``y_m`` exactly (a test pins this).
 
 DoFP raw frame (same total pixel count ``4HW``, pixel pitch = HR pitch)::
@@ -26,7 +26,8 @@ from typing import Sequence
 
 import numpy as np
 
-from capssim.array_geometry import ArrayGeometry
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.rig import RigModel
 from capssim.conventions import (
     BAYER_OFFSETS,
     DEFAULT_DOFP_LAYOUT,
@@ -44,7 +45,6 @@ from capssim.operators.blur_sample import BlurIntegrateDecimate
 from capssim.operators.cfa import BayerMosaic, DoFPMosaic
 from capssim.operators.sampling import IntegrateDecimate
 from capssim.operators.warp import Warp
-from capssim.rig import RigModel
 
 
 def _check_hr_shape(hr_shape) -> tuple[int, int]:
@@ -61,7 +61,7 @@ def caps_raw_operator(hr_shape, aperture_homographies, psf_kernel, *,
     """``(12, 2H, 2W) -> (4, H, W)``: the four RGGB raw frames of the camera array (eq. 9).
 
     ``aperture_homographies`` ``(4, 3, 3)`` map HR reference -> aperture-HR coordinates.
-    ``rig`` (:class:`capssim.rig.RigModel`, imperfect arrays): its analyzer per aperture and
+    ``rig`` (:class:`capssim.camera.rig.RigModel`, imperfect arrays): its analyzer per aperture and
     colour replaces the ideal one (and ``extinction_ratio``), its per-aperture PSFs replace
     ``psf_kernel``, and its flat field (gain x vignetting) multiplies the raw frames.
     """
@@ -96,7 +96,7 @@ def lr_sampling_operator(geometry: ArrayGeometry, psf_kernel, *, psf_kernels=Non
     integration, then the Bayer site q's decimation: its pixels land where
     :attr:`ArrayGeometry.lr_homographies` says. ``psf_kernels``: one kernel per aperture
     (replacing ``psf_kernel``); ``flat`` ``(16, H/2, W/2)``: the flat field at each sub-image's
-    pixels (:meth:`capssim.rig.RigModel.lr_flat_field`), multiplied last.
+    pixels (:meth:`capssim.camera.rig.RigModel.lr_flat_field`), multiplied last.
     """
     hh, ww = _check_hr_shape(geometry.hr_shape)
     offsets = [BAYER_OFFSETS[m % 4] for m in range(N_LR_IMAGES)]

@@ -1,7 +1,7 @@
 """Physically based rendering of CAPS captures with Mitsuba 3 (docs: guides/rendering.md).
 
 ``render_capture(scene, ...)`` renders a registered scene through the four apertures and the
-DoFP camera and returns a :class:`~capssim.capture.Capture` of kind ``rendered``;
+DoFP camera and returns a :class:`~capssim.captures.capture.Capture` of kind ``rendered``;
 ``list_scenes()`` lists the registered scenes. Scenes register in its registry
 (:mod:`capssim.render.scene_registry`), which loads the scene library through its entry point.
 Importing this package points ``DRJIT_LIBLLVM_PATH`` at libLLVM 19 when it is installed

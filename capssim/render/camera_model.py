@@ -4,7 +4,7 @@ Everything after the renderer uses the operators of :mod:`capssim.operators` (pa
 ``Convolve`` (the optical PSF, applied identically to the ground truth and to every
 aperture), ``IntegrateDecimate`` (box pixels), ``Warp`` (the planar warp), ``Analyzer``,
 ``BayerMosaic`` (RGGB) and the DoFP operator of
-:class:`~capssim.measurement.CameraArrayMeasurement`.
+:class:`~capssim.operators.measurement.CameraArrayMeasurement`.
 
 Planar scenes are rendered once: the reference view is rendered ``fine`` times finer than the
 ground truth and with a margin, and each aperture's view is the exact plane homography of it
@@ -12,7 +12,7 @@ ground truth and with a margin, and each aperture's view is the exact plane homo
 from their own positions, each only through its own polarizer angle, and aperture 0's view is
 the ground-truth render itself.
 
-An imperfect array (:class:`capssim.rig.RigModel`) goes through the same operators as
+An imperfect array (:class:`capssim.camera.rig.RigModel`) goes through the same operators as
 :func:`capssim.operators.camera.caps_raw_operator`: its analyzer rows (``ChannelMix``; on the
 per-aperture path apertures 1-3 are rendered through polarizers at the rig's angles and
 per-colour extinction ratios), one PSF per aperture (then the ground truth has none), and the
@@ -27,13 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from capssim.camera.rig import RigModel
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
-from capssim.measurement import CameraArrayMeasurement
 from capssim.operators import Analyzer, BayerMosaic, ChannelMix, Convolve, IntegrateDecimate, Multiply, Warp
+from capssim.operators.measurement import CameraArrayMeasurement
 from capssim.render.integrator import stokes_to_twelve
 from capssim.render.pinhole_array import scale_matrix, shift_matrix
 from capssim.render.sample_budget import to_tensor
-from capssim.rig import RigModel
 
 
 def warp_margin(homographies: np.ndarray, size: int, psf_radius: int) -> int:

@@ -45,9 +45,9 @@ from typing import Callable
 import numpy as np
 
 from capssim.errors import InputError
-from capssim.polarization import twelve_from_stokes
 from capssim.render.pinhole_array import PinholeCamera
 from capssim.render.spectral import CameraResponse
+from capssim.stokes.polarization import twelve_from_stokes
 
 log = logging.getLogger(__name__)
 
@@ -265,7 +265,7 @@ def render_view(scene, camera: PinholeCamera, *, spp: int, seed: int, response: 
     balance, camera frame). ``mode="analyzer"``: 3 channels, RGB through an analyzer at
     ``analyzer_deg`` in the camera frame, with ``extinction_ratio`` (``None`` / inf: ideal; one
     value, or 3 per colour R, G, B: ``I = (S0 + d (S1 cos 2a + S2 sin 2a)) / 2`` with
-    ``d = (ER - 1) / (ER + 1)``, as :func:`capssim.rig.analyzer_row`). ``progress(n)`` is called with the number of
+    ``d = (ER - 1) / (ER + 1)``, as :func:`capssim.camera.rig.analyzer_row`). ``progress(n)`` is called with the number of
     lanes finished after each chunk. ``group``: the render is ``group`` times finer than the
     ground truth; wavelengths are then stratified per ``group x group`` block. Returns means
     in float64 ``(C, H, W)``.

@@ -7,7 +7,7 @@ Pipeline (each choice is recorded in ``meta.json["render"]["choices"]`` with the
    (mono / spectral, polarized or not) on the fastest working backend (cuda -> llvm -> scalar).
 2. **Array** (:mod:`capssim.render.pinhole_array`): four apertures with baseline, tilt, roll and
    focal-scale errors, drawn from the pose stream of
-   :class:`~capssim.measurement.CameraArrayMeasurement`; the stored homographies are the exact
+   :class:`~capssim.operators.measurement.CameraArrayMeasurement`; the stored homographies are the exact
    plane-induced ones for the scene's reference plane. A one-ray-per-pixel depth pass measures
    the parallax that the homographies miss (``render.depth``).
 3. **Planar scenes are rendered once**: when everything visible lies on the reference plane
@@ -37,12 +37,12 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from capssim.camera_setup import as_setup
-from capssim.capture import Capture, build_meta
+from capssim.camera.camera_setup import as_setup
+from capssim.camera.psf import PSF
+from capssim.captures.capture import Capture, build_meta
 from capssim.conventions import N_APERTURES, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
-from capssim.measurement import CameraArrayMeasurement
-from capssim.psf import PSF
+from capssim.operators.measurement import CameraArrayMeasurement
 from capssim.render.camera_model import aperture_kernels, observe, warp_margin
 from capssim.render.choices import RenderPath, apply_measured, choice_records, measure_savings
 from capssim.render.integrator import ViewRender, derive_seed, render_view

@@ -8,13 +8,13 @@ from typing import Callable
 
 import numpy as np
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.camera_setup import CameraSetup, as_setup
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.camera_setup import CameraSetup, as_setup
+from capssim.camera.sensor import noise_sigma_estimate
 from capssim.errors import InputError
 from capssim.render.pinhole_array import RigTolerances
 from capssim.render.spectral import DEFAULT_CAMERA
-from capssim.resources import check_memory
-from capssim.sensor import noise_sigma_estimate
+from capssim.runtime.resources import check_memory
 
 #: smallest HR ground-truth size (pixels)
 MIN_SIZE = 16
@@ -45,9 +45,9 @@ class RenderSettings:
     the 12-channel ground truth on [0, 1] full scale; default :data:`DEFAULT_TARGET_NOISE`
     without sensor noise, :data:`TARGET_NOISE_FRACTION_OF_SENSOR` of the sensor's mid-grey
     noise with it), at most ``max_spp``. ``seed``: the array errors and the sensor noise
-    (:func:`capssim.measurement.seed_streams`); ``render_seed`` (default ``seed``) seeds only
+    (:func:`capssim.operators.measurement.seed_streams`); ``render_seed`` (default ``seed``) seeds only
     the Monte-Carlo sampling, so two renders of the same array geometry can differ in noise
-    alone. ``setup``: the camera set-up (:class:`~capssim.camera_setup.CameraSetup`: sensor, optical
+    alone. ``setup``: the camera set-up (:class:`~capssim.camera.camera_setup.CameraSetup`: sensor, optical
     PSF, DoFP layout, extinction ratio, rig; ``None``: the default set-up). ``variant``: Mitsuba
     variant or ``auto``. ``scene_params`` / ``geometry_params``: the scene's parameters and the array's
     :class:`~capssim.render.pinhole_array.RigTolerances`. ``planar``: ``auto`` (scene flag + measured
@@ -56,7 +56,7 @@ class RenderSettings:
     ``progress(stage, done, total)`` is called as rays finish. With ``record_timing=False``
     ``meta.json`` holds no wall times (byte-identical regeneration). ``measure_savings`` also
     renders the alternatives each choice avoided and records the measured times (slow).
-    The set-up's rig (:class:`capssim.rig.RigModel`) applies on both paths: the planar warp
+    The set-up's rig (:class:`capssim.camera.rig.RigModel`) applies on both paths: the planar warp
     path applies its analyzer rows, PSFs and flat field to the warped reference render; the
     per-aperture path renders apertures 1-3 through polarizers at the rig's angles and
     per-colour extinction ratios, then applies the PSFs and flat field. A non-ideal rig's
@@ -86,7 +86,7 @@ class RenderSettings:
     def checked(self) -> "RenderSettings":
         """These settings checked (:class:`~capssim.errors.InputError` otherwise), with defaults filled in.
 
-        The result has an integer ``size``, a :class:`~capssim.camera_setup.CameraSetup`, the
+        The result has an integer ``size``, a :class:`~capssim.camera.camera_setup.CameraSetup`, the
         ``oversample`` factor in effect and an integer ``render_seed``.
         """
         size = _check_size(self.size)

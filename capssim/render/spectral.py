@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.imageio import atomic_write_bytes
+from capssim.files.imageio import atomic_write_bytes
 
 DEFAULT_CAMERA = "Nikon 5100 (NPL)"
 WAVELENGTH_STEP_NM = 1.0

@@ -11,7 +11,7 @@ nothing, or a run that compares nothing fails.
 
 A baseline file is checked against :data:`BASELINE_SPEC` when it is loaded (:func:`load_baseline`),
 before the run: tolerances must be finite numbers >= 0, metrics numbers, unknown keys are refused
-(one :class:`~capssim.schema.ConfigError` line). :func:`write_baseline` merges this run's cases into
+(one :class:`~capssim.files.schema.ConfigError` line). :func:`write_baseline` merges this run's cases into
 an existing baseline of the same suite (the cases this run did not score are kept, and so are the
 file's tolerances) unless ``replace`` (``--replace-baseline``) is given.
 """
@@ -23,8 +23,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from capssim.errors import InputError
-from capssim.imageio import atomic_write_json, check_output_file
-from capssim.schema import AnyMapping, ConfigError, Integer, Mapping, Nullable, Number, String, load_json_file, validate
+from capssim.files.imageio import atomic_write_json, check_output_file
+from capssim.files.schema import (
+    AnyMapping,
+    ConfigError,
+    Integer,
+    Mapping,
+    Nullable,
+    Number,
+    String,
+    load_json_file,
+    validate,
+)
 
 from ..metric_records import metric_direction
 from .suite import BenchRun

@@ -8,7 +8,7 @@ is applied afterwards by :func:`apply_sensor`, so each noise level reuses one re
 simulated by :func:`capssim.simulate.simulate_capture`. Captures are cached under
 ``CACHE/captures/<sha256>``; the hash covers the scene spec, the source data's bytes, the noise,
 the seed and a fingerprint of capssim's capture code. All noise is drawn from the random streams
-of :func:`capssim.measurement.seed_streams` (paper section 5.2).
+of :func:`capssim.operators.measurement.seed_streams` (paper section 5.2).
 
 Renders are also kept in one store shared by every suite and output folder (:func:`shared_render_dir`:
 ``$CAPSSIM_RENDER_CACHE``, else ``$XDG_CACHE_HOME/capssim/renders`` or ``~/.cache/capssim/renders``;
@@ -32,14 +32,14 @@ from typing import Any, Callable
 
 import numpy as np
 
-from capssim.camera_setup import CameraSetup, sensor_from_mapping
-from capssim.capture import Capture, read_capture, read_meta, write_capture
+from capssim.camera.camera_setup import CameraSetup, sensor_from_mapping
+from capssim.camera.psf import PSF
+from capssim.camera.rig import RigModel
+from capssim.captures.capture import Capture, read_capture, read_meta, write_capture
 from capssim.errors import CapssimError, InputError
-from capssim.imageio import atomic_write_json, read_gt_scene
-from capssim.measurement import CameraArrayMeasurement
-from capssim.psf import PSF
+from capssim.files.imageio import atomic_write_json, read_gt_scene
+from capssim.operators.measurement import CameraArrayMeasurement
 from capssim.render import list_scenes, render_capture
-from capssim.rig import RigModel
 from capssim.simulate import prepare_ground_truth, simulate_capture
 
 from ..synthetic import synthetic_scene
@@ -54,7 +54,7 @@ from .rigs import (
 log = logging.getLogger(__name__)
 
 #: the source files whose change invalidates a cached render
-RENDER_CODE = ("capssim/render", "scenes", "capssim/operators", "capssim/simulate.py", "capssim/capture.py")
+RENDER_CODE = ("capssim/render", "scenes", "capssim/operators", "capssim/simulate.py", "capssim/captures/capture.py")
 
 
 #: where renders are shared across suites and output folders (a path, or ``off``)
@@ -97,7 +97,7 @@ class Unavailable(Exception):
 
 def suite_noise(entry) -> dict:
     """A suite's ``noise`` entry, checked: ``{name, noise: none|gaussian|poisson-gaussian, sigma, preset, ...}``
-    (the sensor keys of :class:`capssim.camera_setup.CameraSetup`; ``model``, the old spelling of
+    (the sensor keys of :class:`capssim.camera.camera_setup.CameraSetup`; ``model``, the old spelling of
     ``noise``, is read as it)."""
     if not isinstance(entry, dict) or "name" not in entry or not ("noise" in entry or "model" in entry):
         raise InputError("suite noise", repr(entry)[:80], "{name, noise: none|gaussian|poisson-gaussian, sigma, preset}",
@@ -110,13 +110,13 @@ def suite_noise(entry) -> dict:
 
 
 def _sensor(noise: dict):
-    """The sensor of a suite's ``noise`` entry (:func:`capssim.camera_setup.sensor_from_mapping`)."""
+    """The sensor of a suite's ``noise`` entry (:func:`capssim.camera.camera_setup.sensor_from_mapping`)."""
     return sensor_from_mapping({k: v for k, v in noise.items() if k != "name"}, where=f"suite noise {noise['name']}")
 
 
 def _setup(scene: dict, noise: dict) -> CameraSetup:
     """The camera set-up of a suite scene under a ``noise`` entry: its sensor, and the scene's
-    ``psf_sigma_hr_px`` (default :data:`capssim.psf.DEFAULT_SIGMA_HR_PX`) and ``rig``."""
+    ``psf_sigma_hr_px`` (default :data:`capssim.camera.psf.DEFAULT_SIGMA_HR_PX`) and ``rig``."""
     sigma = scene.get("psf_sigma_hr_px")
     return CameraSetup(sensor=_sensor(noise), psf=None if sigma is None else PSF.gaussian(float(sigma)),
                        rig=RigModel.from_spec(scene["rig"]) if scene.get("rig") else None)

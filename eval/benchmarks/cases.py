@@ -23,7 +23,7 @@ import traceback
 from pathlib import Path
 from typing import Callable
 
-from capssim.capture import read_capture, write_reconstruction
+from capssim.captures.capture import read_capture, write_reconstruction
 from capssim.reconstruct.registry import available_methods, reconstruct
 
 from ..evaluate import CaptureScorer, mtf_summary

@@ -16,13 +16,13 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from capssim.capture import Capture
+from capssim.camera.psf import PSF
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import Capture
 from capssim.conventions import DEFAULT_DOFP_LAYOUT
 from capssim.errors import InputError
-from capssim.imageio import read_gt_scene
-from capssim.psf import PSF
+from capssim.files.imageio import read_gt_scene
 from capssim.reconstruct.registry import reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import prepare_ground_truth, simulate_capture
 
 from ..metrics import tokyotech_scores
@@ -51,7 +51,7 @@ def default_gt_root() -> Path:
 
 
 #: the Gaussian PSF std (HR px) of the published DoFP protocol (Tokyo Tech, EARI): no optical blur, unlike the
-#: camera set-up's default (:data:`capssim.psf.DEFAULT_SIGMA_HR_PX`)
+#: camera set-up's default (:data:`capssim.camera.psf.DEFAULT_SIGMA_HR_PX`)
 PUBLISHED_PSF_SIGMA_HR_PX = 0.0
 
 

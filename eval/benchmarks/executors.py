@@ -28,7 +28,7 @@ from typing import Callable, Iterator
 
 from capssim.dataset.generate import check_local_workers, open_dask_client
 from capssim.errors import InputError
-from capssim.threads import resolve_threads
+from capssim.runtime.threads import resolve_threads
 
 
 class InProcess:
@@ -119,7 +119,7 @@ def open_executor(*, workers: int | None = None, scheduler: str | None = None, t
 
     ``workers``: a local cluster of that many processes, one task at a time each;
     ``scheduler``: the address of a running cluster. Each worker computes with ``threads``
-    (:func:`capssim.threads.resolve_threads`: ``--threads``, ``$CAPSSIM_THREADS`` or the
+    (:func:`capssim.runtime.threads.resolve_threads`: ``--threads``, ``$CAPSSIM_THREADS`` or the
     default), the count a run in this process uses, so that both give the same numbers.
     ``started(tag)`` is told when an in-process task starts.
     """

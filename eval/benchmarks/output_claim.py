@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from capssim.errors import InputError
-from capssim.imageio import atomic_write_json, atomic_write_text
+from capssim.files.imageio import atomic_write_json, atomic_write_text
 
 from .results import read_results, results_text
 

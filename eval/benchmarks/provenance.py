@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from capssim.capture import software_versions
+from capssim.captures.capture import software_versions
 
 #: the repository: the folders capssim/, reconstruct/, eval/, scenes/
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -50,7 +50,7 @@ def code_fingerprint(*parts: str) -> str:
         files = [base] if base.is_file() else sorted(base.rglob("*.py")) if base.is_dir() else []
         for f in files:
             rel = f.relative_to(REPO_ROOT).as_posix()
-            if rel.startswith("capssim/cli/") or rel in ("capssim/visualize.py", "capssim/design.py"):
+            if rel.startswith("capssim/cli/") or rel in ("capssim/visualize.py", "capssim/camera/design.py"):
                 continue
             h.update(rel.encode())
             h.update(f.read_bytes())

@@ -32,15 +32,15 @@ import numpy as np
 import torch
 from scipy.ndimage import gaussian_filter
 
-from capssim.capture import read_capture, write_capture
-from capssim.imageio import centre_crop, read_gt_scene
-from capssim.polarization import twelve_from_stokes
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
+from capssim.files.imageio import centre_crop, read_gt_scene
 from capssim.reconstruct.registry import RunContext, StageTimer, get_method, resolve_device
 from capssim.reconstruct.tiles.memory import fits, memory_budget
 from capssim.reconstruct.tiles.run import reconstruct_tiled
-from capssim.sensor import make_sensor
+from capssim.runtime.threads import adaptive_decisions, is_adaptive, set_threads
 from capssim.simulate import prepare_ground_truth, simulate_capture
-from capssim.threads import adaptive_decisions, is_adaptive, set_threads
+from capssim.stokes.polarization import twelve_from_stokes
 
 from .provenance import shared_data_dir
 from .reconstruct_report import paired_ratios
@@ -187,7 +187,7 @@ def worker(capture_path: Path, device: str, iterations: int | None, true_warps: 
 
     ``iterations``: the ADMM iterations, or None for the method's own default.
     ``threads``: a fixed count, or None for the inherited setting (``$CAPSSIM_THREADS``; ``auto``: the
-    count adapts to the machine's load at each stage, :func:`capssim.threads.adapt_threads`)."""
+    count adapts to the machine's load at each stage, :func:`capssim.runtime.threads.adapt_threads`)."""
     set_threads(threads)
     adaptive = is_adaptive(threads)
     dev = resolve_device(device)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.imageio import atomic_write_bytes
+from capssim.files.imageio import atomic_write_bytes
 
 STAGE_ORDER = ("rearrange", "registration", "operator", "cagf", "init", "nlstr_setup", "nlstr_block_matching",
                "nlstr_dictionaries_cores", "data_term", "admm_update")

@@ -3,7 +3,7 @@
 Each capture's 16 sub-image homographies are estimated from its Bayer sub-images alone by
 :func:`capssim.reconstruct.registration.estimate_lr_homographies` (paper section 3.1) with the
 parameters of a named registration mode, and compared with the homographies stored in its
-``meta.json`` by :func:`capssim.homography.registration_error_hr_px` (HR pixels). Captures
+``meta.json`` by :func:`capssim.camera.homography.registration_error_hr_px` (HR pixels). Captures
 simulated from a real ground truth can also be compared with their *content* warps: the stored
 warps composed with the offsets between the ground truth's analyzer images that
 ``capssim gt-check --json`` measured (:func:`content_lr_homographies`).
@@ -18,11 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.array_geometry import lr_homographies
-from capssim.capture import Capture, read_capture
+from capssim.camera.array_geometry import lr_homographies
+from capssim.camera.homography import registration_error_hr_px
+from capssim.captures.capture import Capture, read_capture
 from capssim.conventions import N_APERTURES
 from capssim.errors import InputError
-from capssim.homography import registration_error_hr_px
 from capssim.reconstruct.registration import estimate_lr_homographies
 from capssim.reconstruct.registration.parameters import registration_parameters
 
@@ -108,7 +108,7 @@ def run_registration_bench(captures, *, mode: str = "local-correlation", content
     Parameters
     ----------
     captures
-        capture folders (paths) or :class:`~capssim.capture.Capture` objects with true homographies
+        capture folders (paths) or :class:`~capssim.captures.capture.Capture` objects with true homographies
         (simulated or rendered).
     mode
         a :data:`capssim.reconstruct.registration.parameters.REGISTRATION_MODES` name.

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 import capssim.render.integrator as integrator
+from capssim.camera.psf import PSF
 from capssim.operators import caps_raw_operator
-from capssim.psf import PSF
 from capssim.render import get_scene, render_capture
 from capssim.render.mitsuba_plugins import register_plugins
 from capssim.render.pinhole_array import RigTolerances, build_array

@@ -16,7 +16,7 @@ import json
 import logging
 from pathlib import Path
 
-from capssim.imageio import append_line_durably, atomic_write_text
+from capssim.files.imageio import append_line_durably, atomic_write_text
 
 from .provenance import json_default
 

@@ -1,7 +1,7 @@
 """Imperfect rigs in a benchmark suite: the rig of a scene entry, its geometry and its calibration.
 
 A suite scene may carry ``rig: {preset: realistic, seed: N, geometry_seed: M, ...overrides}``
-(the keys of :meth:`capssim.rig.RigModel.with_overrides`, plus ``polarizer_angles`` for the
+(the keys of :meth:`capssim.camera.rig.RigModel.with_overrides`, plus ``polarizer_angles`` for the
 calibration sweep). Its capture is then simulated (or rendered) through that rig, with aperture
 homographies drawn from ``geometry_seed`` (the same for the scene and for the rig's calibration
 captures), and the capture folder gets ``calibration.json``: what ``capssim calibrate`` measured
@@ -20,11 +20,11 @@ import shutil
 import time
 from pathlib import Path
 
-from capssim.array_geometry import ArrayGeometry
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.rig import RigModel
 from capssim.dataset.calibration_captures import make_calibration_captures, seeded_aperture_homographies
 from capssim.errors import InputError
-from capssim.imageio import atomic_write_json
-from capssim.rig import RigModel
+from capssim.files.imageio import atomic_write_json
 
 from ..calibration import calibrate_captures
 from .provenance import code_fingerprint, content_hash

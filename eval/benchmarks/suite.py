@@ -113,7 +113,7 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
     workers, scheduler : optional
         A local Dask cluster of that many processes, or the one at that address (neither, or ``workers=0``: here).
     threads : int, optional
-        Compute threads of each worker (default: :func:`capssim.threads.resolve_threads`'s).
+        Compute threads of each worker (default: :func:`capssim.runtime.threads.resolve_threads`'s).
     events : callable, optional
         ``events(kind, **info)``: ``start`` (``total``), ``case`` (``label``), ``done``, ``skip``, ``note``, ``error``.
     allow_other_suite : bool

@@ -1,15 +1,15 @@
 """The schema of a suite file (YAML), checked when the suite is loaded, before any case runs.
 
 :func:`load_suite` reads a suite (a name in ``eval/suites`` or a YAML path) with
-:func:`capssim.schema.load_yaml_file` and checks it against :data:`SUITE_SPEC`: unknown keys (with a
+:func:`capssim.files.schema.load_yaml_file` and checks it against :data:`SUITE_SPEC`: unknown keys (with a
 "Did you mean" hint), types, ranges, duplicates (seeds, noise names, method labels, scene names),
 registered method names, renderer scene names, the sensor of every noise level and the rig of every
 scene, and the ground-truth paths. The keys a scene takes depend on its ``source``
-(:data:`SOURCE_KEYS`). A mistake is a :class:`~capssim.schema.ConfigError`: one line naming the file,
+(:data:`SOURCE_KEYS`). A mistake is a :class:`~capssim.files.schema.ConfigError`: one line naming the file,
 the key path (e.g. ``scenes[2].crop``) and the fix (exit 2 on the command line).
 
 :func:`check_scene_memory` is the resource guard of a suite's scene sizes
-(:func:`capssim.resources.check_scene_size`, as ``bench reconstruct --size``), run before any work.
+(:func:`capssim.runtime.resources.check_scene_size`, as ``bench reconstruct --size``), run before any work.
 
 The keys, their values and their defaults are listed in docs/guides/benchmarks.md and docs/guides/limits.md.
 """
@@ -21,14 +21,12 @@ import hashlib
 from dataclasses import fields
 from pathlib import Path
 
-from capssim.camera_setup import sensor_from_mapping
+from capssim.camera.camera_setup import sensor_from_mapping
+from capssim.camera.rig import RigModel
+from capssim.camera.sensor import GaussianSensor, NoNoiseSensor, PoissonGaussianSensor
 from capssim.dataset.calibration_captures import MIN_POLARIZER_ANGLES
 from capssim.errors import CapssimError, InputError, UnknownNameError
-from capssim.reconstruct.registration.parameters import REGISTRATION_MODES
-from capssim.reconstruct.registry import available_methods, check_method_options
-from capssim.resources import check_scene_size
-from capssim.rig import RigModel
-from capssim.schema import (
+from capssim.files.schema import (
     AnyMapping,
     Boolean,
     ConfigError,
@@ -44,7 +42,9 @@ from capssim.schema import (
     show,
     validate,
 )
-from capssim.sensor import GaussianSensor, NoNoiseSensor, PoissonGaussianSensor
+from capssim.reconstruct.registration.parameters import REGISTRATION_MODES
+from capssim.reconstruct.registry import available_methods, check_method_options
+from capssim.runtime.resources import check_scene_size
 from capssim.simulate import MIN_HR_SIZE
 
 from ..metrics import CONVENTIONS
@@ -66,7 +66,7 @@ KIND = "suite"
 
 _SIZE = Integer(minimum=MIN_HR_SIZE, multiple_of=4)
 
-#: an imperfect array (capssim.rig.RigModel.from_spec) and its calibration sweep (capssim.eval.benchmarks.rigs)
+#: an imperfect array (capssim.camera.rig.RigModel.from_spec) and its calibration sweep (capssim.eval.benchmarks.rigs)
 RIG_SPEC = Mapping({
     "preset": String(choices=["ideal", "realistic"]),
     "seed": Integer(minimum=0, maximum=MAX_SEED),
@@ -130,7 +130,7 @@ def _unknown_key(path: str, key: str, known: list[str], elsewhere: str | None = 
 
 class NoiseSpec(Spec):
     """A noise level: ``{name, noise: none|gaussian|poisson-gaussian, ...the sensor fields of that model}``
-    (``model``: the old spelling of ``noise``), checked by :func:`capssim.camera_setup.sensor_from_mapping`."""
+    (``model``: the old spelling of ``noise``), checked by :func:`capssim.camera.camera_setup.sensor_from_mapping`."""
 
     description = "a noise level {name, noise: none|gaussian|poisson-gaussian, sigma, preset, ...}"
 
@@ -367,7 +367,7 @@ def _scene_size(scene: dict) -> int | None:
 
 def check_scene_memory(spec: dict, scenes: list[dict]) -> None:
     """The resource guard of a run's ``scenes`` (and their fallbacks): refuse, before any work, a scene whose
-    HR size needs more memory than the limit (:func:`capssim.resources.check_scene_size`, as ``bench
+    HR size needs more memory than the limit (:func:`capssim.runtime.resources.check_scene_size`, as ``bench
     reconstruct --size``). Ground truths without ``crop`` are sized when read."""
     entries = spec["scenes"]
     by_name = {s["name"]: i for i, s in enumerate(entries)}

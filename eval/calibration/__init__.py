@@ -7,7 +7,7 @@ One estimator per module, each with its reference:
 * :mod:`~capssim.eval.calibration.geometry_fit`: aperture homographies (planar target);
 * :mod:`~capssim.eval.calibration.psf_fit`: per-aperture PSF width (Siemens star);
 * :mod:`~capssim.eval.calibration.calibrate`: all of them from a set of captures, into a
-  ``capssim-rig`` file (:func:`capssim.rig.write_rig_json`).
+  ``capssim-rig`` file (:func:`capssim.camera.rig.write_rig_json`).
 """
 
 from .calibrate import calibrate_captures, load_calibration_set

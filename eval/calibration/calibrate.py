@@ -27,10 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.capture import Capture, read_capture
+from capssim.camera.psf import PSF
+from capssim.camera.rig import RigFile, RigModel, write_rig_json
+from capssim.captures.capture import Capture, read_capture
 from capssim.errors import InputError
-from capssim.psf import PSF
-from capssim.rig import RigFile, RigModel, write_rig_json
 
 from .flat_field import MAX_SATURATED_FRACTION, fit_flat_field
 from .geometry_fit import fit_geometry
@@ -133,7 +133,7 @@ def calibrate_captures(paths, output, *, source: dict | None = None) -> RigFile:
     Returns
     -------
     RigFile
-        ``rig`` (a :class:`~capssim.rig.RigModel`), ``calibrated`` (the measured quantities),
+        ``rig`` (a :class:`~capssim.camera.rig.RigModel`), ``calibrated`` (the measured quantities),
         ``geometry``, ``uncertainty`` and ``residuals``.
     """
     t0 = time.perf_counter()

@@ -2,8 +2,8 @@
 
 Reference: the flat-field model of EMVA 1288 (release 4.0, section 8: photo-response
 non-uniformity): with uniform unpolarized light of known level ``L``, aperture n's raw pixel reads
-``F_n(u, v) L`` (:meth:`capssim.rig.RigModel.flat_field`). ``F_n`` is fitted by linear least
-squares in the degree-4 polynomial basis of :data:`capssim.rig.VIGNETTING_MONOMIALS` over all of
+``F_n(u, v) L`` (:meth:`capssim.camera.rig.RigModel.flat_field`). ``F_n`` is fitted by linear least
+squares in the degree-4 polynomial basis of :data:`capssim.camera.rig.VIGNETTING_MONOMIALS` over all of
 the aperture's pixels (the average of several frames when given); its value at the frame centre
 (the constant term) is the gain, and the map divided by it the vignetting.
 """
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from capssim.rig import normalised_raw_coordinates, vignetting_design
+from capssim.camera.rig import normalised_raw_coordinates, vignetting_design
 
 #: a flat field with more saturated pixels than this fraction is refused
 MAX_SATURATED_FRACTION = 1e-4

@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from capssim.array_geometry import ArrayGeometry
+from capssim.camera.array_geometry import ArrayGeometry
 from capssim.conventions import split_bayer
 from capssim.reconstruct.registration import estimate_lr_homographies
-from capssim.threads import small_tensor_threads
+from capssim.runtime.threads import small_tensor_threads
 
 
 def fit_geometry(raw: np.ndarray, saturated: np.ndarray, flat: np.ndarray | None, hr_shape) -> tuple[ArrayGeometry, dict]:

@@ -18,10 +18,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from capssim.array_geometry import ArrayGeometry
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.psf import gaussian_psf_kernel
+from capssim.camera.rig import RigModel
 from capssim.operators import BayerMosaic, ChannelMix, Convolve, IntegrateDecimate, Multiply, Warp
-from capssim.psf import gaussian_psf_kernel
-from capssim.rig import RigModel
 
 COARSE_SIGMAS = np.arange(0.0, 1.51, 0.1)
 BORDER_FRACTION = 0.06

@@ -10,9 +10,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from capssim.camera.rig import RigFile  # noqa: E402
 from capssim.conventions import POLARIZER_ANGLES_DEG  # noqa: E402
-from capssim.imageio import atomic_write_bytes, atomic_write_text  # noqa: E402
-from capssim.rig import RigFile  # noqa: E402
+from capssim.files.imageio import atomic_write_bytes, atomic_write_text  # noqa: E402
 
 
 def summary_lines(result: RigFile) -> list[str]:

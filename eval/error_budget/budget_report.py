@@ -14,7 +14,7 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-from capssim.imageio import atomic_write_bytes, atomic_write_text
+from capssim.files.imageio import atomic_write_bytes, atomic_write_text
 
 from .findings import findings_section
 from .ladder import STEP_CAUSE

@@ -3,11 +3,11 @@
 Both oracles re-simulate the capture's ground truth through the reconstruction's own forward
 operator ``A`` (paper eq. 9: analyzer, aperture warp by the capture's stored homographies, the
 capture's PSF ``meta.json["psf"]``, 2x2 pixel integration, RGGB sampling; the DoFP mosaic with the
-same optics), built by :class:`~capssim.measurement.CameraArrayMeasurement` from the capture's camera
+same optics), built by :class:`~capssim.operators.measurement.CameraArrayMeasurement` from the capture's camera
 set-up:
 
 * :func:`model_exact_capture` ``y = sensor(A x)`` with the capture's own sensor and the noise draw of
-  its seed (the streams of :func:`~capssim.measurement.seed_streams`, as
+  its seed (the streams of :func:`~capssim.operators.measurement.seed_streams`, as
   :func:`~capssim.simulate.simulate_capture` and the suites' ``apply_sensor`` draw them): for an
   additive Gaussian sensor the noise vector is the capture's own, only the signal under it changes;
 * ``noise=False``: ``y = A x`` exactly, float32, with the noise-free sensor (``model: none``).
@@ -23,10 +23,10 @@ import copy
 
 import numpy as np
 
-from capssim.capture import Capture
+from capssim.camera.sensor import NoNoiseSensor, noise_sigma_estimate
+from capssim.captures.capture import Capture
 from capssim.errors import InputError
-from capssim.measurement import CameraArrayMeasurement
-from capssim.sensor import NoNoiseSensor, noise_sigma_estimate
+from capssim.operators.measurement import CameraArrayMeasurement
 
 
 def _measurement(capture: Capture, *, noise: bool) -> CameraArrayMeasurement:

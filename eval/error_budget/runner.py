@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from capssim.capture import read_capture
+from capssim.captures.capture import read_capture
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.registry import available_methods, resolve_device
 

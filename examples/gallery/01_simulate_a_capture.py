@@ -16,9 +16,9 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from capssim.capture import read_capture, write_capture
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.eval.synthetic import texture_scene
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 gt, info = texture_scene(64, seed=0)                           # (12, 2H, 2W) on [0, 1]

@@ -12,9 +12,9 @@ with its reference, in the guide [Methods and baselines](../guides/methods.md).
 
 import matplotlib.pyplot as plt
 
+from capssim.camera.sensor import make_sensor
 from capssim.eval.synthetic import texture_scene
 from capssim.reconstruct import available_methods, reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 from capssim.visualize import display_white, intensity_image
 

@@ -18,13 +18,13 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from capssim.capture import write_capture, write_reconstruction
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture, write_reconstruction
 from capssim.conventions import CHANNEL_NAMES
 from capssim.eval.evaluate import evaluate_capture
 from capssim.eval.metrics import score
 from capssim.eval.synthetic import texture_scene
 from capssim.reconstruct import reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 gt, _ = texture_scene(64, seed=2)

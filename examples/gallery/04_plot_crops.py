@@ -12,9 +12,9 @@ array method ``caps`` (5 ADMM iterations, exact warps) is set against the DoFP c
 
 import matplotlib.pyplot as plt
 
+from capssim.camera.sensor import make_sensor
 from capssim.eval.synthetic import star_scene
 from capssim.reconstruct import reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 from capssim.visualize import aop_image, aop_legend, display_white, dolp_image, intensity_image
 

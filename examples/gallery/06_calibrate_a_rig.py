@@ -17,11 +17,11 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
+from capssim.camera.rig import RigModel
+from capssim.camera.sensor import make_sensor
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.dataset.calibration_captures import make_calibration_captures
 from capssim.eval.calibration import calibrate_captures
-from capssim.rig import RigModel
-from capssim.sensor import make_sensor
 
 truth = RigModel.preset("realistic", seed=3)                   # angle offsets, extinction, gains, vignetting
 

@@ -46,7 +46,7 @@ def check_mosaic(mosaic, *, argument: str = "mosaic", device: torch.device | str
     """Validate a DoFP mosaic and return it as a float tensor ``(H, W)``.
 
     Accepts a numpy array or a torch tensor: 2-D, floating point (raw DN must be converted
-    first, e.g. with :meth:`capssim.sensor.Sensor.to_float`), finite, both sides even and at
+    first, e.g. with :meth:`capssim.camera.sensor.Sensor.to_float`), finite, both sides even and at
     least :data:`MIN_MOSAIC_SIZE`. Odd sides are rejected: the 2x2 polarizer cell would be cut
     (``capssim demosaic --trim-odd`` drops the last row/column instead). The tensor is float64
     when the input is float64 (or ``dtype`` says so), else float32.

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from capssim.array_geometry import ArrayGeometry
+from capssim.camera.array_geometry import ArrayGeometry
 from capssim.conventions import N_APERTURES
 from capssim.operators.base import Composition, Reshape
 from capssim.operators.blur import Convolve

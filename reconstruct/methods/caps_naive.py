@@ -17,7 +17,7 @@ posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
    aperture warps ``H_n`` map the HR reference to each aperture-HR grid.
 3. One bicubic resampling per aperture onto the HR reference grid ``(2H, 2W)``: HR pixel
    ``(x, y)`` samples the demosaicked frame at raw coordinates ``R H_n (x, y, 1)``, where
-   ``R = capssim.array_geometry.raw_matrix()`` (aperture-HR -> raw pixel), i.e. the x2 upsampling
+   ``R = capssim.camera.array_geometry.raw_matrix()`` (aperture-HR -> raw pixel), i.e. the x2 upsampling
    and the registration warp composed into one map (torch ``grid_sample``, bicubic with
    ``a = -0.75``, replicate border; the same kernel as ``F.interpolate(mode='bicubic')``).
    Pixels of the reference grid outside an aperture's field of view get its border values.

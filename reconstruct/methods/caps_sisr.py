@@ -8,7 +8,7 @@ demosaicking). The shipped EDSR weights were trained here (capssim train); nothi
 1. Demosaicking and registration as ``caps-naive`` (:mod:`capssim.reconstruct.methods.caps_naive`).
 2. x2 upsampling of each demosaicked aperture frame ``(3, H, W) -> (3, 2H, 2W)`` (the
    aperture-HR grid: ``F.interpolate`` x2 with ``align_corners=False`` puts output pixel
-   ``j`` at raw coordinate ``j / 2 - 1/4``, which is :func:`capssim.array_geometry.raw_matrix`):
+   ``j`` at raw coordinate ``j / 2 - 1/4``, which is :func:`capssim.camera.array_geometry.raw_matrix`):
 
    * no ``model`` option: the shipped x2 EDSR ``weights/edsr-small.pt``
      (:mod:`capssim.reconstruct.networks.edsr`, trained by ``examples/train-edsr-small.yaml`` on

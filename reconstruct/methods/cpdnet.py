@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from capssim.capture import Capture
+from capssim.captures.capture import Capture
 
 from ..dofp.bilinear import dofp_unobserved
 from ..dofp.method_body import reject_unknown_options

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import torch
 
-from capssim.capture import Capture
+from capssim.captures.capture import Capture
 
 from ..dofp.bilinear import demosaic_dofp_bilinear, dofp_unobserved
 from ..dofp.method_body import reject_unknown_options

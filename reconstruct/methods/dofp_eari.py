@@ -45,7 +45,7 @@ from contextlib import nullcontext
 
 import torch
 
-from capssim.capture import Capture
+from capssim.captures.capture import Capture
 
 from ..dofp.bilinear import dofp_unobserved
 from ..dofp.method_body import run_dofp_method

@@ -37,7 +37,7 @@ from contextlib import nullcontext
 
 import torch
 
-from capssim.capture import Capture
+from capssim.captures.capture import Capture
 from capssim.conventions import dofp_layout
 from capssim.errors import InputError
 

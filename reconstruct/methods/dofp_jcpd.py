@@ -55,7 +55,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from capssim.capture import Capture
+from capssim.captures.capture import Capture
 from capssim.conventions import dofp_channel_map
 from capssim.errors import InputError
 

@@ -14,7 +14,7 @@ pixel integration, decimation; ``capssim.operators.lr_sampling_operator`` for CA
   confidence between its channel and ``c``).
 
 With a calibrated array (``mixing``, the ``(N, C)`` analyzer matrix of
-:meth:`capssim.rig.RigModel.lr_channel_matrix`) observation m sees ``sum_c A[m, c] x_c`` instead
+:meth:`capssim.camera.rig.RigModel.lr_channel_matrix`) observation m sees ``sum_c A[m, c] x_c`` instead
 of ``x_{c(m)}``: ``M_m`` is applied to ``(A x)_m`` and the back-projection is ``A^T`` of the
 residuals (exact adjoint; :meth:`ConfidenceDataTerm.forward` / :meth:`ConfidenceDataTerm.adjoint`).
 Without ``mixing`` the channel selection is an ``index_select`` (the ideal array, unchanged and as

@@ -2,13 +2,13 @@
 
 The geometry is either the one stored with the capture (``true_warps``) or the one the
 registration estimates from the 16 Bayer sub-images (:mod:`capssim.reconstruct.registration`);
-either way it is one :class:`capssim.array_geometry.ArrayGeometry`, from which every method takes the
+either way it is one :class:`capssim.camera.array_geometry.ArrayGeometry`, from which every method takes the
 16 sub-image homographies (paper section 3.1) or the 4 aperture homographies.
 The PSF is the capture's (``meta.json["psf"]``) unless the method's ``psf_sigma`` option names a
 Gaussian (the paper's isotropic Gaussian kernel; useful for real captures).
 
 With a calibration (``RunContext.calibration``, :mod:`capssim.reconstruct.calibration_model`) the
-array is a :class:`capssim.rig.RigModel`: its per-aperture PSFs replace the capture's PSF
+array is a :class:`capssim.camera.rig.RigModel`: its per-aperture PSFs replace the capture's PSF
 (:func:`method_psf_kernels`), its flat field ``gain_n V_n`` (:func:`lr_flat_field`) multiplies
 each observation and divides the images that CAGF, the initialization and the registration see,
 and its analyzer (:func:`calibrated_analyzer`) mixes the channels each observation sees
@@ -22,12 +22,12 @@ import math
 import numpy as np
 import torch
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.capture import Capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.homography import registration_error_hr_px
+from capssim.camera.psf import PSF
+from capssim.captures.capture import Capture
 from capssim.errors import CapssimError, InputError
-from capssim.homography import registration_error_hr_px
-from capssim.psf import PSF
-from capssim.threads import registration_threads
+from capssim.runtime.threads import registration_threads
 
 from ..registration.estimate import estimate_lr_homographies, identity_fallbacks
 from ..registration.parameters import registration_parameters
@@ -84,7 +84,7 @@ def method_psf_kernels(capture: Capture, context: RunContext, psf_sigma: float) 
 
 
 def calibrated_analyzer(context: RunContext) -> np.ndarray | None:
-    """``(12, 12)`` the calibrated analyzer (:meth:`capssim.rig.RigModel.analyzer_matrix`: row ``3n + k`` is
+    """``(12, 12)`` the calibrated analyzer (:meth:`capssim.camera.rig.RigModel.analyzer_matrix`: row ``3n + k`` is
     aperture n's polarizer in colour k), or ``None`` when there is no calibration or its analyzer is ideal."""
     calibration = context.calibration
     if calibration is None:
@@ -96,7 +96,7 @@ def calibrated_analyzer(context: RunContext) -> np.ndarray | None:
 def unmix_analyzer(image: torch.Tensor, analyzer: np.ndarray) -> torch.Tensor:
     """``x = A^-1 y`` per pixel: the ``(C, H, W)`` channels from images ``y`` that see ``A x``.
 
-    ``analyzer`` ``(C, C)``: :meth:`capssim.rig.RigModel.analyzer_matrix` (``C = 12``, rows ``3n + k``:
+    ``analyzer`` ``(C, C)``: :meth:`capssim.camera.rig.RigModel.analyzer_matrix` (``C = 12``, rows ``3n + k``:
     aperture n in colour k; block diagonal per colour, so 3 independent 4x4 systems) or one colour's
     ``(4, 4)`` block. Its exact inverse undoes the angle offsets and the finite extinction; the matrix
     is close to the identity and well conditioned (condition number about 1.15 for angle errors of
@@ -157,7 +157,7 @@ def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray
 
 def _estimated_aperture_warps(images: np.ndarray, saturated: np.ndarray, hr_shape, mode: str,
                               device) -> tuple[np.ndarray, dict]:
-    """Register the sub-images (:func:`~capssim.threads.registration_threads`: one torch thread, or under
+    """Register the sub-images (:func:`~capssim.runtime.threads.registration_threads`: one torch thread, or under
     ``auto`` the free cores for large images); the aperture homographies ``(4, 3, 3)`` and the record."""
     with registration_threads(int(images.shape[-2]) * int(images.shape[-1])):
         result = estimate_lr_homographies(images.astype(np.float32), hr_shape=hr_shape, saturated=saturated,

@@ -77,7 +77,7 @@ def rearrange_raw(raw, saturated=None, *, device="cpu", cfa: str = "RGGB") -> Ob
 
 
 def observations_from_capture(capture, *, device="cpu") -> Observations:
-    """The 16 observations of a :class:`~capssim.capture.Capture` (raw converted to [0, 1])."""
+    """The 16 observations of a :class:`~capssim.captures.capture.Capture` (raw converted to [0, 1])."""
     return rearrange_raw(capture.caps_float(), capture.caps_saturated(), device=device, cfa=capture.cfa)
 
 

@@ -24,7 +24,7 @@ Q`` is symmetric positive semi-definite where ``T`` is, so ``D`` is a descent di
 ``f`` (eq. 15), now restricted to the subspace (not its gradient: ADMM's fixed points satisfy
 ``mu (Z - X) = -D grad f``, docs: notes/caps-plus-model.md). Only the direction changes; the value ``f``, the operator ``M`` and the back-projection are
 ``cagf-agree``'s. The part of the image outside (1) (from the start or the prior) is left to the physical
-projection that ends every run (:mod:`capssim.physical_validity`). With a calibrated analyzer the variable is
+projection that ends every run (:mod:`capssim.stokes.physical_validity`). With a calibrated analyzer the variable is
 still the ideal analyzers' 12 channels (the calibration's mixing sits in the operator), so (1) holds as well.
 
 Channel order: angle-major, ``c = p K + k`` for the ``A = 4`` analyzers at 0, 45, 90 and 135 deg

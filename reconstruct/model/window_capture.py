@@ -15,8 +15,8 @@ import copy
 
 import numpy as np
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.capture import Capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.captures.capture import Capture
 from capssim.conventions import N_APERTURES
 
 __all__ = ["WINDOW_ALIGN", "aperture_offsets", "crop_window", "translation"]

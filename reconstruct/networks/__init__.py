@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.imageio import atomic_write_bytes
+from capssim.files.imageio import atomic_write_bytes
 
 from .cpdnet import CPDNet
 from .denoiser import NoiseLevelDenoiser

@@ -70,7 +70,7 @@ class FrontEnd:
 
     ``params`` are added to the record's ``params`` (e.g. ``channels``), ``extra`` to the record itself
     (e.g. ``field_of_view_weight_fraction``); ``geometry`` is the array geometry the problems were built
-    with (:class:`capssim.array_geometry.ArrayGeometry`, or ``None``).
+    with (:class:`capssim.camera.array_geometry.ArrayGeometry`, or ``None``).
     """
 
     problems: list[Problem]

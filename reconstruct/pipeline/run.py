@@ -33,8 +33,8 @@ from typing import Callable, Mapping
 import numpy as np
 import torch
 
-from capssim.allocator import reuse_freed_memory
 from capssim.conventions import N_CHANNELS
+from capssim.runtime.allocator import reuse_freed_memory
 
 from ..model.init_fusion import fuse_initial_estimate
 from ..model.observation_model import unmix_analyzer

@@ -40,7 +40,7 @@ Steps 3-4 run on chunks of about :data:`CHUNK_GROUPS` groups, whose temporaries 
 the cache. Memory is bounded by ``strip_mb``: steps 3-4 process reference rows in whole-width strips,
 and the dictionaries (step 2) are computed in rectangles of reference blocks of a fixed size (the Gram
 maps' halo then costs the same share at every image size, where thin strips of a wide image were mostly
-halo); the working set is estimated and checked (:mod:`capssim.resources`) before anything is
+halo); the working set is estimated and checked (:mod:`capssim.runtime.resources`) before anything is
 allocated. On CUDA the same code runs unchanged. The block-matching schedule across ADMM
 iterations belongs to :class:`capssim.reconstruct.priors.nlstr_prior.NLSTRPrior`.
 """
@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import torch
 
 from capssim.errors import InputError
-from capssim.resources import check_memory, check_range
+from capssim.runtime.resources import check_memory, check_range
 
 from .nlstr_blocks import (
     gather_blocks,

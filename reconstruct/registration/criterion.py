@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from capssim.errors import InputError
-from capssim.threads import adapt_threads
+from capssim.runtime.threads import adapt_threads
 
 from .image_ops import box_sum
 from .lbfgs import minimize_lbfgs

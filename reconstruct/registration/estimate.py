@@ -4,7 +4,7 @@ Estimates, from the 16 Bayer sub-images alone, the homographies ``H_m`` (HR refe
 pixel -> sub-image m pixel, ``(x=col, y=row)``) that the reconstruction needs. The Bayer
 sub-pixel offsets are known, so only the three aperture warps ``H_1..H_3`` (HR reference
 -> aperture-HR) are estimated, against the 0 deg aperture; then ``H_{4n+q} = S_q @ H_n``
-(:func:`capssim.array_geometry.lr_homographies`).
+(:func:`capssim.camera.array_geometry.lr_homographies`).
 
 Method (it replaces the paper's feature clustering, Crab-HFP); its
 options are a :class:`~capssim.reconstruct.registration.parameters.RegistrationParameters`:
@@ -35,7 +35,7 @@ and 135 deg apertures, which no intensity criterion sees, is set by the smoothne
 (:mod:`~capssim.reconstruct.registration.polarization_cue`) and a warning says so.
 
 Raw coordinates of aperture n relate to its aperture-HR coordinates by
-:func:`capssim.array_geometry.raw_matrix`: ``H_n = R^-1 G_n R`` for the estimated raw-to-raw
+:func:`capssim.camera.array_geometry.raw_matrix`: ``H_n = R^-1 G_n R`` for the estimated raw-to-raw
 matrix ``G_n``. Measurements of the choices above: ``docs/notes/registration-internals.md``.
 """
 
@@ -48,10 +48,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from capssim.array_geometry import lr_homographies as lr_from_aperture
+from capssim.camera.array_geometry import lr_homographies as lr_from_aperture
+from capssim.camera.homography import rotation_and_scale
 from capssim.conventions import N_APERTURES, N_LR_IMAGES
 from capssim.errors import InputError
-from capssim.homography import rotation_and_scale
 
 from ..filters import gaussian_blur
 from .criterion import stokes_residual_rms

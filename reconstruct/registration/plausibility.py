@@ -1,7 +1,7 @@
 """Which estimated aperture warps a camera array can have (:mod:`capssim.reconstruct.registration.estimate`).
 
 An aperture warp ``H_n = R^-1 G_n R`` (HR reference -> aperture-HR, ``R``
-:func:`capssim.array_geometry.raw_matrix`) of an estimated raw-to-raw matrix ``G_n`` is *plausible* when its
+:func:`capssim.camera.array_geometry.raw_matrix`) of an estimated raw-to-raw matrix ``G_n`` is *plausible* when its
 rotation and isotropic scale are within :class:`~capssim.reconstruct.registration.parameters.RegistrationParameters`'
 ``max_rotation_deg`` and ``1 +- max_scale_error``; larger ones are false matches.
 """
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from capssim.array_geometry import raw_matrix
-from capssim.homography import rotation_and_scale
+from capssim.camera.array_geometry import raw_matrix
+from capssim.camera.homography import rotation_and_scale
 
 from .engine import StackRegistration
 from .parameters import RegistrationParameters

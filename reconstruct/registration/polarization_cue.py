@@ -34,8 +34,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from capssim.array_geometry import raw_matrix
-from capssim.homography import rotation_and_scale
+from capssim.camera.array_geometry import raw_matrix
+from capssim.camera.homography import rotation_and_scale
 
 from .criterion import intensity_texture_ratio
 from .engine import StackRegistration

@@ -10,8 +10,8 @@ registration reads it back. The key is a SHA-256 of everything the warps depend 
   saturation mask and the HR shape;
 - the registration mode and every field of its
   :class:`~capssim.reconstruct.registration.parameters.RegistrationParameters`;
-- the registration's source code (``reconstruct/registration/*.py`` but this store, ``capssim/array_geometry.py``,
-  ``capssim/homography.py``), so that a change to the method is never answered from an old result.
+- the registration's source code (``reconstruct/registration/*.py`` but this store, ``capssim/camera/array_geometry.py``,
+  ``capssim/camera/homography.py``), so that a change to the method is never answered from an old result.
 
 A changed raw file, other sensor levels, another mode or option, or new registration code gives
 another key and registers again. The file holds that identity, the four aperture homographies
@@ -36,10 +36,10 @@ from typing import Callable
 
 import numpy as np
 
-from capssim import array_geometry, homography
+from capssim.camera import array_geometry, homography
+from capssim.camera.rig_checks import check_homographies
 from capssim.errors import CapssimError, InputError
-from capssim.imageio import atomic_write_json
-from capssim.rig_checks import check_homographies
+from capssim.files.imageio import atomic_write_json
 
 from .parameters import RegistrationParameters
 

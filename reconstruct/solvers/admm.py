@@ -31,7 +31,7 @@ from dataclasses import asdict, dataclass
 import torch
 
 from capssim.errors import InputError
-from capssim.resources import check_range
+from capssim.runtime.resources import check_range
 
 from .interfaces import (
     DataFidelity,

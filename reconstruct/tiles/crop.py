@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from capssim.capture import Capture
+from capssim.captures.capture import Capture
 
 from ..model.window_capture import aperture_offsets, crop_window, translation
 from .geometry import Tile

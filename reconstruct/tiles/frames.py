@@ -17,7 +17,7 @@ import logging
 import shutil
 from pathlib import Path
 
-from capssim.capture import read_capture, write_reconstruction
+from capssim.captures.capture import read_capture, write_reconstruction
 from capssim.errors import InputError
 
 from ..pipeline.options import wants_ground_truth

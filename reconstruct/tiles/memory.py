@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 
 from capssim.errors import InputError, ResourceError
-from capssim.resources import format_bytes, memory_limit
+from capssim.runtime.resources import format_bytes, memory_limit
 
 from .geometry import MIN_TILE, TILE_ALIGN
 
@@ -49,7 +49,7 @@ def estimate_bytes(hr_shape) -> float:
 
 def memory_budget(memory_gb: float | None) -> tuple[float, str]:
     """The budget in bytes and where it comes from: ``--memory-gb`` (GiB), else the machine's limit
-    (:func:`capssim.resources.memory_limit`: ``CAPSSIM_MEMORY_LIMIT_GB`` or 80 % of the free memory)."""
+    (:func:`capssim.runtime.resources.memory_limit`: ``CAPSSIM_MEMORY_LIMIT_GB`` or 80 % of the free memory)."""
     if memory_gb is None:
         return memory_limit()
     if not (isinstance(memory_gb, (int, float)) and math.isfinite(memory_gb) and memory_gb > 0):

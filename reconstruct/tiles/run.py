@@ -26,10 +26,10 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from capssim.capture import Capture
+from capssim.captures.capture import Capture
 from capssim.errors import InputError
-from capssim.imageio import atomic_write_bytes, atomic_write_json
-from capssim.physical_validity import project_to_physical
+from capssim.files.imageio import atomic_write_bytes, atomic_write_json
+from capssim.stokes.physical_validity import project_to_physical
 
 from ..calibration_model import resolve_calibration
 from ..model.observation_model import method_geometry

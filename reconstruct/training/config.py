@@ -21,10 +21,10 @@
     checkpoint_every: 50
 
 Every key has a default except ``model.network``, ``input`` and ``data.dataset``. The file is checked
-on load against :data:`TOP_SPEC` and the model's :data:`MODEL_SPECS` (``capssim.schema``: unknown keys
+on load against :data:`TOP_SPEC` and the model's :data:`MODEL_SPECS` (``capssim.files.schema``: unknown keys
 with a "Did you mean" hint, types, ranges), then the memory of the model's weights; ``capssim train``
 adds the batch's activations when it trains on the CPU (:func:`check_model_memory`). A mistake is a
-one-line :class:`~capssim.schema.ConfigError` naming the file and the key.
+one-line :class:`~capssim.files.schema.ConfigError` naming the file and the key.
 """
 
 from __future__ import annotations
@@ -36,8 +36,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from capssim.errors import InputError, UnknownNameError
-from capssim.resources import MEMORY_LIMIT_ENV, check_memory
-from capssim.schema import (
+from capssim.files.schema import (
     AnyMapping,
     Boolean,
     ConfigError,
@@ -51,6 +50,7 @@ from capssim.schema import (
     load_yaml_file,
     validate,
 )
+from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_memory
 
 from ..networks import NETWORKS
 from .pairs import INPUT_KINDS

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 
 from capssim.dataset.torch import CaptureDataset
 from capssim.errors import InputError
-from capssim.imageio import atomic_write_bytes, atomic_write_json
+from capssim.files.imageio import atomic_write_bytes, atomic_write_json
 
 from ..methods.dofp_jcpd import demosaic_dofp_jcpd
 from ..priors.sparse_coding import constant_atoms, joint_dictionary, learn_dictionary

@@ -31,8 +31,8 @@ from capssim.dataset.config import load_config
 from capssim.dataset.generate import dataset_is_finished, generate_dataset
 from capssim.dataset.torch import CaptureDataset
 from capssim.errors import InputError
-from capssim.imageio import atomic_write_bytes, atomic_write_json, atomic_write_text
-from capssim.resources import check_memory
+from capssim.files.imageio import atomic_write_bytes, atomic_write_json, atomic_write_text
+from capssim.runtime.resources import check_memory
 
 from ..networks import build_network, save_model, unreadable_reason
 from .config import DICTIONARY_MODEL, TrainConfig, learning_rate

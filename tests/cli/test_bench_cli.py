@@ -8,12 +8,12 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from capssim.capture import write_capture
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture
 from capssim.cli import app
 from capssim.eval.benchmarks.suite import BenchRun
 from capssim.eval.suite_report import results_page, write_results_page
 from capssim.eval.synthetic import texture_scene
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SUBJECTS = ("suite", "reconstruct", "registration", "dofp", "render", "dataset")

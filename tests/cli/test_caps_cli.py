@@ -11,8 +11,8 @@ from capssim.cli import app
 
 @pytest.fixture(scope="module")
 def capture_dir(tmp_path_factory):
-    from capssim.capture import write_capture
-    from capssim.sensor import make_sensor
+    from capssim.camera.sensor import make_sensor
+    from capssim.captures.capture import write_capture
     from capssim.simulate import simulate_capture
 
     rng = np.random.default_rng(0)
@@ -23,7 +23,7 @@ def capture_dir(tmp_path_factory):
 
 
 def test_reconstruct_writes_tiff_and_json(capture_dir):
-    from capssim.imageio import read_tiff
+    from capssim.files.imageio import read_tiff
 
     res = CliRunner().invoke(app, ["reconstruct", str(capture_dir), "-m", "caps", "-m", "caps-no-nlstr",
                                    "--true-warps", "--iterations", "3", "-p", "c2=0.02", "--no-progress"])

@@ -158,7 +158,7 @@ def test_tokyotech_scores_definitions(scene64):
     assert scores["psnr_s0"] == pytest.approx(40.0, abs=1e-4)  # S0 as the mean of the angles
     assert scores["psnr_s1"] == PSNR_CAP_DB  # S1 = I0 - I90 is unchanged by a common offset
     # AoP error wraps around: 179 deg vs 1 deg is a 2 deg error
-    from capssim.polarization import twelve_from_stokes
+    from capssim.stokes.polarization import twelve_from_stokes
 
     def scene(aop_deg):
         a = np.deg2rad(2 * aop_deg)

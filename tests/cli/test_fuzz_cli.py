@@ -24,13 +24,13 @@ from hypothesis import given
 from hypothesis import strategies as st
 from support.fuzz import NEVER_VALID, PEAK_GROWTH_LIMIT, fuzz_settings, invoke, odd_values, peak_rss_bytes
 
-from capssim.capture import write_capture
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture
 from capssim.eval.star import sinusoidal_star
-from capssim.imageio import write_tiff
+from capssim.files.imageio import write_tiff
 from capssim.reconstruct.methods.caps import CapsOptions
 from capssim.reconstruct.registry import run_method
-from capssim.resources import MEMORY_LIMIT_ENV
-from capssim.sensor import make_sensor
+from capssim.runtime.resources import MEMORY_LIMIT_ENV
 from capssim.simulate import simulate_capture
 
 #: the numeric -p options of the CAPS methods (their types from the defaults)

@@ -65,10 +65,10 @@ schedule: {steps: 1}
 @pytest.fixture(scope="module")
 def template(tmp_path_factory, write_gt_folder) -> Path:
     """``cap/`` (a 32 px capture, float frames), ``scored/`` (with dofp-bilinear), ``raw.png``, ``big.png``."""
-    from capssim.capture import write_capture
-    from capssim.imageio import read_gt_scene
+    from capssim.camera.sensor import make_sensor
+    from capssim.captures.capture import write_capture
+    from capssim.files.imageio import read_gt_scene
     from capssim.reconstruct import run_method
-    from capssim.sensor import make_sensor
     from capssim.simulate import prepare_ground_truth, simulate_capture
 
     folder = tmp_path_factory.mktemp("commands")
@@ -204,7 +204,7 @@ def test_valid_options_are_unchanged_by_the_checks(template, tmp_path):
     """The checks before the work change no number: ``caps`` through the command line equals the library's."""
     from typer.testing import CliRunner
 
-    from capssim.capture import read_capture
+    from capssim.captures.capture import read_capture
     from capssim.cli import app
     from capssim.reconstruct import reconstruct
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from support.fuzz import run_cli
 
-from capssim.resources import MEMORY_LIMIT_ENV, check_image_memory, image_header_shape
+from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_image_memory, image_header_shape
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 HUGE = 20000

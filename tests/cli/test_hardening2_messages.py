@@ -48,11 +48,11 @@ schedule: {steps: 1}
 def template(tmp_path_factory, write_gt_folder) -> Path:
     """``cap/`` (a 32 px capture), broken model files, a training config and a run folder with a broken
     checkpoint."""
-    from capssim.capture import write_capture
-    from capssim.imageio import read_gt_scene
+    from capssim.camera.sensor import make_sensor
+    from capssim.captures.capture import write_capture
+    from capssim.files.imageio import read_gt_scene
     from capssim.reconstruct.networks import MODEL_FORMAT, MODEL_VERSION
     from capssim.reconstruct.training.trainer import CHECKPOINT
-    from capssim.sensor import make_sensor
     from capssim.simulate import prepare_ground_truth, simulate_capture
 
     folder = tmp_path_factory.mktemp("messages")

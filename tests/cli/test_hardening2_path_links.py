@@ -16,7 +16,7 @@ import pytest
 from support.fuzz import run_cli
 
 from capssim.errors import InputError
-from capssim.imageio import atomic_write_text, read_tiff, write_png, write_tiff
+from capssim.files.imageio import atomic_write_text, read_tiff, write_png, write_tiff
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ import pytest
 from support.fuzz import one_error_line, run_cli
 
 from capssim.errors import InputError
-from capssim.output_paths import check_files_in, follow_links, resolve_output, write_error
+from capssim.files.output_paths import check_files_in, follow_links, resolve_output, write_error
 
 
 @dataclass(frozen=True)
@@ -46,9 +46,9 @@ def leftovers(folder: Path) -> list[str]:
 @pytest.fixture(scope="module")
 def template(tmp_path_factory, write_gt_folder) -> Path:
     """``gt/`` (64 px PNGs), ``cap/`` (its 32 px capture) and ``raw.png`` (a 32 px mosaic), built once."""
-    from capssim.capture import write_capture
-    from capssim.imageio import read_gt_scene
-    from capssim.sensor import make_sensor
+    from capssim.camera.sensor import make_sensor
+    from capssim.captures.capture import write_capture
+    from capssim.files.imageio import read_gt_scene
     from capssim.simulate import prepare_ground_truth, simulate_capture
 
     folder = tmp_path_factory.mktemp("paths")

@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from capssim.capture import read_meta, write_capture
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_meta, write_capture
 from capssim.cli import main
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
 from capssim.errors import CaptureFormatError, InputError
-from capssim.imageio import _HOST_TAG, atomic_directory, atomic_write_text, remove_stale_temporaries
+from capssim.files.imageio import _HOST_TAG, atomic_directory, atomic_write_text, remove_stale_temporaries
 from capssim.render.scene_base import _coerce_param
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 
@@ -192,7 +192,7 @@ def test_homographies_that_disagree_are_still_refused(capture_dir):
 # -- leftovers -----------------------------------------------------------------------------------------------
 KILLED_WRITER = """
 import os, signal, sys
-from capssim.imageio import atomic_directory
+from capssim.files.imageio import atomic_directory
 with atomic_directory(sys.argv[1]) as tmp:
     (tmp / "half-written.tiff").write_bytes(b"x" * 100)
     os.kill(os.getpid(), signal.SIGKILL)

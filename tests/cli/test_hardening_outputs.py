@@ -12,14 +12,14 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from capssim.capture import write_capture, write_reconstruction
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture, write_reconstruction
 from capssim.cli import app
 from capssim.eval import plots as P
 from capssim.eval.evaluate import EstimateScore
 from capssim.eval.metric_records import flatten
 from capssim.eval.metrics import PSNR_CAP_DB, psnr, score
 from capssim.eval.suite_report import TABLE_LEGEND, dark_scene_line, results_table
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 from capssim.visualize import panel_figure, preview_panel
 

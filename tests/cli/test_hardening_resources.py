@@ -13,20 +13,20 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from capssim.camera_setup import CameraSetup
-from capssim.capture import Capture
+from capssim.camera.camera_setup import CameraSetup
+from capssim.camera.homography import random_aperture_homographies
+from capssim.camera.psf import PSF
+from capssim.camera.sensor import NoNoiseSensor
+from capssim.captures.capture import Capture
 from capssim.cli import app
 from capssim.errors import InputError, ResourceError
 from capssim.eval.metric_records import json_safe
 from capssim.eval.metrics import check_thresholds, score
-from capssim.homography import random_aperture_homographies
-from capssim.psf import PSF
 from capssim.reconstruct.model.observation_model import method_psf
 from capssim.reconstruct.priors.nlstr import NLSTRParameters, NonlocalSparseTensor
 from capssim.render.pinhole_array import RigTolerances
 from capssim.render.settings import RenderSettings
-from capssim.resources import MEMORY_LIMIT_ENV, available_memory_bytes, check_memory, memory_limit
-from capssim.sensor import NoNoiseSensor
+from capssim.runtime.resources import MEMORY_LIMIT_ENV, available_memory_bytes, check_memory, memory_limit
 from capssim.simulate import prepare_ground_truth, simulate_capture
 
 runner = CliRunner()
@@ -261,8 +261,8 @@ def test_freed_memory_the_process_keeps_counts_as_available(monkeypatch):
     it as available, the guard does (else NLSTR's re-check refuses mid-run what the process already holds)."""
     import torch
 
-    import capssim.resources as resources
-    from capssim.allocator import _glibc, held_free_bytes, reuse_freed_memory
+    import capssim.runtime.resources as resources
+    from capssim.runtime.allocator import _glibc, held_free_bytes, reuse_freed_memory
 
     monkeypatch.setattr(resources, "held_free_bytes", lambda: 0)
     system = available_memory_bytes()

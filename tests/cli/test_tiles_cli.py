@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from support.fuzz import invoke
 
-from capssim.capture import write_capture
-from capssim.imageio import read_tiff
+from capssim.captures.capture import write_capture
+from capssim.files.imageio import read_tiff
 from capssim.simulate import simulate_capture
 
 FAST = ["--iterations", "2", "--true-warps", "--no-progress"]

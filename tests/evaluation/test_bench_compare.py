@@ -15,7 +15,7 @@ from capssim.errors import InputError
 from capssim.eval.benchmarks.compare import load_run_records, paired_rows, summarize
 from capssim.eval.benchmarks.suite_schema import check_suite, load_suite
 from capssim.eval.suite_report import TUNED_MARK, paired_section, results_table, tuned_labels
-from capssim.schema import ConfigError
+from capssim.files.schema import ConfigError
 
 
 def _record(scene, noise, method, psnr, dolp=None, seed=0):

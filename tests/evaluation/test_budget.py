@@ -7,11 +7,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from capssim.capture import Capture
+from capssim.camera.psf import PSF
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import Capture
 from capssim.eval.error_budget import findings
 from capssim.eval.error_budget.oracles import capture_mismatch, model_exact_capture
-from capssim.psf import PSF
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 

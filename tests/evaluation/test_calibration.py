@@ -10,7 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.capture import read_capture, write_capture
+from capssim.camera.homography import registration_error_hr_px
+from capssim.camera.rig import RigModel, write_rig_json
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.dataset.calibration_captures import make_calibration_captures, polarized_field, sweep_angles
 from capssim.errors import InputError
 from capssim.eval.calibration import calibrate_captures
@@ -18,12 +21,9 @@ from capssim.eval.calibration.flat_field import fit_flat_field
 from capssim.eval.calibration.malus import fit_malus
 from capssim.eval.calibration.psf_fit import lanczos_warp
 from capssim.eval.metrics import score
-from capssim.homography import registration_error_hr_px
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.data_term import ConfidenceDataTerm
 from capssim.reconstruct.model.rearrange import rearrange_raw
-from capssim.rig import RigModel, write_rig_json
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 128
@@ -110,7 +110,7 @@ def test_lanczos_warp_is_exact_for_integer_shifts():
 def test_calibrated_data_term_is_the_adjoint_of_its_forward(rig):
     obs = rearrange_raw(np.random.default_rng(0).random((4, 16, 16)).astype(np.float32))
     obs.images, obs.weights = obs.images.double(), obs.weights.double()
-    from capssim.array_geometry import ArrayGeometry
+    from capssim.camera.array_geometry import ArrayGeometry
     from capssim.operators import lr_sampling_operator
 
     geo = ArrayGeometry(np.tile(np.eye(3), (4, 1, 1)), (32, 32))
@@ -183,7 +183,7 @@ def test_reconstruct_refuses_bad_calibrations(scene_capture, tmp_path):
     with pytest.raises(InputError, match="--calibration"):
         reconstruct(scene_capture, "caps-naive", calibration=str(tmp_path / "nope.json"))
     small = write_rig_json(tmp_path / "small.json", RigModel.ideal(),
-                           geometry=__import__("capssim.array_geometry", fromlist=["ArrayGeometry"]).ArrayGeometry(
+                           geometry=__import__("capssim.camera.array_geometry", fromlist=["ArrayGeometry"]).ArrayGeometry(
                                np.tile(np.eye(3), (4, 1, 1)), (64, 64)))
     with pytest.raises(InputError, match="HR size"):
         reconstruct(scene_capture, "caps-naive", calibration=str(small))
@@ -235,7 +235,7 @@ def test_dataset_config_rig_form(tmp_path):
     from capssim.dataset.config import load_config, rig_model
 
     gt = tmp_path / "gt.tiff"
-    from capssim.imageio import write_tiff
+    from capssim.files.imageio import write_tiff
 
     write_tiff(gt, polarized_field(32, 0.3, 10.0))
     text = (f"seed: 1\nsamples: 1\ndefaults: {{rig: {{preset: realistic, seed: 2, gain: [1.05, 0.95, 1.0, 1.0]}}}}\n"

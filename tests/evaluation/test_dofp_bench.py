@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from capssim.conventions import dofp_channel_map
-from capssim.imageio import read_gt_scene
+from capssim.files.imageio import read_gt_scene
 
 
 def _scene_and_mosaic(shared_data, name):

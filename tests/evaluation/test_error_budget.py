@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from capssim.camera.psf import PSF
+from capssim.camera.sensor import make_sensor
 from capssim.cli import app
 from capssim.eval.error_budget import budget_report, ladder, runner
 from capssim.eval.error_budget.oracles import model_exact_capture
 from capssim.eval.evaluate import CaptureScorer
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
-from capssim.psf import PSF
 from capssim.reconstruct.registry import reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 FAST_CAPS = {"name": "caps", "options": {"iterations": 2}, "registration": "local-correlation"}

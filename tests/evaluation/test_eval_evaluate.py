@@ -9,14 +9,14 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from capssim.capture import write_capture, write_reconstruction
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture, write_reconstruction
 from capssim.cli import app
 from capssim.errors import CaptureFormatError, InputError
 from capssim.eval.evaluate import evaluate_capture
 from capssim.eval.mtf import sinusoidal_star
 from capssim.eval.synthetic import synthetic_scene
-from capssim.imageio import write_tiff
-from capssim.sensor import make_sensor
+from capssim.files.imageio import write_tiff
 from capssim.simulate import simulate_capture
 
 runner = CliRunner()

@@ -132,7 +132,7 @@ def test_cli_reports_and_writes_an_aligned_tiff(tmp_path, shifted_scene_of):
     from typer.testing import CliRunner
 
     from capssim.cli import app
-    from capssim.imageio import read_gt_scene, write_tiff
+    from capssim.files.imageio import read_gt_scene, write_tiff
 
     src = tmp_path / "moved.tiff"
     write_tiff(src, shifted_scene_of(0.25, 0.0))

@@ -11,7 +11,7 @@ import torch
 from capssim.errors import InputError, UnknownNameError
 from capssim.eval.metric_records import flatten, metric_direction
 from capssim.eval.metrics import PSNR_CAP_DB, crop_border, score
-from capssim.polarization import twelve_from_stokes
+from capssim.stokes.polarization import twelve_from_stokes
 
 
 def _stokes_scene(s0, dolp, aop_deg, size=32):

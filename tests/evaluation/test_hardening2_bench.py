@@ -24,7 +24,7 @@ from capssim.cli import app
 from capssim.errors import InputError
 from capssim.eval.benchmarks.output_claim import LOCK_NAME, OWNER_NAME, claim_output
 from capssim.eval.benchmarks.suite import load_suite
-from capssim.schema import ConfigError
+from capssim.files.schema import ConfigError
 
 SUITE = """\
 name: tiny-h2

@@ -1,4 +1,4 @@
-"""``capssim.allocator.reuse_freed_memory``: switches glibc malloc for a block, restores it, never changes results."""
+"""``capssim.runtime.allocator.reuse_freed_memory``: switches glibc malloc for a block, restores it, never changes results."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import sys
 import numpy as np
 import pytest
 
-from capssim import allocator
+from capssim.camera.sensor import make_sensor
 from capssim.reconstruct.registry import reconstruct
-from capssim.sensor import make_sensor
+from capssim.runtime import allocator
 from capssim.simulate import simulate_capture
 
 

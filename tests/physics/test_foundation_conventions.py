@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.array_geometry import lr_homographies, raw_matrix, sub_image_matrix
+from capssim.camera.array_geometry import lr_homographies, raw_matrix, sub_image_matrix
+from capssim.camera.homography import apply_homography, registration_error_hr_px, rotation_and_scale, similarity
 from capssim.conventions import (
     CHANNEL_NAMES,
     LR_IMAGE_CHANNELS,
@@ -18,7 +19,6 @@ from capssim.conventions import (
     lr_image_name,
 )
 from capssim.errors import InputError
-from capssim.homography import apply_homography, registration_error_hr_px, rotation_and_scale, similarity
 from capssim.operators import DoFPMosaic
 
 

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from capssim.design import DesignInputs, system_design
+from capssim.camera.design import DesignInputs, system_design
 from capssim.errors import InputError
 
 

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.array_geometry import ArrayGeometry
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.homography import random_aperture_homographies, similarity
+from capssim.camera.psf import airy_psf_kernel, gaussian_psf_kernel
 from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
-from capssim.homography import random_aperture_homographies, similarity
 from capssim.operators import (
     Analyzer,
     BayerMosaic,
@@ -33,7 +34,6 @@ from capssim.operators import (
     lr_sampling_operator,
     operator_norm_estimate,
 )
-from capssim.psf import airy_psf_kernel, gaussian_psf_kernel
 
 TOL = 1e-10
 HR = (24, 32)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from capssim.errors import InputError
-from capssim.polarization import (
+from capssim.stokes.polarization import (
     angle_difference_deg,
     aop_deg,
     dark_mask,

@@ -5,8 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from capssim.errors import InputError, UnknownNameError
-from capssim.sensor import (
+from capssim.camera.sensor import (
     SENSOR_PRESETS,
     GaussianSensor,
     NoNoiseSensor,
@@ -15,6 +14,7 @@ from capssim.sensor import (
     noise_sigma_estimate,
     sensor_from_meta,
 )
+from capssim.errors import InputError, UnknownNameError
 
 
 @pytest.mark.parametrize("preset", sorted(SENSOR_PRESETS))

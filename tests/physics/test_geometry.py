@@ -1,4 +1,4 @@
-"""capssim.array_geometry: the 16 sub-image homographies are derived once from the 4 aperture ones,
+"""capssim.camera.array_geometry: the 16 sub-image homographies are derived once from the 4 aperture ones,
 and a meta.json whose 16 and 4 disagree is refused with a message that says how to fix it."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from capssim.array_geometry import ArrayGeometry, lr_homographies, raw_matrix, sub_image_matrix
-from capssim.capture import read_capture, write_capture
+from capssim.camera.array_geometry import ArrayGeometry, lr_homographies, raw_matrix, sub_image_matrix
+from capssim.camera.homography import apply_homography, similarity
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.errors import CaptureFormatError, InputError
-from capssim.homography import apply_homography, similarity
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 

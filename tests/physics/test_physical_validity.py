@@ -1,12 +1,12 @@
-"""The projection onto physically valid intensities (capssim.physical_validity) and its use in reconstruct."""
+"""The projection onto physically valid intensities (capssim.stokes.physical_validity) and its use in reconstruct."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from capssim.physical_validity import project_to_physical
-from capssim.polarization import dolp, stokes_from_12, twelve_from_stokes
+from capssim.stokes.physical_validity import project_to_physical
+from capssim.stokes.polarization import dolp, stokes_from_12, twelve_from_stokes
 
 
 def _random_valid(rng, shape=(8, 8)) -> np.ndarray:
@@ -80,8 +80,8 @@ def test_bad_shape_is_refused():
 
 
 def test_reconstruct_records_the_projection_and_can_skip_it(scene64):
+    from capssim.camera.sensor import make_sensor
     from capssim.reconstruct.registry import reconstruct
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     tiny_capture = simulate_capture(scene64, make_sensor("gaussian", sigma=0.05), seed=1)
@@ -103,8 +103,8 @@ def test_reconstruct_records_the_projection_and_can_skip_it(scene64):
 def test_caps_on_a_fully_polarized_scene_is_never_negative(smooth_random_scene):
     """Issue 21 case 4: caps on a DoLP = 1 scene went down to -0.41; its output is now valid."""
 
+    from capssim.camera.sensor import make_sensor
     from capssim.reconstruct.registry import reconstruct
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     gt = smooth_random_scene(32, seed=4, dolp_max=1.0)

@@ -1,4 +1,4 @@
-"""The imperfect-rig model (capssim.rig) and the operators built from it: exact adjoints, ideal = today."""
+"""The imperfect-rig model (capssim.camera.rig) and the operators built from it: exact adjoints, ideal = today."""
 
 from __future__ import annotations
 
@@ -9,9 +9,20 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.array_geometry import ArrayGeometry
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.homography import random_aperture_homographies
+from capssim.camera.psf import gaussian_psf_kernel
+from capssim.camera.rig import (
+    RigModel,
+    analyzer_row,
+    normalised_raw_coordinates,
+    polarizer_reading,
+    radial_vignetting,
+    read_rig_json,
+    vignetting_design,
+    write_rig_json,
+)
 from capssim.errors import InputError
-from capssim.homography import random_aperture_homographies
 from capssim.operators import (
     BayerSplit,
     Convolve,
@@ -21,17 +32,6 @@ from capssim.operators import (
     caps_raw_operator,
     lr_observation_operator,
     lr_sampling_operator,
-)
-from capssim.psf import gaussian_psf_kernel
-from capssim.rig import (
-    RigModel,
-    analyzer_row,
-    normalised_raw_coordinates,
-    polarizer_reading,
-    radial_vignetting,
-    read_rig_json,
-    vignetting_design,
-    write_rig_json,
 )
 
 HR = (32, 40)

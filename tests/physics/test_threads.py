@@ -8,8 +8,8 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from capssim import threads
 from capssim.errors import InputError
+from capssim.runtime import threads
 
 COMMANDS = (["reconstruct"], ["simulate"], ["render"], ["demosaic"], ["dataset"], ["bench", "suite"],
             ["bench", "reconstruct"], ["bench", "registration"], ["bench", "dofp"], ["bench", "render"],

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import CapssimError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.analyzer_agreement import agreement_confidence_mix, analyzer_agreement
 from capssim.reconstruct.model.data_term import confidence_mix
 from capssim.reconstruct.model.polarization_split import angle_mean, split_confidence_mix
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 48

@@ -11,9 +11,9 @@ from capssim.reconstruct.solvers.admm import ADMMParameters, admm, mu_schedule
 def tiny_capture(size=48, sigma=0.01, seed=0):
     from scipy.ndimage import gaussian_filter
 
-    from capssim.polarization import twelve_from_stokes
-    from capssim.sensor import make_sensor
+    from capssim.camera.sensor import make_sensor
     from capssim.simulate import simulate_capture
+    from capssim.stokes.polarization import twelve_from_stokes
 
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:size, 0:size] / size

@@ -97,7 +97,7 @@ def test_align_recovers_shift_and_resize_positions():
 def test_cagf_confidence_shape():
     rng = np.random.default_rng(3)
     images = torch.as_tensor(rng.random((16, 6, 6)), dtype=torch.float32)
-    from capssim.array_geometry import lr_homographies
+    from capssim.camera.array_geometry import lr_homographies
     from capssim.conventions import LR_IMAGE_CHANNELS
 
     hm = lr_homographies(np.stack([np.eye(3)] * 4))

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.array_geometry import ArrayGeometry, lr_homographies
+from capssim.camera.array_geometry import ArrayGeometry, lr_homographies
+from capssim.camera.homography import similarity
+from capssim.camera.psf import gaussian_psf_kernel
 from capssim.conventions import LR_IMAGE_CHANNELS
 from capssim.errors import InputError
-from capssim.homography import similarity
 from capssim.operators.camera import lr_sampling_operator
-from capssim.psf import gaussian_psf_kernel
 from capssim.reconstruct.model.data_term import ConfidenceDataTerm, confidence_mix, field_of_view_mask
 from capssim.reconstruct.model.rearrange import Observations
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from capssim.array_geometry import raw_matrix
+from capssim.camera.array_geometry import raw_matrix
 from capssim.reconstruct.model.init_fusion import fuse_initial_estimate, normalized_convolution, sample_positions, splat
 from capssim.reconstruct.model.rearrange import observations_from_capture
 
@@ -12,7 +12,7 @@ from capssim.reconstruct.model.rearrange import observations_from_capture
 def scene(size=64, seed=0):
     from scipy.ndimage import gaussian_filter
 
-    from capssim.polarization import twelve_from_stokes
+    from capssim.stokes.polarization import twelve_from_stokes
 
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:size, 0:size] / size
@@ -24,7 +24,7 @@ def scene(size=64, seed=0):
 
 
 def capture(gt, sigma=0.0, seed=0, **pose):
-    from capssim.sensor import make_sensor
+    from capssim.camera.sensor import make_sensor
     from capssim.simulate import PoseRanges, simulate_capture
 
     sensor = make_sensor("gaussian", sigma=sigma) if sigma else make_sensor("none")
@@ -54,7 +54,7 @@ def bicubic_per_image(cap):
 
 
 def test_sample_positions_of_reference_r_image():
-    from capssim.array_geometry import lr_homographies
+    from capssim.camera.array_geometry import lr_homographies
 
     hm = lr_homographies(np.stack([np.eye(3)] * 4))
     pos = sample_positions(hm, (4, 5))

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.reconstruct.methods.caps import CapsOptions
 from capssim.reconstruct.registry import reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
 
 METHODS = ["caps", "caps-no-cagf", "caps-no-nlstr", "caps-iccp"]
@@ -18,7 +18,7 @@ METHODS = ["caps", "caps-no-cagf", "caps-no-nlstr", "caps-iccp"]
 def scene(h=48, w=48, seed=0, level=1.0):
     from scipy.ndimage import gaussian_filter
 
-    from capssim.polarization import twelve_from_stokes
+    from capssim.stokes.polarization import twelve_from_stokes
 
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:h, 0:w] / max(h, w)

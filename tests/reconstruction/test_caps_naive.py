@@ -10,10 +10,10 @@ import tifffile
 import torch
 import torch.nn.functional as F
 
-from capssim.capture import write_capture
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture
 from capssim.errors import CapssimError, InputError, UnknownNameError
 from capssim.reconstruct.registry import reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 
@@ -79,7 +79,7 @@ def test_smooth_scene_with_true_warps_is_accurate(correlated_scene):
     # registration matters: ignoring the warps (all identity) must be clearly worse
     import copy
 
-    from capssim.array_geometry import ArrayGeometry
+    from capssim.camera.array_geometry import ArrayGeometry
 
     shifted = copy.deepcopy(capture)
     identity = ArrayGeometry.identity(capture.hr_shape).to_meta()  # identity aperture warps

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import CapssimError
 from capssim.eval.metrics import score
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.methods.caps_plus import frame_iterations, noise_adaptive_iterations, raw_noise_sigma
 from capssim.reconstruct.model.data_term import confidence_mix
 from capssim.reconstruct.model.polarization_split import angle_mean, split_confidence_mix
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 48

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import CapssimError, InputError
-from capssim.physical_validity import project_to_physical
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.polarization_filter import apply_chosen_filter
 from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, denoiser_dtype
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
+from capssim.stokes.physical_validity import project_to_physical
 
 SIZE = 40
 

@@ -38,7 +38,7 @@ def test_rearrange_channels_weights_and_capture_agree():
     assert obs.images_per_channel().tolist() == [1, 2, 1] * 4  # the two G images stay separate
     assert obs.weights[5, 0, 0] == 0 and obs.weights.sum() == obs.weights.numel() - 1
     # same split as Capture.lr_images
-    from capssim.capture import Capture
+    from capssim.captures.capture import Capture
 
     cap = Capture.__new__(Capture)
     cap.meta = {"geometry": {"raw_height": 8, "raw_width": 12}, "sensor": {"model": "none"}}

@@ -267,9 +267,9 @@ def test_tensor_in_tensor_out_and_float64(scene64):
 # -- registry path -------------------------------------------------------------------------------------
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_methods_run_through_the_registry(tmp_path, scene64, layout):
-    from capssim.capture import list_reconstructions, write_capture
+    from capssim.camera.sensor import make_sensor
+    from capssim.captures.capture import list_reconstructions, write_capture
     from capssim.reconstruct.registry import available_methods, run_method
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     capture = simulate_capture(scene64, make_sensor("none"), seed=0, psf={"type": "none"}, dofp_layout=layout)
@@ -281,8 +281,8 @@ def test_methods_run_through_the_registry(tmp_path, scene64, layout):
         assert record["wall_time_s"] > 0 and record["stages_s"]
         assert all(v >= 0 for v in record["stages_s"].values())
     assert set(METHODS) <= set(list_reconstructions(path))
-    from capssim.imageio import read_tiff
-    from capssim.physical_validity import project_to_physical
+    from capssim.files.imageio import read_tiff
+    from capssim.stokes.physical_validity import project_to_physical
 
     out = read_tiff(path / "recon" / "dofp-bilinear.tiff")
     expected = demosaic_dofp_bilinear(capture.dofp_float(), layout=layout)
@@ -293,8 +293,8 @@ def test_methods_run_through_the_registry(tmp_path, scene64, layout):
 
 
 def test_eari_options_through_the_registry(scene64):
+    from capssim.camera.sensor import make_sensor
     from capssim.reconstruct.registry import reconstruct
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     capture = simulate_capture(scene64, make_sensor("gaussian", sigma=0.02), seed=1, psf={"type": "none"})
@@ -313,9 +313,9 @@ def test_eari_options_through_the_registry(scene64):
     ("dofp-igri2", {"eps": "nan"}, "eps.*finite"),
 ])
 def test_dofp_methods_reject_unknown_or_bad_options(scene64, method, options, match):
+    from capssim.camera.sensor import make_sensor
     from capssim.errors import UnknownNameError
     from capssim.reconstruct.registry import reconstruct
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     capture = simulate_capture(scene64, make_sensor("none"), seed=1, psf={"type": "none"})

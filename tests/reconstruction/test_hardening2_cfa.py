@@ -17,14 +17,14 @@ import numpy as np
 import pytest
 from support.fuzz import invoke
 
-from capssim.array_geometry import lr_homographies
-from capssim.capture import Capture, read_capture, write_capture
+from capssim.camera.array_geometry import lr_homographies
+from capssim.camera.rig import RigModel, write_rig_json
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import Capture, read_capture, write_capture
 from capssim.conventions import CFA_FLIPS, COLOURS, flip_to_rggb, lr_image_channels
 from capssim.errors import InputError
-from capssim.imageio import read_tiff
+from capssim.files.imageio import read_tiff
 from capssim.reconstruct.registry import reconstruct
-from capssim.rig import RigModel, write_rig_json
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 

@@ -19,7 +19,7 @@ import pytest
 import torch
 from support.fuzz import invoke
 
-from capssim.capture import read_capture
+from capssim.captures.capture import read_capture
 from capssim.reconstruct.model import observation_model
 from capssim.reconstruct.registration.store import warps_problem
 from capssim.reconstruct.registry import RunContext, StageTimer

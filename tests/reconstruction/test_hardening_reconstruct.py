@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from capssim.capture import Capture, build_meta, read_capture, write_capture
+from capssim.camera.sensor import make_sensor, sensor_from_meta
+from capssim.captures.capture import Capture, build_meta, read_capture, write_capture
 from capssim.errors import CapssimError, CaptureFormatError
 from capssim.reconstruct.registry import finite_or_null, reconstruct
 from capssim.reconstruct.solvers.interfaces import DivergenceError
-from capssim.sensor import make_sensor, sensor_from_meta
 from capssim.simulate import simulate_capture
 
 

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.conventions import split_bayer
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.holdout import HoldoutValidation, fill_held_out, holdout_mask, split_held_out
 from capssim.reconstruct.solvers.admm import ADMMParameters, admm
 from capssim.reconstruct.solvers.descent import steepest_descent
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 48

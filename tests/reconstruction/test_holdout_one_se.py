@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.holdout import HoldoutValidation
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SAMPLES = 4000

@@ -193,8 +193,8 @@ def test_bad_dictionaries_are_refused(tmp_path, scene64):
 # -- registry ----------------------------------------------------------------------------------------
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_runs_through_the_registry(layout, scene64):
+    from capssim.camera.sensor import make_sensor
     from capssim.reconstruct.registry import available_methods, reconstruct
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     assert available_methods()["dofp-jcpd"].input_kind == "dofp"

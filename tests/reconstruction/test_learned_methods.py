@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.eval.metrics import score
 from capssim.reconstruct.networks import build_network, save_model
 from capssim.reconstruct.registry import reconstruct
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 

@@ -16,6 +16,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.data_term import ConfidenceDataTerm
@@ -27,7 +28,6 @@ from capssim.reconstruct.pipeline import (
     register_data_term,
     register_prior,
 )
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 48

@@ -81,9 +81,9 @@ def package(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def capture_folder(tmp_path_factory):
-    from capssim.capture import write_capture
+    from capssim.camera.sensor import make_sensor
+    from capssim.captures.capture import write_capture
     from capssim.eval.synthetic import texture_scene
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     folder = tmp_path_factory.mktemp("capture") / "cap"
@@ -169,8 +169,8 @@ def registered():
 
 @pytest.fixture(scope="module")
 def capture():
+    from capssim.camera.sensor import make_sensor
     from capssim.eval.synthetic import texture_scene
-    from capssim.sensor import make_sensor
     from capssim.simulate import simulate_capture
 
     return simulate_capture(texture_scene(32, seed=1)[0], make_sensor("gaussian", sigma=0.01), seed=1)

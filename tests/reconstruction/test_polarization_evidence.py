@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.observation_model import unmix_analyzer
 from capssim.reconstruct.model.polarization_evidence import STRUCTURE_THRESHOLD, stokes_inconsistency_ratio
 from capssim.reconstruct.model.polarization_filter import UNSTRUCTURED_FILTER, filter_polarization
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 ANGLES = torch.tensor([0.0, 45.0, 90.0, 135.0]) * torch.pi / 180

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.holdout import HoldoutValidation
@@ -16,7 +17,6 @@ from capssim.reconstruct.model.polarization_filter import (
     choose_polarization_filter,
     filter_polarization,
 )
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 

@@ -17,11 +17,13 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_filter
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.capture import read_capture, write_capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.homography import random_aperture_homographies
+from capssim.camera.rig import RigModel, write_rig_json
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.errors import InputError
 from capssim.eval.metrics import score
-from capssim.homography import random_aperture_homographies
 from capssim.operators.camera import lr_sampling_operator
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.methods.caps_iccp import aperture_sampling_operator
@@ -29,8 +31,6 @@ from capssim.reconstruct.methods.caps_naive import demosaic_apertures
 from capssim.reconstruct.model.data_term import ConfidenceDataTerm
 from capssim.reconstruct.model.observation_model import unmix_analyzer
 from capssim.reconstruct.model.rearrange import Observations, rearrange_raw
-from capssim.rig import RigModel, write_rig_json
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 64  # HR pixels

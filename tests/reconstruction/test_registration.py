@@ -7,7 +7,9 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_filter
 
-from capssim.capture import write_capture
+from capssim.camera.homography import registration_error_hr_px
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture
 from capssim.errors import InputError, UnknownNameError
 from capssim.eval.benchmarks.registration import (
     content_lr_homographies,
@@ -15,14 +17,12 @@ from capssim.eval.benchmarks.registration import (
     run_registration_bench,
 )
 from capssim.eval.synthetic import star_scene
-from capssim.homography import registration_error_hr_px
-from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registration import estimate_lr_homographies
 from capssim.reconstruct.registration.engine import register_stack, stokes_residual_rms
 from capssim.reconstruct.registration.image_ops import box_sum
 from capssim.reconstruct.registration.parameters import RegistrationParameters
-from capssim.sensor import make_sensor
 from capssim.simulate import PoseRanges, simulate_capture
+from capssim.stokes.polarization import twelve_from_stokes
 
 
 def textured_scene(size=128, *, seed=0, dolp=0.0, sigma=1.5):

@@ -9,14 +9,14 @@ from scipy.ndimage import gaussian_filter
 
 import capssim.reconstruct.registration.engine as core
 import capssim.reconstruct.registration.estimate as registration
+from capssim.camera.homography import registration_error_hr_px, similarity
+from capssim.camera.sensor import Sensor
 from capssim.errors import InputError, UnknownNameError
-from capssim.homography import registration_error_hr_px, similarity
-from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct.registration import estimate_lr_homographies
 from capssim.reconstruct.registration.luminance import mosaic_from_sub_images, ri_binomial_luminance
 from capssim.reconstruct.registration.parameters import RegistrationParameters, registration_parameters
-from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
+from capssim.stokes.polarization import twelve_from_stokes
 
 SHIFTS = [(0.0, 0.0), (0.3, -0.7), (1.25, 0.5), (-0.6, 1.1)]
 TRANSLATION = RegistrationParameters(model="translation")

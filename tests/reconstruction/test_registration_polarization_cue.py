@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
+from capssim.camera.homography import similarity
+from capssim.camera.sensor import Sensor
 from capssim.errors import InputError
-from capssim.homography import similarity
-from capssim.polarization import twelve_from_stokes
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.registration import RegistrationParameters, estimate_lr_homographies
-from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
+from capssim.stokes.polarization import twelve_from_stokes
 
 SIZE = 128
 #: 45 and 135 deg share a motion of about 2.5 HR px, which flat S0 hides from the intensity criteria

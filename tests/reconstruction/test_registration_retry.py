@@ -12,12 +12,12 @@ import torch
 from scipy.ndimage import gaussian_filter
 
 import capssim.reconstruct.registration.estimate as registration
+from capssim.camera.homography import registration_error_hr_px, similarity
+from capssim.camera.sensor import Sensor
 from capssim.errors import InputError
-from capssim.homography import registration_error_hr_px, similarity
 from capssim.reconstruct.registration import estimate_lr_homographies
 from capssim.reconstruct.registration.engine import params_to_matrices
 from capssim.reconstruct.registration.parameters import RegistrationParameters
-from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 128

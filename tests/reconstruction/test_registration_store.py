@@ -10,8 +10,8 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from capssim.capture import read_capture
-from capssim.imageio import read_tiff, write_tiff
+from capssim.captures.capture import read_capture
+from capssim.files.imageio import read_tiff, write_tiff
 from capssim.reconstruct.model import observation_model
 from capssim.reconstruct.registration import store as registration_store
 from capssim.reconstruct.registry import RunContext, StageTimer

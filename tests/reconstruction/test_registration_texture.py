@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from capssim.homography import similarity
-from capssim.polarization import twelve_from_stokes
+from capssim.camera.homography import similarity
+from capssim.camera.sensor import Sensor
 from capssim.reconstruct.registration import estimate_lr_homographies
 from capssim.reconstruct.registration.polarization_cue import POLARIZATION_ONLY_TEXTURE
-from capssim.sensor import Sensor
 from capssim.simulate import simulate_capture
+from capssim.stokes.polarization import twelve_from_stokes
 
 SIZE = 128
 SHIFTS = [(0.0, 0.0), (0.8, -0.6), (-1.1, 0.4), (0.5, 1.2)]

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 import torch
 
+from capssim.camera.sensor import make_sensor
 from capssim.errors import CapssimError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.analyzer_agreement import agreement_confidence_mix
 from capssim.reconstruct.model.stokes_subspace import STOKES_NULL_VECTOR, stokes_projection
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 SIZE = 48

@@ -196,7 +196,7 @@ def test_warps_registered_on_a_window_are_the_whole_frames(capture128, monkeypat
     """The window's warps, re-based to the frame, are the frame's: with a registration that returns the true
     warps of the cropped apertures, the composition gives back the frame's true warps exactly."""
     import capssim.reconstruct.tiles.run as tiles_run
-    from capssim.array_geometry import ArrayGeometry
+    from capssim.camera.array_geometry import ArrayGeometry
     from capssim.reconstruct.run_context import RunContext, StageTimer
 
     truth = capture128.aperture_homographies()

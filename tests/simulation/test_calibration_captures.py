@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from capssim.capture import read_capture
+from capssim.camera.rig import RigModel, read_rig_json
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture
 from capssim.dataset.calibration_captures import (
     FLAT_LEVEL,
     POLARIZER_LEVEL,
@@ -22,8 +24,6 @@ from capssim.dataset.calibration_captures import (
     sweep_angles,
 )
 from capssim.errors import InputError
-from capssim.rig import RigModel, read_rig_json
-from capssim.sensor import make_sensor
 
 SIZE = 64
 ANGLES = 4

@@ -1,4 +1,4 @@
-"""One camera set-up value (capssim.camera_setup.CameraSetup): simulate, render, the dataset writer and
+"""One camera set-up value (capssim.camera.camera_setup.CameraSetup): simulate, render, the dataset writer and
 calibration captures write the same meta.json "setup" block; old meta.json files load; bad values
 give one-line errors; the command-line options are declared once."""
 
@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from capssim.camera_setup import SEED_RULE, CameraSetup, sensor_from_mapping
-from capssim.capture import read_capture, write_capture
+from capssim.camera.camera_setup import SEED_RULE, CameraSetup, sensor_from_mapping
+from capssim.camera.psf import DEFAULT_PSF, PSF
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.errors import InputError
-from capssim.imageio import write_tiff
-from capssim.psf import DEFAULT_PSF, PSF
-from capssim.sensor import make_sensor
+from capssim.files.imageio import write_tiff
 from capssim.simulate import simulate_capture
 
 #: one set-up, as a user writes it in YAML (a dataset's defaults, a suite) or in Python
@@ -136,7 +136,7 @@ def test_defaults_and_round_trips():
 
 
 def test_datasets_spell_the_sensor_as_the_setup_does():
-    from capssim.camera_setup import SENSOR_KEYS, SETUP_KEYS
+    from capssim.camera.camera_setup import SENSOR_KEYS, SETUP_KEYS
     from capssim.dataset.config_specs import SENSOR_SPEC, SHARED_KEYS
 
     assert tuple(SENSOR_SPEC.fields) == SENSOR_KEYS

@@ -13,7 +13,7 @@ import pytest
 from capssim.dataset import ConfigError, load_config, parse_config
 from capssim.dataset.augment import rotate_flip_twelve
 from capssim.dataset.distributions import key_rng
-from capssim.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
+from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
 REPO = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
@@ -196,7 +196,7 @@ def test_rot90_and_flip_move_polarization_angles(smooth_random_scene):
     # a horizontally polarized scene (AoP 0) turned a quarter is vertically polarized (AoP 90)
     s = np.zeros((3, 3, 8, 8))
     s[0], s[1] = 1.0, 0.5
-    from capssim.polarization import twelve_from_stokes
+    from capssim.stokes.polarization import twelve_from_stokes
 
     turned = stokes_from_12(rotate_flip_twelve(twelve_from_stokes(s), rot90=1))
     assert np.allclose(aop_deg(turned[:, 0]), 90.0)

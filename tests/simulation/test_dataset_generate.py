@@ -160,7 +160,7 @@ def test_rendered_sources_go_through_render_capture(tmp_path, monkeypatch, recor
     """With a stand-in render_capture (simulate underneath), scene samples get the drawn
     parameters, record_timing=False, and byte-identical regeneration."""
     import capssim.dataset.sample as sample_module
-    from capssim.psf import DEFAULT_PSF, PSF
+    from capssim.camera.psf import DEFAULT_PSF, PSF
     from capssim.simulate import simulate_capture
 
     calls = []

@@ -9,13 +9,13 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from capssim.array_geometry import ArrayGeometry, lr_homographies
+from capssim.camera.array_geometry import ArrayGeometry, lr_homographies
+from capssim.camera.psf import gaussian_psf_kernel
 from capssim.dataset import load_config
 from capssim.dataset.generate import generate_dataset
 from capssim.dataset.torch import CaptureDataset, crop_homographies
 from capssim.errors import CaptureFormatError, InputError
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
-from capssim.psf import gaussian_psf_kernel
 
 
 @pytest.fixture(scope="module")

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from capssim.capture import list_reconstructions, read_capture, write_capture, write_reconstruction
+from capssim.camera.homography import random_aperture_homographies
+from capssim.camera.sensor import GaussianSensor, NoNoiseSensor, make_sensor
+from capssim.captures.capture import list_reconstructions, read_capture, write_capture, write_reconstruction
 from capssim.conventions import bayer_channel_map, dofp_channel_map
 from capssim.errors import CaptureFormatError, InputError
-from capssim.homography import random_aperture_homographies
-from capssim.imageio import read_gt_scene
-from capssim.measurement import CameraArrayMeasurement, seed_streams
-from capssim.sensor import GaussianSensor, NoNoiseSensor, make_sensor
+from capssim.files.imageio import read_gt_scene
+from capssim.operators.measurement import CameraArrayMeasurement, seed_streams
 from capssim.simulate import PoseRanges, prepare_ground_truth, simulate_capture
 
 CLI = [sys.executable, "-m", "capssim.cli.__main__"]
@@ -38,7 +38,7 @@ def _write_png_scene(folder: Path, gt12: np.ndarray, bits: int = 8) -> Path:
 
 def _by_hand_raw(gt: np.ndarray, meta: dict) -> np.ndarray:
     """An independent implementation (scipy) of the documented model, from meta.json alone."""
-    from capssim.psf import gaussian_psf_kernel
+    from capssim.camera.psf import gaussian_psf_kernel
 
     hh, ww = gt.shape[1:]
     kernel = gaussian_psf_kernel(meta["psf"]["sigma_hr_px"])
@@ -66,7 +66,7 @@ def test_noise_free_capture_reproduced_by_hand(smooth_random_scene, tmp_path):
     back = read_capture(tmp_path / "cap")
     np.testing.assert_allclose(back.caps_raw, _by_hand_raw(back.gt, back.meta), atol=2e-6)
     # reference aperture R = 2x2 box of the PSF-blurred GT red channel at 0 deg
-    from capssim.psf import gaussian_psf_kernel
+    from capssim.camera.psf import gaussian_psf_kernel
 
     red = ndimage.correlate(back.gt[0].astype(np.float64), gaussian_psf_kernel(0.5), mode="nearest")
     box = red.reshape(24, 2, 24, 2).mean(axis=(1, 3))
@@ -213,7 +213,7 @@ def test_capture_round_trip_and_corruption(smooth_random_scene, tmp_path):
 
 def test_failed_write_leaves_nothing_behind(smooth_random_scene, tmp_path, monkeypatch):
     cap = simulate_capture(smooth_random_scene(32), NoNoiseSensor(), seed=0)
-    import capssim.capture as capture_mod
+    import capssim.captures.capture as capture_mod
 
     def boom(*a, **k):
         raise RuntimeError("disk full")

@@ -4,7 +4,7 @@ A valid 16 px capture is mutated one way per example: a ``meta.json`` field set 
 value (wrong type, null, NaN, inf, huge numbers, lists for objects, objects for lists) or
 deleted, the whole ``meta.json`` replaced, or one of its TIFFs replaced by an array of another
 shape or dtype, by truncated or corrupted bytes, or by bytes that are not a TIFF. Reading it
-(:func:`capssim.capture.read_capture`) and using what was read (raw frames as floats, Bayer
+(:func:`capssim.captures.capture.read_capture`) and using what was read (raw frames as floats, Bayer
 sub-images, homographies; then ``dofp-bilinear`` and one iteration of ``caps``) must succeed or
 raise a :class:`~capssim.errors.CapssimError` with a one-line message. The process's address
 space is capped (:func:`support.fuzz.address_space_headroom`), so a huge allocation fails here.
@@ -25,11 +25,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 from support.fuzz import PEAK_GROWTH_LIMIT, address_space_headroom, fuzz_settings, one_line_error, peak_rss_bytes
 
-from capssim.capture import read_capture, write_capture
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.errors import CapssimError
 from capssim.reconstruct.registry import reconstruct
-from capssim.resources import MEMORY_LIMIT_ENV
-from capssim.sensor import make_sensor
+from capssim.runtime.resources import MEMORY_LIMIT_ENV
 from capssim.simulate import simulate_capture
 
 FILES = ("caps_raw.tiff", "dofp_raw.tiff", "gt.tiff")

@@ -21,7 +21,7 @@ from support.fuzz import PEAK_GROWTH_LIMIT, address_space_headroom, fuzz_setting
 
 from capssim.dataset import load_config
 from capssim.dataset.sample import check_sample
-from capssim.resources import MEMORY_LIMIT_ENV
+from capssim.runtime.resources import MEMORY_LIMIT_ENV
 
 VALID = {
     "name": "fuzz", "seed": 3, "samples": 2, "selection": "cycle",

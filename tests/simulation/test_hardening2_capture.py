@@ -19,11 +19,11 @@ import numpy as np
 import pytest
 from support.fuzz import invoke
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.capture import read_capture, write_capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.rig import RigModel, read_rig_json, write_rig_json
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.errors import CaptureFormatError, InputError
-from capssim.rig import RigModel, read_rig_json, write_rig_json
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 

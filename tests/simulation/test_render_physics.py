@@ -11,12 +11,12 @@ import pytest
 import torch
 
 import capssim.render  # noqa: F401  (sets DRJIT_LIBLLVM_PATH)
-from capssim.polarization import angle_difference_deg, aop_deg, dolp
 from capssim.render.integrator import render_view
 from capssim.render.mitsuba_plugins import register_plugins
 from capssim.render.pinhole_array import PinholeCamera, look_at_rotation
 from capssim.render.spectral import CameraResponse
 from capssim.render.variants import select_variant
+from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp
 
 
 def _variant(spectral: bool, polarized: bool = True):
@@ -145,9 +145,9 @@ def test_smooth_dielectric_dolp_follows_fresnel_over_incidence():
 
 
 def test_aop_wheel_ground_truth_equals_analytic():
-    from capssim.polarization import stokes_from_12
     from capssim.render import render_capture
     from capssim.scenes import get_scene
+    from capssim.stokes.polarization import stokes_from_12
 
     size = 32
     cap = render_capture("aop-wheel", size=size, spp=16, psf={"type": "none"})

@@ -11,11 +11,11 @@ import pytest
 import torch
 
 import capssim.scenes
-from capssim.capture import read_capture, write_capture
+from capssim.camera.sensor import GaussianSensor
+from capssim.captures.capture import read_capture, write_capture
 from capssim.errors import InputError, UnknownNameError
 from capssim.render import RenderSettings, list_scenes, render_capture
 from capssim.render.scene_registry import register
-from capssim.sensor import GaussianSensor
 
 REQUIRED_SCENES = {"siemens-star", "polarization-star", "aop-wheel", "dolp-ramp", "materials", "window-reflection",
                    "water-glare", "colorchecker", "textured"}

@@ -11,16 +11,16 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.capture import CaptureFormatError, read_capture, write_capture
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.homography import random_aperture_homographies
+from capssim.camera.rig import RigModel, write_rig_json
+from capssim.camera.sensor import GaussianSensor, NoNoiseSensor
+from capssim.captures.capture import CaptureFormatError, read_capture, write_capture
 from capssim.cli import app
 from capssim.conventions import BAYER_OFFSETS, BAYER_SITE_COLOUR, POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
-from capssim.homography import random_aperture_homographies
-from capssim.imageio import write_tiff
-from capssim.measurement import CameraArrayMeasurement
-from capssim.rig import RigModel, write_rig_json
-from capssim.sensor import GaussianSensor, NoNoiseSensor
+from capssim.files.imageio import write_tiff
+from capssim.operators.measurement import CameraArrayMeasurement
 from capssim.simulate import simulate_capture
 
 torch.set_num_threads(1)

@@ -11,12 +11,12 @@ import torch
 
 pytest.importorskip("mitsuba")
 
-from capssim.capture import read_capture  # noqa: E402
+from capssim.camera.psf import PSF  # noqa: E402
+from capssim.camera.rig import RigModel  # noqa: E402
+from capssim.camera.sensor import NoNoiseSensor  # noqa: E402
+from capssim.captures.capture import read_capture  # noqa: E402
 from capssim.errors import InputError  # noqa: E402
-from capssim.psf import PSF  # noqa: E402
 from capssim.render import render_capture  # noqa: E402
-from capssim.rig import RigModel  # noqa: E402
-from capssim.sensor import NoNoiseSensor  # noqa: E402
 from capssim.simulate import simulate_capture  # noqa: E402
 
 torch.set_num_threads(1)
@@ -57,7 +57,7 @@ def test_render_with_a_rig_agrees_with_simulate_through_the_same_rig(ramp):
 
 
 def test_rendered_meta_holds_the_true_rig(ramp, tmp_path):
-    from capssim.capture import write_capture
+    from capssim.captures.capture import write_capture
 
     assert ramp.meta["rig"] == RIG.to_dict()
     back = read_capture(write_capture(tmp_path / "cap", ramp))

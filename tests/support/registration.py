@@ -7,11 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.array_geometry import lr_homographies
-from capssim.capture import write_capture
+from capssim.camera.array_geometry import lr_homographies
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture
 from capssim.reconstruct.model import observation_model
 from capssim.reconstruct.registration import RegistrationResult
-from capssim.sensor import make_sensor
 from capssim.simulate import simulate_capture
 
 

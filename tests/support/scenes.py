@@ -23,7 +23,7 @@ def smooth_random_scene(size: int = 64, *, seed: int = 0, dolp_max: float = 0.6)
     a = np.pi * gaussian_filter(rng.random((size, size)), 4.0) * 2
     s1 = s0 * d * np.cos(2 * a)
     s2 = s0 * d * np.sin(2 * a)
-    from capssim.polarization import twelve_from_stokes
+    from capssim.stokes.polarization import twelve_from_stokes
 
     return twelve_from_stokes(np.stack([s0, s1, s2])).astype(np.float32)
 

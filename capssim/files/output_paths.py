@@ -10,7 +10,7 @@ result cannot be written to is refused *before* the computation, never after it:
 
 An ``OSError`` while writing (a full disk, a read-only file system, a name too long) becomes an
 :class:`~capssim.errors.InputError` naming the path and the error (:func:`write_error`); the atomic
-writers of :mod:`capssim.imageio` remove their temporaries before raising it.
+writers of :mod:`capssim.files.imageio` remove their temporaries before raising it.
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 The fields (docs: guides/captures.md, "Capture folder format"): the geometry and the 16 sub-image
 homographies, the conventions, the camera set-up (the ``"setup"`` block of
-:class:`capssim.camera_setup.CameraSetup`, and the keys the readers use: ``sensor``, ``psf``,
+:class:`capssim.camera.camera_setup.CameraSetup`, and the keys the readers use: ``sensor``, ``psf``,
 ``dofp_layout``, ``extinction_ratio``, ``rig``), the seed, the source and the software versions.
 """
 
@@ -14,9 +14,13 @@ import platform
 import numpy as np
 
 from capssim import __version__
-from capssim.array_geometry import ArrayGeometry
-from capssim.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup
-from capssim.capture_schema import CAPTURE_KINDS, MetaSchemaError, check_meta_schema
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup
+from capssim.camera.psf import PSF
+from capssim.camera.rig import RigModel
+from capssim.camera.rig_checks import check_homographies
+from capssim.camera.sensor import sensor_from_meta
+from capssim.captures.capture_schema import CAPTURE_KINDS, MetaSchemaError, check_meta_schema
 from capssim.conventions import (
     BAYER_OFFSETS,
     BAYER_SITE_COLOUR,
@@ -30,12 +34,8 @@ from capssim.conventions import (
     dofp_layout,
 )
 from capssim.errors import CaptureFormatError, InputError, UnknownNameError
-from capssim.psf import PSF
-from capssim.rig import RigModel
-from capssim.rig_checks import check_homographies
-from capssim.sensor import sensor_from_meta
 
-SCHEMA = "capssim.capture"
+SCHEMA = "capssim.captures.capture"
 SCHEMA_VERSION = 1
 
 
@@ -86,7 +86,7 @@ def build_meta(*, kind: str, hr_shape: tuple[int, int], aperture_homographies: n
     if kind not in CAPTURE_KINDS:
         raise InputError("kind", kind, f"one of {CAPTURE_KINDS}")
     if not isinstance(setup, CameraSetup):
-        raise InputError("setup", type(setup).__name__, "a capssim.camera_setup.CameraSetup")
+        raise InputError("setup", type(setup).__name__, "a capssim.camera.camera_setup.CameraSetup")
     hh, ww = (int(v) for v in hr_shape)
     geometry = (aperture_homographies if isinstance(aperture_homographies, ArrayGeometry)
                 else ArrayGeometry(aperture_homographies, (hh, ww)))
@@ -179,7 +179,7 @@ def _validate_sensor(sensor: dict) -> None:
 
 
 def validate_meta(meta: dict, *, path=None) -> None:
-    """Check a ``meta.json`` dictionary: its schema (:mod:`capssim.capture_schema`), then its values.
+    """Check a ``meta.json`` dictionary: its schema (:mod:`capssim.captures.capture_schema`), then its values.
 
     Parameters
     ----------

@@ -34,7 +34,7 @@ import numpy as np
 
 from capssim.conventions import N_CHANNELS
 from capssim.errors import InputError
-from capssim.polarization import split_12, stokes_from_intensities, twelve_from_stokes
+from capssim.stokes.polarization import split_12, stokes_from_intensities, twelve_from_stokes
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,7 @@ heap pages are handed back (``malloc_trim``). ``CAPSSIM_REUSE_FREED_MEMORY=0`` i
 turns it off. Measurements: docs/notes/reconstruction-speed.md.
 
 The memory kept this way is the process's own: :func:`held_free_bytes` says how much, and the memory guard
-(:func:`capssim.resources.available_memory_bytes`) counts it as available, since the system's
+(:func:`capssim.runtime.resources.available_memory_bytes`) counts it as available, since the system's
 ``MemAvailable`` does not (at 1024² a ``caps`` run holds about 1 GiB of freed heap when NLSTR re-checks
 its 0.7 GiB working set).
 """

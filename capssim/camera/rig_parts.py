@@ -1,5 +1,5 @@
 """The parts of an imperfect camera array, one at a time: a linear polarizer at any angle with a finite
-extinction ratio, and the smooth vignetting map of a camera (:class:`capssim.rig.RigModel` composes them).
+extinction ratio, and the smooth vignetting map of a camera (:class:`capssim.camera.rig.RigModel` composes them).
 
 Analyzer at an arbitrary angle (from the four stored angles). The 12-channel image holds
 ``I(a)`` at ``a`` in (0, 45, 90, 135); with ``S0 = (I0+I45+I90+I135)/2``, ``S1 = I0-I90``,

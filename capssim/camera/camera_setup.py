@@ -8,19 +8,19 @@ quantity, one default each:
 
 * ``sensor``: ``{noise, sigma, preset, exposure, bit_depth, ...}``, the noise model ``noise``
   (``none``, ``gaussian``, ``poisson-gaussian``; default :data:`DEFAULT_NOISE`), the Gaussian std
-  ``sigma`` on [0, 1] full scale, an EMVA 1288 ``preset`` (:data:`~capssim.sensor.SENSOR_PRESETS`;
+  ``sigma`` on [0, 1] full scale, an EMVA 1288 ``preset`` (:data:`~capssim.camera.sensor.SENSOR_PRESETS`;
   default :data:`DEFAULT_SENSOR_PRESET`) and the fields that replace the preset's;
 * ``psf_sigma_hr_px``: the Gaussian optical PSF's std in HR pixels (0 = no blur; default
-  :data:`~capssim.psf.DEFAULT_SIGMA_HR_PX`), or ``psf``: any PSF as ``meta.json["psf"]`` spells it
+  :data:`~capssim.camera.psf.DEFAULT_SIGMA_HR_PX`), or ``psf``: any PSF as ``meta.json["psf"]`` spells it
   (e.g. ``{type: airy, f_number, wavelength_nm, hr_pixel_um}``);
 * ``dofp_layout``: the DoFP 2x2 polarizer cell, by name or ``[[a, b], [c, d]]`` degrees (default
   :data:`DEFAULT_DOFP_LAYOUT`, the Sony IMX250MYR's ``[[90, 45], [135, 0]]``);
 * ``extinction_ratio``: ``T_max / T_min`` of the polarizers (>= 1; default ``null``, ideal);
-* ``rig``: an imperfect array (:class:`~capssim.rig.RigModel`), a preset draw
-  ``{preset, seed, <overrides>}`` or :meth:`RigModel.to_dict <capssim.rig.RigModel.to_dict>`'s
+* ``rig``: an imperfect array (:class:`~capssim.camera.rig.RigModel`), a preset draw
+  ``{preset, seed, <overrides>}`` or :meth:`RigModel.to_dict <capssim.camera.rig.RigModel.to_dict>`'s
   mapping (default ``null``, the ideal array).
 
-The seed rule (:data:`SEED_RULE`, :func:`capssim.measurement.seed_streams`) is part of the set-up;
+The seed rule (:data:`SEED_RULE`, :func:`capssim.operators.measurement.seed_streams`) is part of the set-up;
 the seed itself names one capture and stays ``meta.json["seed"]``. A rendered capture's
 ``meta.json["psf"]`` is ``none`` (its PSF is already in ``gt.tiff``); its set-up's ``psf`` is the
 optical PSF the renderer applied.
@@ -31,11 +31,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, replace
 
-from capssim.conventions import DEFAULT_DOFP_LAYOUT, dofp_layout_name
-from capssim.errors import InputError, UnknownNameError
-from capssim.psf import DEFAULT_PSF, DEFAULT_SIGMA_HR_PX, PSF, as_psf
-from capssim.rig import RigModel
-from capssim.sensor import (
+from capssim.camera.psf import DEFAULT_PSF, DEFAULT_SIGMA_HR_PX, PSF, as_psf
+from capssim.camera.rig import RigModel
+from capssim.camera.sensor import (
     DEFAULT_NOISE,
     DEFAULT_SENSOR_PRESET,
     NOISE_MODELS,
@@ -47,8 +45,10 @@ from capssim.sensor import (
     make_sensor,
     sensor_from_meta,
 )
+from capssim.conventions import DEFAULT_DOFP_LAYOUT, dofp_layout_name
+from capssim.errors import InputError, UnknownNameError
 
-#: how one seed becomes the random streams of a capture (:func:`capssim.measurement.seed_streams`)
+#: how one seed becomes the random streams of a capture (:func:`capssim.operators.measurement.seed_streams`)
 SEED_RULE = "numpy SeedSequence(seed).spawn(3): aperture poses, CAPS sensor noise, DoFP sensor noise"
 #: the keys of a set-up mapping (YAML, the ``meta.json`` "setup" block)
 SETUP_KEYS = ("sensor", "psf_sigma_hr_px", "psf", "dofp_layout", "extinction_ratio", "rig", "seed_rule")
@@ -62,9 +62,9 @@ __all__ = ["DEFAULT_DOFP_LAYOUT", "DEFAULT_NOISE", "DEFAULT_SENSOR_PRESET", "DEF
 
 
 def sensor_from_mapping(mapping, *, where: str = "sensor") -> Sensor:
-    """The :class:`~capssim.sensor.Sensor` of a ``sensor`` mapping: ``noise`` (the model; ``model`` in
+    """The :class:`~capssim.camera.sensor.Sensor` of a ``sensor`` mapping: ``noise`` (the model; ``model`` in
     ``meta.json`` files written before the set-up block), then ``preset`` (poisson-gaussian: its
-    :data:`~capssim.sensor.SENSOR_PRESETS` entry, default :data:`DEFAULT_SENSOR_PRESET`) and the fields
+    :data:`~capssim.camera.sensor.SENSOR_PRESETS` entry, default :data:`DEFAULT_SENSOR_PRESET`) and the fields
     that replace it. Errors name ``where`` and the key."""
     if not isinstance(mapping, dict):
         raise InputError(where, f"{type(mapping).__name__} {mapping!r}"[:80], "a mapping such as {noise: gaussian, "
@@ -143,9 +143,9 @@ class CameraSetup:
     Parameters
     ----------
     sensor : Sensor
-        Sensor and noise (:func:`~capssim.sensor.make_sensor`); default no noise.
+        Sensor and noise (:func:`~capssim.camera.sensor.make_sensor`); default no noise.
     psf : PSF or dict, optional
-        A :class:`~capssim.psf.PSF`, a ``meta.json`` PSF mapping or None for :data:`~capssim.psf.DEFAULT_PSF`.
+        A :class:`~capssim.camera.psf.PSF`, a ``meta.json`` PSF mapping or None for :data:`~capssim.camera.psf.DEFAULT_PSF`.
     dofp_layout : str
         The DoFP camera's mosaic layout, kept as its canonical name.
     extinction_ratio : float, optional
@@ -163,12 +163,12 @@ class CameraSetup:
     def __post_init__(self):
         set_ = object.__setattr__
         if not isinstance(self.sensor, Sensor):
-            raise InputError("setup sensor", type(self.sensor).__name__, "a capssim.sensor.Sensor",
-                             "Build one with capssim.sensor.make_sensor, or use CameraSetup.from_mapping.")
+            raise InputError("setup sensor", type(self.sensor).__name__, "a capssim.camera.sensor.Sensor",
+                             "Build one with capssim.camera.sensor.make_sensor, or use CameraSetup.from_mapping.")
         try:
             set_(self, "psf", as_psf(self.psf))
         except (InputError, TypeError, ValueError) as exc:
-            raise InputError("setup psf", repr(self.psf)[:80], f"a capssim.psf.PSF or a PSF mapping ({exc})") from None
+            raise InputError("setup psf", repr(self.psf)[:80], f"a capssim.camera.psf.PSF or a PSF mapping ({exc})") from None
         set_(self, "dofp_layout", _checked(dofp_layout_name, self.dofp_layout, "setup dofp_layout"))
         set_(self, "extinction_ratio", _extinction_ratio(self.extinction_ratio, "setup extinction_ratio"))
         set_(self, "rig", _rig(self.rig, "setup rig"))
@@ -280,7 +280,7 @@ def _psf_from_mapping(mapping: dict, where: str) -> PSF:
 
 def as_setup(setup: "CameraSetup | Sensor | None" = None, *, psf=None, dofp_layout=None, extinction_ratio=None,
              rig: RigModel | None = None) -> CameraSetup:
-    """``setup`` as a :class:`CameraSetup`: a set-up, a bare :class:`~capssim.sensor.Sensor` (the rest
+    """``setup`` as a :class:`CameraSetup`: a set-up, a bare :class:`~capssim.camera.sensor.Sensor` (the rest
     default) or ``None`` (the default set-up); the options that are not ``None`` replace its fields
     (the keyword arguments of :func:`capssim.simulate.simulate_capture` before the set-up value)."""
     if setup is None or isinstance(setup, Sensor):
@@ -288,7 +288,7 @@ def as_setup(setup: "CameraSetup | Sensor | None" = None, *, psf=None, dofp_layo
     elif isinstance(setup, CameraSetup):
         base = setup
     else:
-        raise InputError("setup", type(setup).__name__, "a capssim.camera_setup.CameraSetup, a capssim.sensor.Sensor "
+        raise InputError("setup", type(setup).__name__, "a capssim.camera.camera_setup.CameraSetup, a capssim.camera.sensor.Sensor "
                          "or None", "Build one with CameraSetup.from_mapping({...}).")
     changes = {k: v for k, v in (("psf", psf), ("dofp_layout", dofp_layout), ("extinction_ratio", extinction_ratio),
                                  ("rig", rig)) if v is not None}

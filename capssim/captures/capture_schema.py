@@ -1,9 +1,9 @@
 """The schema of a capture's ``meta.json`` (docs: guides/captures.md, "Capture folder format").
 
-:func:`check_meta_schema` is the first step of :func:`capssim.capture_meta.validate_meta`: the JSON
+:func:`check_meta_schema` is the first step of :func:`capssim.captures.capture_meta.validate_meta`: the JSON
 types and ranges of every field capssim reads, and the fields it cannot honour refused
 (docs: guides/limits.md). A problem raises :class:`MetaSchemaError`, one line naming the file and
-the key (``kind`` ``meta.json``; a :class:`~capssim.schema.ConfigError` and a
+the key (``kind`` ``meta.json``; a :class:`~capssim.files.schema.ConfigError` and a
 :class:`~capssim.errors.CaptureFormatError` both, so older callers still catch it).
 
 Decisions per field (honoured or refused):
@@ -38,7 +38,7 @@ from capssim.conventions import (
     lr_image_channels,
 )
 from capssim.errors import CaptureFormatError, InputError
-from capssim.schema import (
+from capssim.files.schema import (
     AnyMapping,
     ConfigError,
     Custom,
@@ -134,7 +134,7 @@ LR_IMAGE_SPEC = Tolerant({
     "homography": Free(),
 }, required=("homography",), what="an lr_images entry (index, aperture, polarizer_deg, ..., homography)")
 
-#: the sensor's model; its other keys are checked by :func:`capssim.sensor.sensor_from_meta`
+#: the sensor's model; its other keys are checked by :func:`capssim.camera.sensor.sensor_from_meta`
 SENSOR_SPEC = Mapping({"model": String()}, required=("model",), extra=Free(),
                       what="an object with a string 'model' (none, gaussian or poisson-gaussian)")
 

@@ -9,9 +9,9 @@ holds what the camera model needs to describe it, and nothing else:
 * ``gain`` ``(4,)``: the flat-field response at the raw frame centre (1 = nominal);
 * ``vignetting`` ``(4, 15)``: a smooth map per aperture, a 2-D polynomial of degree <= 4 in
   normalised raw coordinates (:data:`VIGNETTING_MONOMIALS`), 1 at the frame centre;
-* ``psf``: four PSF specs (:meth:`capssim.psf.PSF.to_spec`), or ``None`` for the capture's one PSF.
+* ``psf``: four PSF specs (:meth:`capssim.camera.psf.PSF.to_spec`), or ``None`` for the capture's one PSF.
 
-The parts (:mod:`capssim.rig_parts`): a polarizer at an arbitrary angle, read from the four stored
+The parts (:mod:`capssim.camera.rig_parts`): a polarizer at an arbitrary angle, read from the four stored
 angles (exact for physically consistent images, and the stored channel itself at a nominal angle, so
 an ideal rig gives today's operator bit for bit), with a finite extinction ratio; and the vignetting
 polynomial.
@@ -33,13 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.conventions import BAYER_OFFSETS, BAYER_SITE_COLOUR, N_APERTURES, N_CHANNELS, POLARIZER_ANGLES_DEG
-from capssim.errors import InputError
-from capssim.imageio import atomic_write_text
-from capssim.psf import PSF
-from capssim.rig_checks import RIG_FILE_SPEC, check_homographies, check_vignetting
-from capssim.rig_parts import (  # noqa: F401  (re-exported: the rig's parts, capssim.rig's public names)
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.psf import PSF
+from capssim.camera.rig_checks import RIG_FILE_SPEC, check_homographies, check_vignetting
+from capssim.camera.rig_parts import (  # noqa: F401  (re-exported: the rig's parts, capssim.camera.rig's public names)
     N_VIGNETTING_TERMS,
     VIGNETTING_MONOMIALS,
     analyzer_row,
@@ -49,7 +46,10 @@ from capssim.rig_parts import (  # noqa: F401  (re-exported: the rig's parts, ca
     radial_vignetting,
     vignetting_design,
 )
-from capssim.schema import load_json_file, validate
+from capssim.conventions import BAYER_OFFSETS, BAYER_SITE_COLOUR, N_APERTURES, N_CHANNELS, POLARIZER_ANGLES_DEG
+from capssim.errors import InputError
+from capssim.files.imageio import atomic_write_text
+from capssim.files.schema import load_json_file, validate
 
 RIG_FORMAT, RIG_FORMAT_VERSION = "capssim-rig", 1
 
@@ -106,7 +106,7 @@ class RigModel:
     gain, vignetting : numpy.ndarray
         ``(4,)`` flat-field response at the frame centre; ``(4, 15)`` polynomial vignetting coefficients.
     psf : tuple, optional
-        Four PSF specs (:meth:`capssim.psf.PSF.to_spec`), or None for the capture's one PSF.
+        Four PSF specs (:meth:`capssim.camera.psf.PSF.to_spec`), or None for the capture's one PSF.
     """
 
     angle_offsets_deg: np.ndarray = field(default_factory=lambda: np.zeros(N_APERTURES))
@@ -260,7 +260,7 @@ class RigModel:
                          for m in range(4 * N_APERTURES)])
 
     def psf_objects(self) -> list[PSF] | None:
-        """The four apertures' :class:`~capssim.psf.PSF`, or ``None`` (the capture's one PSF)."""
+        """The four apertures' :class:`~capssim.camera.psf.PSF`, or ``None`` (the capture's one PSF)."""
         return None if self.psf is None else [PSF.from_spec(spec) for spec in self.psf]
 
     def psf_kernels(self) -> list[np.ndarray] | None:

@@ -15,7 +15,7 @@ import numpy as np
 
 __all__ = ["out_of_range_counts", "warn_out_of_range"]
 
-log = logging.getLogger("capssim.data_range")
+log = logging.getLogger("capssim.runtime.data_range")
 
 
 def out_of_range_counts(array, *, low: float, high: float | None) -> tuple[int, int, float, float]:

@@ -34,7 +34,7 @@ from typing import Iterator
 import torch
 
 from capssim.errors import InputError
-from capssim.resources import check_range
+from capssim.runtime.resources import check_range
 
 #: the environment variable read when no ``--threads`` is given
 ENV_VAR = "CAPSSIM_THREADS"

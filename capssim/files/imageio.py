@@ -21,7 +21,7 @@ import numpy as np
 
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.errors import InputError
-from capssim.output_paths import (  # check_writable_location moved there; still imported from here
+from capssim.files.output_paths import (  # check_writable_location moved there; still imported from here
     check_writable_location,  # noqa: F401
     follow_links,
     resolve_output,
@@ -106,7 +106,7 @@ def _tmp_sibling(path: Path) -> Path:
 
 def check_output_free(path: str | os.PathLike, *, overwrite: bool = False, argument: str = "-o/--output") -> Path:
     """Fail early (before any work) if the folder ``path`` exists and ``overwrite`` is not set, or cannot be
-    written; returns where it will be written (:func:`capssim.output_paths.resolve_output`: links followed)."""
+    written; returns where it will be written (:func:`capssim.files.output_paths.resolve_output`: links followed)."""
     return resolve_output(path, kind="folder", overwrite=overwrite, argument=argument)
 
 

@@ -160,7 +160,7 @@ class ArrayGeometry:
                 f"aperture_homographies[{worst // 4}] by {gap[worst]:.3g} sub-image px (tolerance "
                 f"{STORED_LR_TOLERANCE_PX:g}). The 16 sub-image homographies are S_q @ H_n of the 4 aperture "
                 "homographies: fix aperture_homographies, then rewrite the 16 entries from them "
-                "(capssim.capture.build_meta writes both).")
+                "(capssim.captures.capture.build_meta writes both).")
 
     def _corner_gap(self, stored: np.ndarray) -> np.ndarray:
         hh, ww = self.hr_shape

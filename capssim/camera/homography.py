@@ -2,7 +2,7 @@
 
 All matrices act on ``(x=col, y=row, 1)`` with pixel centres on integers. The array's frames
 (HR reference, aperture-HR, sub-image) and the derivation of the 16 sub-image homographies from
-the 4 aperture homographies live in :mod:`capssim.array_geometry`.
+the 4 aperture homographies live in :mod:`capssim.camera.array_geometry`.
 """
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ import os
 import shutil
 from pathlib import Path
 
-from capssim.allocator import held_free_bytes
 from capssim.errors import InputError, ResourceError
+from capssim.runtime.allocator import held_free_bytes
 
 #: environment variable that sets the memory limit explicitly, in GiB (``inf``: no limit)
 MEMORY_LIMIT_ENV = "CAPSSIM_MEMORY_LIMIT_GB"
@@ -26,7 +26,7 @@ MEMORY_FRACTION = 0.8
 def available_memory_bytes() -> int | None:
     """Memory available to a new allocation now, in bytes (``None`` if the platform does not say): the
     system's (``MemAvailable``) plus the freed memory this process keeps for reuse
-    (:func:`capssim.allocator.held_free_bytes`), which the system counts as used."""
+    (:func:`capssim.runtime.allocator.held_free_bytes`), which the system counts as used."""
     system = None
     try:
         with open("/proc/meminfo", encoding="ascii") as fh:

@@ -2,7 +2,7 @@
 
 ``A`` is the shared observation model of :mod:`capssim.operators.camera`: the CAPS raw
 operator (analyzer, aperture warp, optical PSF, 2x2 pixel integration, RGGB sampling; eq. 9)
-and the DoFP raw operator with the same optics. ``sensor`` is a :class:`capssim.sensor.Sensor`
+and the DoFP raw operator with the same optics. ``sensor`` is a :class:`capssim.camera.sensor.Sensor`
 (noise, clipping, quantization).
 
 One seed gives three independent random streams (:func:`seed_streams`): the aperture poses,
@@ -18,13 +18,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from capssim.camera_setup import CameraSetup
+from capssim.camera.camera_setup import CameraSetup
+from capssim.camera.psf import PSF, as_psf
+from capssim.camera.rig import RigModel
+from capssim.camera.sensor import Sensor
 from capssim.conventions import DEFAULT_DOFP_LAYOUT
 from capssim.operators.base import Composition
 from capssim.operators.camera import caps_raw_operator, dofp_raw_operator
-from capssim.psf import PSF, as_psf
-from capssim.rig import RigModel
-from capssim.sensor import Sensor
 
 
 def seed_streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, np.random.Generator]:
@@ -37,11 +37,11 @@ def seed_streams(seed: int) -> tuple[np.random.Generator, np.random.Generator, n
 class CameraArrayMeasurement:
     """``y = sensor(A x)`` for the CAPS array and the DoFP camera, with the random streams of ``seed``.
 
-    ``psf``: the optical PSF on the HR grid (a :class:`~capssim.psf.PSF`, a ``meta.json``
+    ``psf``: the optical PSF on the HR grid (a :class:`~capssim.camera.psf.PSF`, a ``meta.json``
     mapping, or ``None`` for the default); ``dofp_layout``: the DoFP mosaic layout;
     ``extinction_ratio``: of the polarizers (``None``: ideal). The three streams of
     :func:`seed_streams` are created once, so successive calls continue them. ``rig``: an
-    imperfect array (:class:`capssim.rig.RigModel`: its analyzer, per-aperture PSFs and flat
+    imperfect array (:class:`capssim.camera.rig.RigModel`: its analyzer, per-aperture PSFs and flat
     field replace the ideal ones for the CAPS frames; the DoFP camera is another camera and
     keeps ``psf`` and ``extinction_ratio``).
     """
@@ -62,7 +62,7 @@ class CameraArrayMeasurement:
 
     @classmethod
     def from_setup(cls, setup: CameraSetup, seed: int = 0, *, psf: PSF | None = None) -> "CameraArrayMeasurement":
-        """``y = sensor(A x)`` of a camera set-up (:class:`~capssim.camera_setup.CameraSetup`: sensor, PSF,
+        """``y = sensor(A x)`` of a camera set-up (:class:`~capssim.camera.camera_setup.CameraSetup`: sensor, PSF,
         DoFP layout, extinction ratio, rig) with the random streams of ``seed``; ``psf`` replaces the
         set-up's (a renderer, whose views are already blurred, passes ``PSF.none()``)."""
         return cls(setup.sensor, psf=setup.psf if psf is None else psf, dofp_layout=setup.dofp_layout,

@@ -22,9 +22,12 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from capssim.array_geometry import ArrayGeometry
-from capssim.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup
-from capssim.capture_meta import (  # noqa: F401  (re-exported: the capture format's public names)
+from capssim.camera.array_geometry import ArrayGeometry
+from capssim.camera.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup
+from capssim.camera.psf import PSF
+from capssim.camera.rig import RigModel
+from capssim.camera.sensor import Sensor, sensor_from_meta
+from capssim.captures.capture_meta import (  # noqa: F401  (re-exported: the capture format's public names)
     CAPTURE_KINDS,
     SCHEMA,
     SCHEMA_VERSION,
@@ -32,7 +35,7 @@ from capssim.capture_meta import (  # noqa: F401  (re-exported: the capture form
     software_versions,
     validate_meta,
 )
-from capssim.capture_schema import MetaSchemaError
+from capssim.captures.capture_schema import MetaSchemaError
 from capssim.conventions import (
     N_APERTURES,
     N_CHANNELS,
@@ -43,12 +46,9 @@ from capssim.conventions import (
     split_bayer,
 )
 from capssim.errors import CapssimError, CaptureFormatError, InputError
-from capssim.imageio import atomic_directory, atomic_write_json, write_tiff
-from capssim.psf import PSF
-from capssim.resources import check_memory
-from capssim.rig import RigModel
-from capssim.schema import ConfigError, load_json_file
-from capssim.sensor import Sensor, sensor_from_meta
+from capssim.files.imageio import atomic_directory, atomic_write_json, write_tiff
+from capssim.files.schema import ConfigError, load_json_file
+from capssim.runtime.resources import check_memory
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ class Capture:
     Parameters
     ----------
     meta : dict
-        The ``meta.json`` dictionary (:func:`~capssim.capture.build_meta`; checked by :func:`validate_meta`).
+        The ``meta.json`` dictionary (:func:`~capssim.captures.capture.build_meta`; checked by :func:`validate_meta`).
     caps_raw : numpy.ndarray
         ``(4, H, W)`` raw Bayer frames of the four apertures (DN, the sensor's dtype).
     dofp_raw : numpy.ndarray, optional

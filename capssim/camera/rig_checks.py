@@ -3,12 +3,12 @@
 * the flat field ``gain_n V_n(u, v)`` is > 0 everywhere on the frame (:func:`check_vignetting`: the
   vignetting polynomial sampled on a 65 x 65 grid over the frame, corners included, must stay at or
   above :data:`MIN_FLAT_FIELD`); a negative or zero map would make raw frames negative or black;
-* every extinction ratio is > 1 (checked by :class:`capssim.rig.RigModel`);
+* every extinction ratio is > 1 (checked by :class:`capssim.camera.rig.RigModel`);
 * the geometry is finite and invertible (:func:`check_homographies`: each 3x3 homography's condition
   number below :data:`MAX_CONDITION`, and its horizon ``h31 x + h32 y + h33 = 0`` outside the HR grid).
 
 :data:`RIG_FILE_SPEC` is the schema of a ``capssim-rig`` file (``capssim calibrate``'s output and
-``--rig FILE``); the ``rig`` block's values are checked by :meth:`capssim.rig.RigModel.from_dict`.
+``--rig FILE``); the ``rig`` block's values are checked by :meth:`capssim.camera.rig.RigModel.from_dict`.
 Every problem is one line naming the file and the key.
 """
 
@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from capssim.camera.rig_parts import normalised_raw_coordinates, vignetting_design
 from capssim.errors import InputError
-from capssim.rig_parts import normalised_raw_coordinates, vignetting_design
-from capssim.schema import AnyMapping, Integer, Mapping, Nullable, Sequence, String
+from capssim.files.schema import AnyMapping, Integer, Mapping, Nullable, Sequence, String
 
 #: the least relative response the flat field may reach anywhere on the frame (gain has the same floor)
 MIN_FLAT_FIELD = 1e-3
@@ -62,7 +62,7 @@ def check_vignetting(gain: np.ndarray, vignetting: np.ndarray, *, where: str = "
     gain : numpy.ndarray
         ``(4,)`` response at the frame centre.
     vignetting : numpy.ndarray
-        ``(4, 15)`` polynomial coefficients (:data:`capssim.rig_parts.VIGNETTING_MONOMIALS`).
+        ``(4, 15)`` polynomial coefficients (:data:`capssim.camera.rig_parts.VIGNETTING_MONOMIALS`).
     where : str
         The key named in the message.
 

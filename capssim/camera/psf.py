@@ -5,7 +5,7 @@ and what the observation model convolves with (:meth:`PSF.kernel`, the ``Blur_ps
 paper's eq. 9). The paper's synthetic protocol (section 5.2) blurs with an isotropic Gaussian;
 capssim's default is :data:`DEFAULT_PSF`, a Gaussian of std :data:`DEFAULT_SIGMA_HR_PX` HR pixels.
 :meth:`PSF.check_extent` refuses a kernel wider than the image, or one whose blur would not fit
-in memory (:mod:`capssim.resources`), before the kernel is built.
+in memory (:mod:`capssim.runtime.resources`), before the kernel is built.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import numpy as np
 from scipy.special import erf, j1
 
 from capssim.errors import InputError
-from capssim.resources import check_memory, check_range
+from capssim.runtime.resources import check_memory, check_range
 
 #: default Gaussian PSF std, in HR pixels (half a raw pixel)
 DEFAULT_SIGMA_HR_PX = 0.5
