@@ -19,8 +19,7 @@ under its old name, imported only when asked for, so ``import capssim`` stays as
 """
 
 import importlib
-import importlib.abc
-import importlib.util
+import importlib.machinery
 import logging
 import sys
 
@@ -41,7 +40,7 @@ MOVED_MODULES = {
 }
 
 
-class _MovedModuleLoader(importlib.abc.Loader):
+class _MovedModuleLoader:  # (not importlib.abc.Loader: importlib.abc imports importlib.resources, slow)
     """Loads an old name as the moved module itself (one module object under two names)."""
 
     def __init__(self, new_name: str):
@@ -56,14 +55,14 @@ class _MovedModuleLoader(importlib.abc.Loader):
         module.__spec__ = self._spec
 
 
-class _MovedModuleFinder(importlib.abc.MetaPathFinder):
+class _MovedModuleFinder:
     """Finds the old dotted names of the modules that moved into capssim's rooms."""
 
     def find_spec(self, fullname, path=None, target=None):
         new_name = MOVED_MODULES.get(fullname)
         if new_name is None:
             return None
-        return importlib.util.spec_from_loader(fullname, _MovedModuleLoader(new_name))
+        return importlib.machinery.ModuleSpec(fullname, _MovedModuleLoader(new_name))
 
 
 if not any(isinstance(finder, _MovedModuleFinder) for finder in sys.meta_path):
