@@ -1,6 +1,6 @@
 """The camera array's geometry: four aperture homographies, and everything derived from them.
 
-Frames (all matrices act on ``(x=col, y=row, 1)``, pixel centres on integers; DESIGN.md "Grids"):
+Frames (all matrices act on ``(x=col, y=row, 1)``, pixel centres on integers; docs/architecture.md, "The camera, its grids and its channels"):
 
 * HR reference: the ground-truth grid ``2H x 2W`` (the 0 deg aperture at twice its resolution).
 * aperture-HR: aperture n's own grid at twice its resolution; its raw pixel ``(i, j)``

@@ -42,6 +42,12 @@ class UnknownNameError(CapssimError, KeyError):
         return self.args[0]
 
 
+class PluginError(CapssimError):
+    """A plug-in method or prior (:mod:`capssim.reconstruct.plugins`) failed to load, to run, or returned an
+    image of the wrong shape, dtype or with non-finite values. The message is one line naming the plug-in and
+    its package; the other methods are not affected."""
+
+
 class ResourceError(InputError):
     """An option asks for more memory (or time) than the machine has or than a documented sane range.
 

@@ -8,7 +8,8 @@ A method is one function in one file under ``reconstruct/methods/``, registered 
 
 :func:`reconstruct` looks the name up, runs it, checks the output (shape, finite) and
 returns a :class:`MethodOutput` with the wall time of every stage. ``run_method`` also
-writes ``recon/NAME.tiff`` and ``recon/NAME.json`` into the capture folder.
+writes ``recon/NAME.tiff`` and ``recon/NAME.json`` into the capture folder. Methods of other
+packages (entry points ``capssim.methods``) join the registry through :mod:`capssim.reconstruct.plugins`.
 """
 
 from __future__ import annotations
@@ -60,6 +61,8 @@ class MethodSpec:
     #: ``options() -> [MethodOption]``: every ``-p`` option the method takes (``capssim reconstruct --options``);
     #: None: the method lists none
     options: Callable | None = None
+    #: where a plug-in method comes from (:class:`capssim.reconstruct.plugins.Plugin`); None: built in
+    plugin: object | None = None
 
 
 _METHODS: dict[str, MethodSpec] = {}
@@ -98,6 +101,8 @@ def _load_methods() -> None:
         if not mod.name.startswith("_"):
             importlib.import_module(f"{METHODS_PACKAGE}.{mod.name}")
     _LOADED = True
+    # the entry points of capssim.methods / capssim.priors, after the built-ins; found by name like the methods
+    importlib.import_module("capssim.reconstruct.plugins").load_plugins()
 
 
 def available_methods() -> dict[str, MethodSpec]:

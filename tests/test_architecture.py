@@ -1,6 +1,6 @@
 """The house: one import namespace, floors that import only downwards, no import circles.
 
-Floors (DESIGN.md "Data flow"), lowest first; a module may import its own floor and the ones
+Floors (docs/architecture.md, "The floors"), lowest first; a module may import its own floor and the ones
 below. Within a floor, the import graph must still have no circle.
 """
 
@@ -136,7 +136,7 @@ RECONSTRUCT_ROOMS = (
     ("pipeline",),
     ("selection",),  # a method's data-driven choices, made once per frame before its solve
     ("registry",),
-    ("methods",),
+    ("methods", "plugins"),  # plug-in methods and priors from other packages, registered beside the built-ins
     ("training",),
     ("tiles",),  # full frames in tiles: runs any registered method per tile
     ("",),  # the package's face, capssim.reconstruct itself

@@ -8,6 +8,56 @@ from typing import List, Optional
 import typer
 
 from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, apply_compute, echo_json
+from capssim.errors import InputError
+
+
+def check_suite_names(specs: list[dict], suites: list[str]) -> None:
+    """Several suites run each into OUTPUT/NAME: refuse two that share a ``name:`` (one would replace the other)."""
+    seen: dict[str, str] = {}
+    for given, spec in zip(suites, specs):
+        if spec["name"] in seen:
+            raise InputError("SUITE", f"{seen[spec['name']]} and {given} (both named {spec['name']!r})",
+                             "suites with distinct names (each runs into OUTPUT/NAME)",
+                             "Give one of them another 'name:', or run them in separate calls with different -o.")
+        seen[spec["name"]] = given
+
+
+def _checked_suites(suites: list[str], *, methods, scenes, workers, scheduler, report_only: bool) -> list[dict]:
+    """Every suite loaded and checked (names, ``-m``, ``--scene``, ``--workers``) before any work."""
+    from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
+    from capssim.eval.error_budget.runner import check_budget
+
+    specs = [load_suite(name) for name in suites]
+    check_suite_names(specs, suites)
+    if not report_only:
+        for spec in specs:
+            check_budget(spec, methods=methods or None, scenes=scenes or None, workers=workers, scheduler=scheduler)
+    return specs
+
+
+def _events(say):
+    """The runner's ``events`` callback: a line per finished case, and its notes, skips and errors."""
+
+    def events(kind: str, **info) -> None:
+        if kind == "done":
+            say(f"  {info['label']}: {info['status']}")
+        elif kind in ("note", "skip", "error"):
+            say(info["message"])
+
+    return events
+
+
+def _results_page(runs, results_page: Path, suites, output, methods, scenes, views: bool, no_plots: bool) -> Path:
+    """Write ``--results-page`` from the runs, with the command that regenerates it."""
+    from capssim.eval.error_budget.budget_report import write_results_page
+
+    picked = "".join(f" -m {m}" for m in methods or ()) + "".join(f" --scene {x}" for x in scenes or ())
+    command = ("capssim bench budget " + " ".join(suites) + f" -o {output}{picked}" + (" --views" if views else "")
+               + f" --results-page {results_page}")
+    notes_page = Path(results_page).parent.parent / "notes" / "error-budget.md"
+    notes = ("What the budget finds, case by case, and what it rules out: the "
+             "[error-budget notes](../notes/error-budget.md)." if notes_page.is_file() else None)
+    return write_results_page(runs, results_page, command=command, plots=not no_plots, notes=notes)
 
 
 def budget(
@@ -32,6 +82,9 @@ def budget(
                                                                "a suite run's cache can be shared)."),
     fresh: bool = typer.Option(False, "--fresh", help="Redo the cases this run plans (all, or those of -m and "
                                                       "--scene) although OUTPUT has them; other cases' results stay."),
+    allow_other_suite: bool = typer.Option(False, "--allow-other-suite",
+                                           help="Run into an OUTPUT whose budget another suite owns (its results are "
+                                                "moved to OUTPUT/budget.OTHER.jsonl)."),
     device: str = DeviceOption,
     threads: Optional[int] = ThreadsOption,
     workers: Optional[int] = typer.Option(None, "--workers", "-w", min=0, metavar="N",
@@ -44,47 +97,44 @@ def budget(
 
     Each step is what one imperfection costs; the steps sum to the gap between the method as run and
     its ceiling. Writes budget.jsonl (one line per case, as it finishes; run again to resume), budget.md
-    and a waterfall plot per case into OUTPUT for one suite, into OUTPUT/NAME for each of several.
+    and a waterfall plot per case into OUTPUT for one suite, into OUTPUT/NAME for each of several. A
+    folder is one suite's, and one run's at a time (like bench suite's).
     """
-    from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
-    from capssim.eval.error_budget.budget_report import write_report, write_results_page
+    from capssim.eval.benchmarks.output_claim import BUDGET_OUTPUT, claim_output
+    from capssim.eval.error_budget.budget_report import write_report
     from capssim.eval.error_budget.runner import load_budget, run_budget
     from capssim.output_paths import resolve_output
     from capssim.threads import resolve_threads
 
-    specs = [load_suite(name) for name in suites]  # every suite checked before any work
+    specs = _checked_suites(suites, methods=methods, scenes=scenes, workers=workers, scheduler=scheduler,
+                            report_only=report_only)
     target = resolve_output(output, kind="folder", overwrite=True)  # resumed if it exists; links followed
     if results_page is not None:
         resolve_output(results_page, kind="file", overwrite=True, argument="--results-page")
     apply_compute(threads if threads is not None else resolve_threads(None), device)
     say = (lambda text: typer.echo(text, err=True)) if as_json else typer.echo
-
-    def events(kind: str, **info) -> None:
-        if kind == "done":
-            say(f"  {info['label']}: {info['status']}")
+    events = _events(say)
 
     runs = []
     for spec in specs:
         out = target / spec["name"] if len(specs) > 1 else target
         if report_only:
             run = load_budget(spec, out, methods=methods or None, scenes=scenes or None)
+            report = write_report(run, out, plots=not no_plots)
         else:
-            run = run_budget(spec, out, methods=methods or None, scenes=scenes or None, device=device,
-                             cache_dir=cache, fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
-                             views=views, events=events)
-        report = write_report(run, out, plots=not no_plots)
+            with claim_output(out, spec, allow_other_suite=allow_other_suite, kind=BUDGET_OUTPUT) as claimed:
+                for message in claimed:  # the folder is held through the report too
+                    say(message)
+                run = run_budget(spec, out, methods=methods or None, scenes=scenes or None, device=device,
+                                 cache_dir=cache, fresh=fresh, workers=workers, scheduler=scheduler, threads=threads,
+                                 views=views, events=events, allow_other_suite=allow_other_suite)
+                run.notes[:0] = claimed
+                report = write_report(run, out, plots=not no_plots)
         say(f"{spec['name']}: {len(run.records)} case(s), {run.n_errors} error(s), {run.wall_time_s:.1f} s; "
             f"report {report}")
         runs.append(run)
     if results_page is not None:
-        picked = "".join(f" -m {m}" for m in methods or ()) + "".join(f" --scene {x}" for x in scenes or ())
-        command = ("capssim bench budget " + " ".join(suites) + f" -o {output}{picked}" + (" --views" if views else "")
-                   + f" --results-page {results_page}")
-        notes_page = Path(results_page).parent.parent / "notes" / "error-budget.md"
-        notes = ("What the budget finds, case by case, and what it rules out: the "
-                 "[error-budget notes](../notes/error-budget.md)." if notes_page.is_file() else None)
-        page = write_results_page(runs, results_page, command=command, plots=not no_plots, notes=notes)
-        say(f"results page: {page}")
+        say(f"results page: {_results_page(runs, results_page, suites, output, methods, scenes, views, no_plots)}")
     if as_json:
         echo_json([{"suite": r.spec["name"], "wall_time_s": r.wall_time_s, "records": r.records} for r in runs])
     if any(r.n_errors for r in runs):

@@ -112,7 +112,6 @@ def reconstruct(
     device: str = DeviceOption,
 ) -> None:
     """Reconstruct a capture; writes recon/METHOD.tiff (12, 2H, 2W) and recon/METHOD.json."""
-
     apply_compute(threads, device)
     if list_methods or show_options is not None:
         typer.echo(method_list_lines() if list_methods else method_option_lines(show_options))
@@ -149,14 +148,20 @@ def reconstruct(
 
 
 def method_list_lines() -> str:
-    """What ``capssim reconstruct --list`` prints: every registered method, its input and what its defaults were
-    tuned on."""
+    """What ``capssim reconstruct --list`` prints: every registered method with what its defaults were tuned on, a
+    plug-in's package after it; then the plug-ins that could not register."""
     from capssim.reconstruct import available_methods  # start-up time
+    from capssim.reconstruct.plugins import broken_plugins
 
+    methods = available_methods()
     lines = []
-    for name, spec in available_methods().items():
+    for name, spec in methods.items():
         tuned = f" (defaults tuned on: {', '.join(spec.tuned_on)})" if spec.tuned_on else ""
-        lines.append(f"{name:24s} [{spec.input_kind}] {spec.description}{tuned}")
+        source = "" if spec.plugin is None else f"  (plug-in: {spec.plugin.label().split('(', 1)[1]}"
+        lines.append(f"{name:24s} [{spec.input_kind}] {spec.description}{tuned}{source}")
+    for name, message in broken_plugins().items():  # plug-ins that could not take their name
+        if name not in methods or methods[name].plugin is None:
+            lines.append(f"{name:24s} [broken] {message}")
     return "\n".join(lines)
 
 

@@ -6,7 +6,9 @@ set-up), ``seeds`` and ``methods`` (names or variants); the guide docs/guides/be
 
 Every case is ``(scene, noise, seed, method)``: one capture task per (scene, noise, seed), then one task per case
 (:mod:`capssim.eval.benchmarks.captures`, :mod:`capssim.eval.benchmarks.cases`; scored by
-:class:`capssim.eval.evaluate.CaptureScorer`), in this process or in parallel on Dask (``executors``).
+:class:`capssim.eval.evaluate.CaptureScorer`), in this process or in parallel on Dask (``executors``), by the case
+runner that ``capssim bench budget`` shares (:mod:`capssim.eval.benchmarks.runner`; the suite's task is
+:func:`~capssim.eval.benchmarks.cases.method_task`).
 
 ``results.jsonl`` (:mod:`capssim.eval.benchmarks.results`) gets each case's line as it finishes, rewritten in plan
 order at the end. Run again, a suite does only the missing cases: an ``ok`` case with the same case hash (capture,
@@ -18,25 +20,21 @@ runs the method, named by ``worker`` (``host:pid``).
 
 from __future__ import annotations
 
-import datetime as _dt
 import logging
 import time
-import traceback
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from capssim.errors import UnknownNameError
-from capssim.reconstruct.registry import available_methods, resolve_device
+from capssim.reconstruct.registry import resolve_device
 
-from ..metrics import get_convention
 from .captures import expand_render_scenes
-from .cases import capture_task, forget_captures, method_task
-from .executors import check_execution, open_executor
-from .output_claim import claim_output
-from .provenance import code_fingerprint, content_hash, environment
-from .results import ResultsLog
+from .cases import method_task
+from .executors import check_execution
+from .output_claim import SUITE_OUTPUT
+from .provenance import code_fingerprint, environment
+from .runner import CaseTask, case_key, run_cases
 from .suite_schema import SCENE_SOURCES, SUITES_DIR, available_suites, check_scene_memory, load_suite
 
 log = logging.getLogger(__name__)
@@ -47,7 +45,7 @@ __all__ = ["SCENE_SOURCES", "SUITES_DIR", "BenchRun", "available_suites", "case_
 #: the source files whose change re-runs a case (cached captures are kept)
 RECONSTRUCTION_CODE = ("reconstruct",)
 SCORING_CODE = ("eval/metrics.py", "eval/mtf.py", "eval/star.py", "eval/evaluate.py", "eval/benchmarks/suite.py",
-                "eval/benchmarks/cases.py")
+                "eval/benchmarks/cases.py", "eval/benchmarks/runner.py")
 
 
 # -- results -------------------------------------------------------------------------------------
@@ -69,15 +67,6 @@ class BenchRun:
 
     def ok_records(self) -> list[dict]:
         return [r for r in self.records if r["status"] == "ok"]
-
-
-def case_key(scene: str, noise: str, seed: int, method_label: str) -> str:
-    """Readable, stable identity of a case in baselines: ``scene/noise/seedN/method``."""
-    return f"{scene}/{noise}/seed{seed}/{method_label}"
-
-
-def _now() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
 # -- the run -------------------------------------------------------------------------------------
@@ -102,161 +91,6 @@ def plan(spec: dict, *, methods: list[str] | None, scenes: list[str] | None, emi
         plan_scenes = [scene_by_name[n] for n in scenes]
     check_scene_memory(spec, plan_scenes)  # the resource guard, before any work
     return plan_scenes, scene_by_name, method_entries
-
-
-def _cache_writes(chain: list[dict], noise: dict, seed: int) -> list[tuple]:
-    """What a capture task of ``chain`` may write in the cache: its scenes' captures, and their
-    noise-free renders (shared by the noise levels of a rendered scene)."""
-    writes = [("capture", c["name"], noise["name"], seed) for c in chain]
-    return writes + [("render", c.get("scene", c["name"]), seed) for c in chain if c["source"] == "render"]
-
-
-class _SuiteRun:
-    """The state of one run: the plan's groups and records, the results log, notes, labels."""
-
-    def __init__(self, spec: dict, output: Path, *, device: str, cache: Path, fresh: bool, emit: Callable[..., None]):
-        self.spec, self.emit, self.cache = spec, emit, cache
-        self.results = ResultsLog(output / "results.jsonl", fresh=fresh)
-        self.device = str(resolve_device(device))
-        self.env = environment(self.device)
-        self.convention = get_convention(spec.get("convention", "capssim")).name
-        self.registered = available_methods()
-        self.recon_code = code_fingerprint(*RECONSTRUCTION_CODE)
-        self.scoring_code = code_fingerprint(*SCORING_CODE)
-        self.run_id = uuid.uuid4().hex
-        self.groups: list[tuple[dict, dict, int]] = []  # (scene, noise, seed) in plan order
-        self.methods: list[dict] = []
-        self.records: dict[int, dict] = {}  # plan index (group x methods + method) -> record
-        self.pending: dict[int, dict] = {}  # plan index -> the record of a running case
-        self.labels: dict[object, str] = {}
-        self.notes: list[str] = []
-        self.announced: set[str] = set()
-
-    def note(self, message: str) -> None:
-        if message not in self.notes:
-            self.notes.append(message)
-            self.emit("note", message=message)
-
-    def finish_case(self, index: int, rec: dict, *, new: bool = True) -> None:
-        self.records[index] = rec
-        if new:
-            self.results.append(rec)
-        self.emit("done")
-
-    def base(self, noise: dict, seed: int) -> dict:
-        return {"suite": self.spec["name"], "noise": noise["name"], "seed": seed, "environment": self.env,
-                "convention": self.convention}
-
-    def submit_captures(self, executor, scene_by_name: dict) -> None:
-        """One capture task per group; one that may write what an earlier one writes waits for it."""
-        writers: dict[tuple, object] = {}
-        for g, (scene, noise, seed) in enumerate(self.groups):
-            chain = [scene] + ([scene_by_name[scene["fallback"]]] if scene.get("fallback") else [])
-            writes = _cache_writes(chain, noise, seed)
-            after = list({id(writers[w]): writers[w] for w in writes if w in writers}.values())
-            tag = ("capture", g)
-            self.labels[tag] = f"{scene['name']}/{noise['name']}/seed{seed}: capture"
-            handle = executor.submit(capture_task, str(self.cache), self.run_id, chain, noise, seed, tag=tag,
-                                     after=after, name=f"capture-{scene['name']}-{noise['name']}-{seed}",
-                                     events=self.emit if executor.live_events else None)
-            writers.update((w, handle) for w in writes)
-
-    def on_capture(self, executor, g: int, outcome: dict | None, error: BaseException | None) -> None:
-        scene, noise, seed = self.groups[g]
-        if error is not None:  # the task itself did not finish (its worker died)
-            outcome = {"entry": None, "scene": scene, "skip_reason": None, "events": [],
-                       "failure": (f"capture {scene['name']}/{noise['name']}/seed{seed}: {type(error).__name__}: "
-                                   f"{error}", "".join(traceback.format_exception(error, limit=8)))}
-            self.emit("error", message=f"error: {outcome['failure'][0]}")
-        for kind, info in outcome["events"]:
-            self.emit(kind, **info)
-        used = outcome["scene"]
-        if outcome["entry"] is None:
-            self.record_unavailable(g, outcome["skip_reason"], outcome["failure"])
-            return
-        if used["name"] != scene["name"]:
-            self.note(f"{scene['name']} unavailable ({outcome['skip_reason']}); used {used['name']} instead")
-        self.submit_cases(executor, g, outcome["entry"], used)
-
-    def record_unavailable(self, g: int, skip_reason: str | None, failure: tuple[str, str] | None) -> None:
-        scene, noise, seed = self.groups[g]
-        for j, m in enumerate(self.methods):
-            rec = dict(self.base(noise, seed), scene=scene["name"], method=m["label"], method_name=m["name"],
-                       key=case_key(scene["name"], noise["name"], seed, m["label"]),
-                       case_id=content_hash([scene["name"], noise, seed, m, "unavailable"])[:20])
-            if failure is not None:
-                rec.update(status="error", reason=failure[0], traceback=failure[1])
-            else:
-                rec.update(status="skipped", skip_kind="data", reason=skip_reason)
-            self.finish_case(g * len(self.methods) + j, rec)
-
-    def registers(self, method: dict) -> bool:
-        """Whether ``method`` estimates the warps (and stores them with the capture for the next method)."""
-        return (self.registered[method["name"]].input_kind == "caps" and not method["true_warps"]
-                and method.get("calibration", "ideal") == "ideal")
-
-    def submit_cases(self, executor, g: int, entry, scene: dict) -> None:
-        """Every method on the capture of group ``g``: those done in an earlier run are taken from it.
-
-        A method that registers the capture waits for the first one registering it the same way,
-        and reuses its stored warps, as in a run in this process (no registration done twice).
-        """
-        requested, noise, seed = self.groups[g]
-        registering: dict[str, object] = {}  # registration mode -> the first case that registers so
-        for j, m in enumerate(self.methods):
-            index = g * len(self.methods) + j
-            key = case_key(scene["name"], noise["name"], seed, m["label"])
-            cid = content_hash({"capture": entry.key, "method": m, "device": self.device, "recon": self.recon_code,
-                                "scoring": self.scoring_code, "convention": self.convention})[:20]
-            rec = dict(self.base(noise, seed), scene=scene["name"], requested_scene=requested["name"],
-                       method=m["label"], method_name=m["name"], key=key, case_id=cid, capture=str(entry.path),
-                       capture_key=entry.key, scene_source=scene["source"])
-            previous = self.results.done(cid)
-            if previous is not None:
-                self.finish_case(index, previous, new=False)
-            elif m["name"] not in self.registered:
-                self.skip_unregistered(index, rec, m)
-            else:
-                self.pending[index] = rec
-                self.labels[("case", index)] = key
-                registrar = registering.get(m["registration"]) if self.registers(m) else None
-                handle = executor.submit(method_task, rec, m, str(entry.path), entry.key, entry.info,
-                                         device=self.device, convention=self.convention, tag=("case", index),
-                                         case=True, after=[registrar] if registrar is not None else [], name=key)
-                if self.registers(m):
-                    registering.setdefault(m["registration"], handle)
-
-    def on_case(self, index: int, rec: dict | None, error: BaseException | None) -> None:
-        if error is not None:  # the task itself did not finish (its worker died)
-            rec = dict(self.pending[index], status="error", reason=f"{type(error).__name__}: {error}",
-                       traceback="".join(traceback.format_exception(error, limit=8)), finished=_now())
-        del self.pending[index]
-        for message in rec.pop("notes_for_run", []):
-            self.note(message)
-        if rec["status"] == "error":
-            self.emit("error", message=f"error in {rec['key']}: {rec['reason']}")
-        elif rec["status"] == "skipped":
-            self.emit("skip", message=f"skipped {rec['key']}: {rec['reason']}")
-        self.finish_case(index, rec)
-
-    def skip_unregistered(self, index: int, rec: dict, method: dict) -> None:
-        rec.update(status="skipped", skip_kind="method",
-                   reason=f"method {method['name']!r} is not registered (available: "
-                          f"{', '.join(self.registered) or 'none'})")
-        if method["name"] not in self.announced:
-            self.announced.add(method["name"])
-            self.emit("skip", message=f"skipping every case of {method['label']}: {rec['reason']}")
-        self.finish_case(index, rec)
-
-    def execute(self, executor, scene_by_name: dict) -> None:
-        self.submit_captures(executor, scene_by_name)
-        for (kind, index), result, error in executor.completed():
-            if not executor.live_events:  # the progress display shows the latest finished task
-                self.emit("case", label=f"finished {self.labels[kind, index]}")
-            if kind == "capture":
-                self.on_capture(executor, index, result, error)
-            else:
-                self.on_case(index, result, error)
 
 
 def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = None, scenes: list[str] | None = None,
@@ -295,36 +129,13 @@ def run_suite(spec: dict, output: str | Path, *, methods: list[str] | None = Non
     t_start = time.perf_counter()
     plan_scenes, scene_by_name, plan_methods = plan(spec, methods=methods, scenes=scenes, emit=emit)
     check_execution(workers=workers, scheduler=scheduler)  # before results.jsonl is touched
-    output = Path(output)
-    with claim_output(output, spec, allow_other_suite=allow_other_suite) as claim_notes:
-        run = _SuiteRun(spec, output, device=device, cache=Path(cache_dir) if cache_dir else output / "cache",
-                        fresh=fresh, emit=emit)
-        for message in claim_notes:
-            run.note(message)
-        execution = _execute(run, spec, plan_scenes, plan_methods, scene_by_name, workers=workers,
-                             scheduler=scheduler, threads=threads)
-    records = [run.records[i] for i in sorted(run.records)]
-    return BenchRun(spec=spec, output=output, results_path=run.results.path, records=records,
-                    environment=run.env, notes=run.notes, wall_time_s=time.perf_counter() - t_start,
-                    execution=execution)
-
-
-def _execute(run: _SuiteRun, spec: dict, plan_scenes: list[dict], plan_methods: list[dict], scene_by_name: dict,
-             *, workers, scheduler, threads) -> dict:
-    """Run the plan's groups x methods on the executor; ``results.jsonl`` rewritten in plan order. Returns
-    where the cases ran."""
-    emit = run.emit
-    run.methods = plan_methods
-    run.groups = [(scene, noise, int(seed)) for scene in plan_scenes for noise in spec["noise"]
-                  for seed in spec["seeds"]]
-    emit("start", total=len(run.groups) * len(run.methods))
-    started = lambda tag: emit("case", label=run.labels[tag])  # noqa: E731
-    try:
-        with open_executor(workers=workers, scheduler=scheduler, threads=threads, started=started) as executor:
-            execution = {"kind": executor.kind, "workers": getattr(executor, "workers", None),
-                         "compute_threads": getattr(executor, "compute_threads", None)}
-            run.execute(executor, scene_by_name)
-    finally:
-        forget_captures()
-    run.results.finish([run.records[i] for i in sorted(run.records)])
-    return execution
+    env = environment(str(resolve_device(device)))
+    task = CaseTask(method_task, SUITE_OUTPUT, record={"environment": env},
+                    identity={"recon": code_fingerprint(*RECONSTRUCTION_CODE),
+                              "scoring": code_fingerprint(*SCORING_CODE)})
+    outcome = run_cases(spec, output, task, plan_scenes=plan_scenes, plan_methods=plan_methods,
+                        scene_by_name=scene_by_name, device=device, cache_dir=cache_dir, fresh=fresh, workers=workers,
+                        scheduler=scheduler, threads=threads, events=emit, allow_other_suite=allow_other_suite)
+    return BenchRun(spec=spec, output=Path(output), results_path=outcome.results_path, records=outcome.records,
+                    environment=env, notes=outcome.notes, wall_time_s=time.perf_counter() - t_start,
+                    execution=outcome.execution)

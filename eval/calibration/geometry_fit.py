@@ -4,7 +4,7 @@ Reference: the paper's registration step (section 3.1) run on a target chosen fo
 card textured at every scale, at the working distance, so every aperture sees the same plane.
 The 16 Bayer sub-images are flat-field corrected (gain and vignetting divided out) and
 registered with :func:`capssim.reconstruct.registration.estimate_lr_homographies`; the aperture
-homographies map HR reference pixels to each aperture's HR grid (DESIGN.md conventions).
+homographies map HR reference pixels to each aperture's HR grid (docs/architecture.md, "The camera, its grids and its channels").
 """
 
 from __future__ import annotations

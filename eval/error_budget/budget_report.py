@@ -172,6 +172,9 @@ def suite_section(run, *, plots: dict[str, str], level: str = "##") -> str:
     if failed:
         parts += [f"{level} Cases not scored", ""]
         parts += [f"- {r['key']}: {r['status']}: {r.get('reason', '')}" for r in failed] + [""]
+    notes = getattr(run, "notes", None)
+    if notes:  # a fallback scene used, a handed-over folder (the case runner's notes)
+        parts += [f"{level} Notes", ""] + [f"- {n}" for n in notes] + [""]
     return "\n".join(parts)
 
 

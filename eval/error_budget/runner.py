@@ -1,18 +1,19 @@
 """The error budget of every case of a suite: one task per capture, one per (capture, method).
 
 The captures are the suite's own (:func:`~capssim.eval.benchmarks.cases.capture_task`, the same
-cache and seeds as ``capssim bench suite``); each case's ladder (:func:`~.ladder.run_ladder`) runs in
-one task, in this process or on Dask (:func:`~capssim.eval.benchmarks.executors.open_executor`).
-``budget.jsonl`` gets each case's line as soon as it finishes; a run started again does only the
-cases missing or changed (the case hash covers the capture, the method, the device, the views and
-fingerprints of the reconstruction, scoring and budget code).
+cache and seeds as ``capssim bench suite``), and the cases run through the same case runner
+(:func:`capssim.eval.benchmarks.runner.run_cases`: the folder's lock and owner file
+``bench-budget.json``, cache-write and registration order, case hash, results log, notes); the
+per-case task here is :func:`budget_task`, each case's ladder (:func:`~.ladder.run_ladder`), in this
+process or on Dask. ``budget.jsonl`` gets each case's line as soon as it finishes; a run started again
+does only the cases missing or changed (the case hash covers the capture, the method, the device, the
+views and fingerprints of the reconstruction, scoring and budget code).
 """
 
 from __future__ import annotations
 
 import time
 import traceback
-import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -21,13 +22,13 @@ from capssim.capture import read_capture
 from capssim.errors import InputError, UnknownNameError
 from capssim.reconstruct.registry import available_methods, resolve_device
 
-from ..benchmarks.cases import capture_task, forget_captures
-from ..benchmarks.executors import check_execution, open_executor
-from ..benchmarks.provenance import code_fingerprint, content_hash
-from ..benchmarks.results import ResultsLog, read_results
-from ..benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE, case_key, plan
+from ..benchmarks.executors import check_execution
+from ..benchmarks.output_claim import BUDGET_OUTPUT
+from ..benchmarks.provenance import code_fingerprint
+from ..benchmarks.results import read_results
+from ..benchmarks.runner import CaseTask, run_cases
+from ..benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE, plan
 from ..evaluate import CaptureScorer
-from ..metrics import get_convention
 from .ladder import run_ladder
 
 #: the methods of the results page (issue 32): the paper's method, its cascade ablation, the
@@ -36,7 +37,7 @@ from .ladder import run_ladder
 BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet", "caps-plus", "caps-plus-cv")
 #: the code whose change redoes a case (the report, plots and command do not change a number)
 BUDGET_CODE = ("eval/error_budget/ladder.py", "eval/error_budget/oracles.py")
-RESULTS_NAME = "budget.jsonl"
+RESULTS_NAME = BUDGET_OUTPUT.results_name
 
 
 @dataclass
@@ -49,6 +50,8 @@ class BudgetRun:
     records: list[dict]
     wall_time_s: float = 0.0
     execution: dict = field(default_factory=dict)
+    #: what the run wants its reader to know (a fallback scene used, a handed-over folder)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def n_errors(self) -> int:
@@ -77,14 +80,25 @@ def budget_methods(spec: dict, names=None) -> list[dict]:
     return entries
 
 
-def budget_task(rec: dict, method: dict, capture_path: str, *, device: str, convention: str, views: bool) -> dict:
-    """The ladder of one case (``rec`` holds its identity); never raises: a failure is in the record."""
+def check_budget(spec: dict, *, methods=None, scenes=None, workers: int | None = None,
+                 scheduler: str | None = None) -> None:
+    """Every check of a budget run that needs no work (``-m``, ``--scene``, scene memory, ``--workers``/
+    ``--scheduler``), for the command line to make before it claims the output folder."""
+    budget_methods(spec, list(methods) if methods else None)
+    plan(spec, methods=None, scenes=list(scenes) if scenes else None, emit=lambda kind, **info: None)
+    check_execution(workers=workers, scheduler=scheduler)
+
+
+def budget_task(rec: dict, method: dict, capture_path: str, capture_key: str, capture_info: dict, *, device: str,
+                convention: str, views: bool) -> dict:
+    """The ladder of one case (``rec`` holds its identity), a task of the case runner
+    (:class:`~capssim.eval.benchmarks.runner.CaseTask`); never raises: a failure is in the record."""
     rec = dict(rec)
     t0 = time.perf_counter()
     try:
         capture = read_capture(capture_path, require_gt=True)
         if available_methods()[method["name"]].input_kind == "dofp" and capture.dofp_raw is None:
-            rec.update(status="skipped", reason="this capture has no DoFP frame")
+            rec.update(status="skipped", skip_kind="data", reason="this capture has no DoFP frame")
             return rec
         scorer = CaptureScorer(capture, convention=convention)
         rec.update(status="ok", **run_ladder(capture, method, scorer, device=device, views=views))
@@ -94,74 +108,10 @@ def budget_task(rec: dict, method: dict, capture_path: str, *, device: str, conv
     return rec
 
 
-class _BudgetRun:
-    def __init__(self, spec: dict, output: Path, methods: list[dict], *, device: str, cache: Path, fresh: bool,
-                 views: bool, emit: Callable[..., None]):
-        self.spec, self.methods, self.cache, self.views, self.emit = spec, methods, cache, views, emit
-        self.device = str(resolve_device(device))
-        self.convention = get_convention(spec.get("convention", "capssim")).name
-        self.results = ResultsLog(output / RESULTS_NAME, fresh=fresh)
-        self.code = code_fingerprint(*RECONSTRUCTION_CODE, *SCORING_CODE, *BUDGET_CODE)
-        self.run_id = uuid.uuid4().hex
-        self.groups: list[tuple[dict, dict, int]] = []
-        self.records: dict[int, dict] = {}
-
-    def finish(self, index: int, rec: dict, *, new: bool = True) -> None:
-        self.records[index] = rec
-        if new:
-            self.results.append(rec)
-        self.emit("done", label=rec["key"], status=rec["status"])
-
-    def base(self, g: int, m: dict, scene_name: str) -> dict:
-        _, noise, seed = self.groups[g]
-        return {"suite": self.spec["name"], "scene": scene_name, "noise": noise["name"], "seed": seed,
-                "method": m["label"], "method_name": m["name"], "convention": self.convention,
-                "device": self.device, "key": case_key(scene_name, noise["name"], seed, m["label"])}
-
-    def on_capture(self, executor, g: int, outcome: dict | None, error: BaseException | None) -> None:
-        scene = self.groups[g][0]
-        entry = None if outcome is None or error is not None else outcome["entry"]
-        if entry is None:
-            reason = (f"{type(error).__name__}: {error}" if error is not None
-                      else (outcome["failure"] or (outcome["skip_reason"], ""))[0])
-            status = "skipped" if error is None and outcome["failure"] is None else "error"
-            for j, m in enumerate(self.methods):
-                rec = dict(self.base(g, m, scene["name"]), status=status, reason=reason,
-                           case_id=content_hash([scene["name"], self.groups[g][1:], m, "unavailable"])[:20])
-                self.finish(g * len(self.methods) + j, rec)
-            return
-        used = outcome["scene"]["name"]
-        for j, m in enumerate(self.methods):
-            cid = content_hash({"capture": entry.key, "method": m, "device": self.device, "code": self.code,
-                                "views": self.views, "convention": self.convention})[:20]
-            rec = dict(self.base(g, m, used), case_id=cid, capture=str(entry.path), capture_key=entry.key,
-                       scene_source=outcome["scene"]["source"], requested_scene=scene["name"])
-            previous = self.results.done(cid)
-            if previous is not None:
-                self.finish(g * len(self.methods) + j, previous, new=False)
-                continue
-            executor.submit(budget_task, rec, m, str(entry.path), device=self.device, convention=self.convention,
-                            views=self.views, tag=("case", g * len(self.methods) + j), case=True, name=rec["key"])
-
-    def execute(self, executor, scene_by_name: dict) -> None:
-        for g, (scene, noise, seed) in enumerate(self.groups):
-            chain = [scene] + ([scene_by_name[scene["fallback"]]] if scene.get("fallback") else [])
-            executor.submit(capture_task, str(self.cache), self.run_id, chain, noise, seed, tag=("capture", g),
-                            name=f"capture-{scene['name']}-{noise['name']}-{seed}")
-        for (kind, index), result, error in executor.completed():
-            if kind == "capture":
-                self.on_capture(executor, index, result, error)
-            else:
-                if error is not None:
-                    result = {"key": f"case {index}", "status": "error", "reason": f"{type(error).__name__}: {error}",
-                              "case_id": f"lost-{index}"}
-                self.finish(index, result)
-
-
 def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, device: str = "cpu",
                cache_dir: str | Path | None = None, fresh: bool = False, workers: int | None = None,
                scheduler: str | None = None, threads: int | None = None, views: bool = False,
-               events: Callable[..., None] | None = None) -> BudgetRun:
+               events: Callable[..., None] | None = None, allow_other_suite: bool = False) -> BudgetRun:
     """Run (or resume) the error budget of a suite's cases into ``output``.
 
     Parameters
@@ -185,33 +135,30 @@ def run_budget(spec: dict, output: str | Path, *, methods=None, scenes=None, dev
         Also compute the second views at the ceiling (:func:`~.ladder.run_ladder`; the converged view
         costs four ceiling runs).
     events : callable, optional
-        ``events(kind, **info)``: ``start`` (``total``), ``done`` (``label``, ``status``).
+        ``events(kind, **info)``: ``start`` (``total``), ``done`` (``label``, ``status``), ``note``, ``skip``,
+        ``error`` (``message``).
+    allow_other_suite : bool, keyword-only
+        Hand over an ``output`` whose ``budget.jsonl`` another suite owns (its records are moved to
+        ``budget.<other-suite>.jsonl``); else a second suite into one folder is refused with one line.
+        The run holds the folder's lock throughout (a second run on it is refused).
 
     Returns
     -------
     BudgetRun
     """
-    emit = events or (lambda kind, **info: None)
     t0 = time.perf_counter()
     entries = budget_methods(spec, list(methods) if methods else None)
+    emit = events or (lambda kind, **info: None)
     plan_scenes, scene_by_name, _ = plan(spec, methods=None, scenes=list(scenes) if scenes else None, emit=emit)
-    check_execution(workers=workers, scheduler=scheduler)
-    output = Path(output)
-    output.mkdir(parents=True, exist_ok=True)
-    run = _BudgetRun(spec, output, entries, device=device, cache=Path(cache_dir) if cache_dir else output / "cache",
-                     fresh=fresh, views=views, emit=emit)
-    run.groups = [(s, n, int(seed)) for s in plan_scenes for n in spec["noise"] for seed in spec["seeds"]]
-    emit("start", total=len(run.groups) * len(entries))
-    try:
-        with open_executor(workers=workers, scheduler=scheduler, threads=threads) as executor:
-            execution = {"kind": executor.kind, "workers": getattr(executor, "workers", None)}
-            run.execute(executor, scene_by_name)
-    finally:
-        forget_captures()
-    records = [run.records[i] for i in sorted(run.records)]
-    run.results.finish(records)
-    return BudgetRun(spec=spec, output=output, results_path=run.results.path, records=records,
-                     wall_time_s=time.perf_counter() - t0, execution=execution)
+    dev = str(resolve_device(device))
+    task = CaseTask(budget_task, BUDGET_OUTPUT, options={"views": bool(views)}, record={"device": dev},
+                    identity={"code": code_fingerprint(*RECONSTRUCTION_CODE, *SCORING_CODE, *BUDGET_CODE),
+                              "views": bool(views)})
+    outcome = run_cases(spec, output, task, plan_scenes=plan_scenes, plan_methods=entries, scene_by_name=scene_by_name,
+                        device=device, cache_dir=cache_dir, fresh=fresh, workers=workers, scheduler=scheduler,
+                        threads=threads, events=emit, allow_other_suite=allow_other_suite)
+    return BudgetRun(spec=spec, output=Path(output), results_path=outcome.results_path, records=outcome.records,
+                     wall_time_s=time.perf_counter() - t0, execution=outcome.execution, notes=outcome.notes)
 
 
 def load_budget(spec: dict, output: str | Path, *, methods=None, scenes=None) -> BudgetRun:
@@ -230,4 +177,4 @@ def load_budget(spec: dict, output: str | Path, *, methods=None, scenes=None) ->
                      execution={"kind": "stored"})
 
 
-__all__ = ["BUDGET_METHODS", "BudgetRun", "budget_methods", "budget_task", "load_budget", "run_budget"]
+__all__ = ["BUDGET_METHODS", "BudgetRun", "budget_methods", "budget_task", "check_budget", "load_budget", "run_budget"]

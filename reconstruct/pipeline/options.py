@@ -103,7 +103,7 @@ def wants_ground_truth(options: dict) -> bool:
 class CapsOptions:
     """Every option of the CAPS pipeline: one parameter object per step, each with its own defaults.
 
-    The paper's defaults (section 5.1, DESIGN.md) live in the parameter classes:
+    The paper's defaults (section 5.1; table in docs/guides/captures.md, "The paper's parameters") live in the parameter classes:
     :class:`ADMMParameters` (eq. 27-28), :class:`MatchSchedule` (NLSTR's block matching
     across iterations), :class:`NLSTRParameters` (section 3.3) and :class:`CAGFParameters`
     (section 3.2). The user-facing option names (``-p NAME=VALUE``, the ``params`` of the

@@ -19,7 +19,7 @@ For each reference block:
    the group are the eigenvectors of the mode Gram matrices ``S_(n) S_(n)^T``, summed
    over the ``P`` blocks. Each block's own 8x8 / 8x8 / CxC Gram matrix is read from
    per-position Gram maps computed for the whole image with box filters of products of
-   shifted images (DESIGN.md performance notes); a group then only sums ``P`` small
+   shifted images (docs/architecture.md, "A reconstruction"); a group then only sums ``P`` small
    matrices. Batched ``torch.linalg.eigh`` gives the bases. The Gram matrices are not
    mean-centred: the complete orthonormal bases represent each block exactly.
 3. **Tensor core** (eq. 22-23): ``alpha = R x1 Phi_h^T x2 Phi_w^T x3 Phi_c^T``,

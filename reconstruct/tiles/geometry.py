@@ -1,6 +1,6 @@
 """Tile layout on the HR grid: cores that partition the frame, margins around them, the overlap to blend.
 
-All lengths are HR pixels (the ``(2H, 2W)`` reference grid, DESIGN.md "Grids"). Every core and every
+All lengths are HR pixels (the ``(2H, 2W)`` reference grid, docs/architecture.md, "The camera, its grids and its channels"). Every core and every
 window (core + margin) starts on a multiple of :data:`TILE_ALIGN` = 4 HR pixels: one RGGB cell of every
 aperture (2 raw pixels) and the NLSTR reference stride, so a tile's sub-images keep their Bayer sites and
 its block grid is the whole frame's. The margin holds what a pixel of the core depends on: the NLSTR

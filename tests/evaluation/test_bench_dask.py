@@ -17,7 +17,8 @@ from typer.testing import CliRunner
 from capssim.cli import app
 from capssim.errors import InputError
 from capssim.eval.benchmarks.results import ResultsLog, read_results
-from capssim.eval.benchmarks.suite import _SuiteRun, load_suite
+from capssim.eval.benchmarks.runner import CaseRun, CaseTask
+from capssim.eval.benchmarks.suite import load_suite
 
 distributed = pytest.importorskip("distributed")
 
@@ -110,8 +111,8 @@ def test_captures_that_write_the_same_cache_folder_wait_for_each_other(tmp_path,
             return tag
 
     (tmp_path / "out").mkdir()
-    run = _SuiteRun(spec, tmp_path / "out", device="cpu", cache=tmp_path / "cache", fresh=False,
-                    emit=lambda kind, **info: None)
+    run = CaseRun(spec, tmp_path / "out", CaseTask(lambda *a, **k: None), device="cpu", cache=tmp_path / "cache",
+                  fresh=False, emit=lambda kind, **info: None)
     scenes = {s["name"]: s for s in spec["scenes"]}
     run.groups = [(scenes[name], noise, 0) for name in ("star", "rendered", "real-a", "real-b")
                   for noise in spec["noise"]]

@@ -298,7 +298,7 @@ def test_a_second_run_on_a_locked_folder_is_refused_and_a_killed_holder_releases
     try:
         assert holder.stdout.readline().strip() == "locked"
         outcome, message = invoke(["bench", "suite", _suite(tmp_path), "-o", out])
-        assert outcome == "error" and "in use by another bench suite run" in message and f"pid {holder.pid}" in message
+        assert outcome == "error" and "in use by another run" in message and f"pid {holder.pid}" in message
         assert not (out / "results.jsonl").exists()
     finally:
         os.kill(holder.pid, signal.SIGKILL)
