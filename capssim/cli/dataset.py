@@ -73,7 +73,10 @@ def dataset(
                          "Run: capssim dataset CONFIG -o OUT (see examples/dataset-small.yaml).")
     if workers is not None and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
+    if scheduler is not None:
+        from capssim.dataset.generate import check_scheduler_address  # start-up time
 
+        check_scheduler_address(scheduler)
     if output is not None:  # created, or finished if it exists; links followed
         output = resolve_output(output, kind="folder", overwrite=True)
     from capssim.dataset.config import load_config  # pulls torch, Dask and the scene library (start-up time)

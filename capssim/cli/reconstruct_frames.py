@@ -28,13 +28,18 @@ SchedulerOption = typer.Option(None, "--scheduler", metavar="ADDR",
 
 
 def check_full_frame_options(tile: Optional[int], workers: Optional[int], scheduler: Optional[str]) -> None:
-    """One-line :class:`InputError` for a bad ``--tile``, ``--workers`` or ``--workers`` with ``--scheduler``."""
+    """One-line :class:`InputError` for a bad ``--tile``, ``--workers``, ``--scheduler`` address or ``--workers``
+    with ``--scheduler``."""
     from capssim.reconstruct.tiles import MIN_TILE  # start-up time
 
     if tile is not None and tile < MIN_TILE:
         raise InputError("--tile", tile, f"an integer >= {MIN_TILE} (HR pixels)", f"Use --tile {MIN_TILE} or more.")
     if workers is not None and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
+    if scheduler is not None:
+        from capssim.dataset.generate import check_scheduler_address  # start-up time
+
+        check_scheduler_address(scheduler)
     if workers is not None:
         if workers < 1:
             raise InputError("--workers", workers, "an integer >= 1 (local Dask worker processes)")

@@ -26,7 +26,7 @@ from collections import deque
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
-from capssim.dataset.generate import check_local_workers, open_dask_client
+from capssim.dataset.generate import check_local_workers, check_scheduler_address, open_dask_client
 from capssim.errors import InputError
 from capssim.threads import resolve_threads
 
@@ -103,11 +103,13 @@ class OnDask:
 
 
 def check_execution(*, workers: int | None = None, scheduler: str | None = None) -> None:
-    """Refuse ``workers`` < 0, ``workers`` with ``scheduler``, and more local workers than this machine takes."""
+    """Refuse ``workers`` < 0, ``workers`` with ``scheduler``, a ``scheduler`` address that names no scheduler,
+    and more local workers than this machine takes."""
     if workers is not None and workers < 0:
         raise InputError("--workers", workers, "an integer >= 0 (0: run in this process without Dask)")
     if workers and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
+    check_scheduler_address(scheduler)
     if workers:
         check_local_workers(workers)
 

@@ -1,0 +1,123 @@
+"""Issue 60 ("Hardening, third round"): inputs refused up front, in one line that names the real cause.
+
+Every row names its item of the issue. A refused command exits 2 with exactly one ``error:`` line and no
+traceback, holding the row's fragments, before any output folder is created (``absent``) and before the
+command's work starts (``forbid``: the function that would do it is replaced by one that fails the test).
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+from support.fuzz import run_cli
+
+from capssim.capture import write_capture
+from capssim.resources import MEMORY_LIMIT_ENV
+from capssim.sensor import make_sensor
+from capssim.simulate import simulate_capture
+
+EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
+
+SUITE = "name: tiny\nmethods: [dofp-bilinear]\nscenes:\n  - {name: tex, source: synthetic, size: 32}\n"
+
+
+def _suite(root: Path) -> None:
+    (root / "tiny.yaml").write_text(SUITE)
+
+
+def _capture(side: int = 32, *, name: str = "cap") -> Callable[[Path], None]:
+    def setup(root: Path) -> None:
+        rng = np.random.default_rng(0)
+        gt = (0.2 + 0.5 * rng.random((12, side, side))).astype(np.float32)
+        write_capture(root / name, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=1))
+    return setup
+
+
+def _train(model: str, kind: str) -> Callable[[Path], None]:
+    def setup(root: Path) -> None:
+        (root / "dataset.yaml").write_text("seed: 0\n")
+        (root / "train.yaml").write_text(f"model: {model}\ninput: {kind}\ndata: {{dataset: dataset.yaml}}\n")
+    return setup
+
+
+@dataclass(frozen=True)
+class Row:
+    item: int
+    name: str
+    args: list  #: the command line; ``{root}`` is the test's folder
+    fragments: tuple = ()  #: words the one error line holds
+    forbid: str = ""  #: "module:function" of the command's work: it must not run
+    absent: tuple = ()  #: paths under the test's folder that must not exist afterwards
+    env: dict = field(default_factory=dict)
+    setup: Callable[[Path], None] = field(default=lambda root: None)
+
+
+BAD_ADDRESSES = [("bogus", "'bogus' (no HOST:PORT)"), ("", "got nothing"), ("localhost:abc", "(port 'abc')"),
+                 ("tcp://:8786", "(no HOST:PORT)"), ("foo://host:8786", "(scheme 'foo')"),
+                 ("localhost:99999", "(port '99999')")]
+SCHEDULER_COMMANDS = [
+    ("reconstruct", ["reconstruct", "{root}/cap", "-m", "caps"], ("cap/recon",), _capture()),
+    ("bench suite", ["bench", "suite", "{root}/tiny.yaml", "-o", "{root}/out"], ("out",), _suite),
+    ("bench budget", ["bench", "budget", "{root}/tiny.yaml", "-o", "{root}/out"], ("out",), _suite),
+    ("dataset", ["dataset", str(EXAMPLES / "dataset-small.yaml"), "-o", "{root}/out"], ("out",), lambda root: None),
+]
+TRAIN = ["train", "{root}/train.yaml", "-o", "{root}/run"]
+TRAINER = "capssim.reconstruct.training.trainer:train"
+
+ROWS = [
+    *[Row(3, f"{command} --scheduler {address!r}", [*args, "--scheduler", address],
+          ("--scheduler", shown, "HOST:PORT", "tcp://localhost:8786"), "capssim.dataset.generate:open_dask_client",
+          absent, setup=setup)
+      for command, args, absent, setup in SCHEDULER_COMMANDS for address, shown in BAD_ADDRESSES],
+    Row(3, "train a denoiser of 4 channels", TRAIN, ("'model.channels'", "got 4", "expected 12", "noisy-gt"),
+        TRAINER, ("run",), setup=_train("{network: denoiser, channels: 4}", "noisy-gt")),
+    Row(3, "train a denoiser of 1 channel", TRAIN, ("'model.channels'", "got 1", "expected 12"),
+        TRAINER, ("run",), setup=_train("{network: denoiser, channels: 1}", "noisy-gt")),
+    Row(3, "train an edsr of 12 channels", TRAIN, ("'model.channels'", "got 12", "expected 3", "aperture"),
+        TRAINER, ("run",), setup=_train("{network: edsr, channels: 12}", "aperture")),
+]
+
+
+@pytest.mark.parametrize("row", ROWS, ids=lambda r: f"item{r.item}-{r.name}")
+def test_refused_up_front_in_one_line(row, tmp_path, capsys, monkeypatch):
+    row.setup(tmp_path)
+    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
+    for key, value in row.env.items():
+        monkeypatch.setenv(key, value)
+    if row.forbid:
+        module, name = row.forbid.split(":")
+
+        def must_not_run(*args, **kwargs):
+            raise AssertionError(f"{row.forbid} ran: the input was not refused before the work")
+        monkeypatch.setattr(importlib.import_module(module), name, must_not_run)
+    args = [str(a).replace("{root}", str(tmp_path)) for a in row.args]
+    status, err = run_cli(args, capsys, monkeypatch, quiet=True)
+    assert status == 2, err
+    assert "Traceback" not in err, err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    for fragment in row.fragments:
+        assert fragment in lines[0], (fragment, err)
+    for path in row.absent:
+        assert not (tmp_path / path).exists(), f"{path} was created before the refusal"
+
+
+def test_well_formed_scheduler_addresses_pass_the_check():
+    from capssim.dataset.generate import check_scheduler_address
+
+    for address in (None, "localhost:8786", "tcp://10.0.0.1:8786", "tls://host.example:1", "[::1]:8786",
+                    "ws://h:65535", " tcp://host:8786 "):
+        check_scheduler_address(address)
+
+
+def test_the_matching_channel_counts_load(tmp_path):
+    from capssim.reconstruct.training.config import load_train_config
+
+    for model, kind, channels in (("denoiser", "noisy-gt", 12), ("edsr", "aperture", 3)):
+        _train(f"{{network: {model}, channels: {channels}}}", kind)(tmp_path)
+        assert load_train_config(tmp_path / "train.yaml").network_params["channels"] == channels
