@@ -80,6 +80,16 @@ ROWS = [
         TRAINER, ("run",), setup=_train("{network: denoiser, channels: 1}", "noisy-gt")),
     Row(3, "train an edsr of 12 channels", TRAIN, ("'model.channels'", "got 12", "expected 3", "aperture"),
         TRAINER, ("run",), setup=_train("{network: edsr, channels: 12}", "aperture")),
+    Row(4, "design --depth-m 0.001 (inside the focal length)", ["design", "--depth-m", "0.001"],
+        ("--depth-m", "got 0.001", "beyond the focal length (35 mm", "Use --depth-m")),
+    Row(4, "design --depth-m 0.035 (at the focal length)", ["design", "--depth-m", "0.035"],
+        ("--depth-m", "got 0.035", "beyond the focal length")),
+    Row(4, "design --depth-m 0.2 (views do not overlap)", ["design", "--depth-m", "0.2"],
+        ("--depth-m", "got 0.2", "views overlap", "more than 0.2848 m", "smaller --baseline-mm")),
+    Row(4, "design --baseline-mm 1e6", ["design", "--baseline-mm", "1e6", "--json"],
+        ("--depth-m", "views overlap", "--baseline-mm 1e+06")),
+    Row(4, "design --focal-length-mm 1e308", ["design", "--focal-length-mm", "1e308"],
+        ("--depth-m", "beyond the focal length", "shorter --focal-length-mm")),
 ]
 
 
@@ -121,3 +131,16 @@ def test_the_matching_channel_counts_load(tmp_path):
     for model, kind, channels in (("denoiser", "noisy-gt", 12), ("edsr", "aperture", 3)):
         _train(f"{{network: {model}, channels: {channels}}}", kind)(tmp_path)
         assert load_train_config(tmp_path / "train.yaml").network_params["channels"] == channels
+
+
+def test_design_at_the_edge_of_the_overlap():
+    """Just beyond the depth where the views start to overlap every quantity is finite and positive; just
+    inside it the command refuses (the bound is the formula's, not a constant)."""
+    from capssim.design import DesignInputs, system_design
+    from capssim.errors import InputError
+
+    edge = 40.0 * (35.0 / 4.8e-3) / 1024 * 1e-3  # B f_P / min(N_x, N_y), metres
+    d = system_design(DesignInputs(depth_m=edge * 1.001))
+    assert 0 < d["overlap_height_m"] < d["overlap_width_m"] and 0 < d["fov_v_deg"] < d["fov_h_deg"] < 180
+    with pytest.raises(InputError, match="views overlap"):
+        system_design(DesignInputs(depth_m=edge * 0.999))
