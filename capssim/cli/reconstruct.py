@@ -13,6 +13,7 @@ from capssim.cli.reconstruct_frames import (
     SchedulerOption,
     TileOption,
     WorkersOption,
+    check_frames_before_work,
     check_full_frame_options,
     first_capture,
     frame_runner,
@@ -136,6 +137,8 @@ def reconstruct(
     names = expand_methods(method, capture)
     check_recon_outputs(capture, names)
     check_before_work(capture, names, options, iterations, tiled=tile is not None)
+    check_frames_before_work(capture, None, names, tile=tile, memory_gb=memory_gb, workers=None,
+                             options_of=lambda name: _method_options(name, options, iterations, quiet=True))
     for name in names:
         record = _run_one(capture, name, iterations=iterations, progress=progress, options=options,
                           run=frame_runner(tile, memory_gb), **flags)

@@ -51,7 +51,7 @@ class Row:
     name: str
     args: list  #: the command line; ``{root}`` is the test's folder
     fragments: tuple = ()  #: words the one error line holds
-    forbid: str = ""  #: "module:function" of the command's work: it must not run
+    forbid: tuple = ()  #: "module:function" of the command's work (one or several): it must not run
     absent: tuple = ()  #: paths under the test's folder that must not exist afterwards
     env: dict = field(default_factory=dict)
     setup: Callable[[Path], None] = field(default=lambda root: None)
@@ -67,11 +67,15 @@ SCHEDULER_COMMANDS = [
     ("dataset", ["dataset", str(EXAMPLES / "dataset-small.yaml"), "-o", "{root}/out"], ("out",), lambda root: None),
 ]
 TRAIN = ["train", "{root}/train.yaml", "-o", "{root}/run"]
-TRAINER = "capssim.reconstruct.training.trainer:train"
+TRAINER = ("capssim.reconstruct.training.trainer:train",)
+#: registration (the first work of a tiled run) and the Dask cluster of --workers
+TILED_WORK = ("capssim.reconstruct.tiles.run:frame_warps", "capssim.reconstruct.tiles.distributed:DaskSession")
+BIG = _capture(256)  # 0.5 GiB untiled: --memory-gb 0.45 makes tiles
+RECON = ["reconstruct", "{root}/cap", "-m", "caps"]
 
 ROWS = [
     *[Row(3, f"{command} --scheduler {address!r}", [*args, "--scheduler", address],
-          ("--scheduler", shown, "HOST:PORT", "tcp://localhost:8786"), "capssim.dataset.generate:open_dask_client",
+          ("--scheduler", shown, "HOST:PORT", "tcp://localhost:8786"), ("distributed:Client",),
           absent, setup=setup)
       for command, args, absent, setup in SCHEDULER_COMMANDS for address, shown in BAD_ADDRESSES],
     Row(3, "train a denoiser of 4 channels", TRAIN, ("'model.channels'", "got 4", "expected 12", "noisy-gt"),
@@ -90,6 +94,29 @@ ROWS = [
         ("--depth-m", "views overlap", "--baseline-mm 1e+06")),
     Row(4, "design --focal-length-mm 1e308", ["design", "--focal-length-mm", "1e308"],
         ("--depth-m", "beyond the focal length", "shorter --focal-length-mm")),
+    # item 5: a refusal of --tile or --memory-gb names the option that makes the margin
+    Row(5, "--tile 64 -p search_radius=1000000", [*RECON, "--tile", "64", "-p", "search_radius=1000000"],
+        ("search_radius:", "1e+06", "at most 128", "128x128"), TILED_WORK, setup=_capture(128)),
+    Row(5, "--tile 64 -p block=200 (past the frame)", [*RECON, "--tile", "64", "-p", "block=200"],
+        ("block: got 200", "at most the 128x128 frame's smaller side"), TILED_WORK, setup=_capture(128)),
+    Row(5, "--tile 64 -p block=100 (a margin wider than the tile)", [*RECON, "--tile", "64", "-p", "block=100"],
+        ("block: got 100 with --tile 64", "128 HR px", "block 100 +", "Use --tile 128 or more", "smaller -p block"),
+        TILED_WORK, setup=_capture(128)),
+    Row(5, "--tile 64 -p search_radius=60", [*RECON, "--tile", "64", "-p", "search_radius=60"],
+        ("search_radius: got 60 with --tile 64", "search_radius 60", "smaller -p search_radius"), TILED_WORK,
+        setup=_capture(128)),
+    Row(5, "--tile 64 -p cagf_radius=1000", [*RECON, "--tile", "64", "-p", "cagf_radius=1000"],
+        ("cagf_radius: got 1000", "[1, 32]"), TILED_WORK, setup=_capture(128)),
+    Row(5, "--tile 64 -p psf_sigma=100", [*RECON, "--tile", "64", "-p", "psf_sigma=100"],
+        ("psf_sigma:", "128x128 image"), TILED_WORK, setup=_capture(128)),
+    Row(5, "--memory-gb 0.45 -p search_radius=1000000", [*RECON, "--memory-gb", "0.45", "-p", "search_radius=1000000"],
+        ("search_radius:", "at most 256"), TILED_WORK, setup=BIG),
+    Row(5, "--memory-gb 0.45 -p block=200", [*RECON, "--memory-gb", "0.45", "-p", "block=200"],
+        ("--memory-gb", "block 200 +", "or a smaller -p block"), TILED_WORK, setup=BIG),
+    Row(5, "--tile 63", [*RECON, "--tile", "63"], ("--tile: got 63", ">= 64"), TILED_WORK, setup=_capture(128)),
+    # item 7: checks that came late
+    Row(7, "--memory-gb 0.45 -w 2 (no cluster is started)", [*RECON, "--memory-gb", "0.45", "-w", "2"],
+        ("--memory-gb", "2 tile(s)", "fewer --workers"), TILED_WORK, setup=BIG),
 ]
 
 
@@ -99,11 +126,11 @@ def test_refused_up_front_in_one_line(row, tmp_path, capsys, monkeypatch):
     monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
     for key, value in row.env.items():
         monkeypatch.setenv(key, value)
-    if row.forbid:
-        module, name = row.forbid.split(":")
+    for target in row.forbid:
+        module, name = target.split(":")
 
-        def must_not_run(*args, **kwargs):
-            raise AssertionError(f"{row.forbid} ran: the input was not refused before the work")
+        def must_not_run(*args, _target=target, **kwargs):
+            raise AssertionError(f"{_target} ran: the input was not refused before the work")
         monkeypatch.setattr(importlib.import_module(module), name, must_not_run)
     args = [str(a).replace("{root}", str(tmp_path)) for a in row.args]
     status, err = run_cli(args, capsys, monkeypatch, quiet=True)
@@ -144,3 +171,34 @@ def test_design_at_the_edge_of_the_overlap():
     assert 0 < d["overlap_height_m"] < d["overlap_width_m"] and 0 < d["fov_v_deg"] < d["fov_h_deg"] < 180
     with pytest.raises(InputError, match="views overlap"):
         system_design(DesignInputs(depth_m=edge * 0.999))
+
+
+def test_resuming_a_folder_of_captures_redoes_an_empty_tiff(tmp_path, capsys, monkeypatch):
+    """Item 9: recon/METHOD.json of the same job beside an empty METHOD.tiff is not a finished frame."""
+    (tmp_path / "many").mkdir()
+    for name in ("a", "b"):
+        _capture(name=name)(tmp_path / "many")
+    args = ["reconstruct", tmp_path / "many", "-m", "dofp-bilinear"]
+    assert run_cli(args, capsys, monkeypatch)[0] == 0
+    (tmp_path / "many" / "b" / "recon" / "dofp-bilinear.tiff").write_bytes(b"")
+    status, text = run_cli(args, capsys, monkeypatch)
+    assert status == 0, text
+    assert "a: dofp-bilinear already finished" in text and "b: dofp-bilinear already finished" not in text, text
+    import tifffile
+
+    assert tifffile.imread(tmp_path / "many" / "b" / "recon" / "dofp-bilinear.tiff").shape == (12, 32, 32)
+
+
+def test_cagf_radius_refusal_suggests_a_radius_the_image_takes():
+    """Item 9: on sub-images smaller than the paper's radius 4 the fix names one that is in range."""
+    import torch
+
+    from capssim.errors import InputError
+    from capssim.reconstruct.model.cagf import pairwise_confidence
+
+    with pytest.raises(InputError) as small:
+        pairwise_confidence(torch.rand(3, 2, 2), radius=5)
+    assert "[1, 2]" in str(small.value) and "cagf_radius=2" in str(small.value), small.value
+    with pytest.raises(InputError) as large:
+        pairwise_confidence(torch.rand(3, 8, 8), radius=9)
+    assert "The paper uses 4" in str(large.value), large.value
