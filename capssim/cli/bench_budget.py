@@ -46,7 +46,7 @@ def budget(
     its ceiling. Writes budget.jsonl (one line per case, as it finishes; run again to resume), budget.md
     and a waterfall plot per case into OUTPUT for one suite, into OUTPUT/NAME for each of several.
     """
-    from capssim.eval.benchmarks.executors import check_execution
+    from capssim.eval.benchmarks.executors import check_cache_folder, check_execution
     from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
     from capssim.eval.error_budget.budget_report import write_report, write_results_page
     from capssim.eval.error_budget.runner import load_budget, run_budget
@@ -55,6 +55,7 @@ def budget(
 
     specs = [load_suite(name) for name in suites]  # every suite checked before any work
     check_execution(workers=workers, scheduler=scheduler)  # --scheduler's address, --workers
+    check_cache_folder(cache)
     target = resolve_output(output, kind="folder", overwrite=True)  # resumed if it exists; links followed
     if results_page is not None:
         resolve_output(results_page, kind="file", overwrite=True, argument="--results-page")

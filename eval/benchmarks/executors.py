@@ -114,6 +114,15 @@ def check_execution(*, workers: int | None = None, scheduler: str | None = None)
         check_local_workers(workers)
 
 
+def check_cache_folder(cache) -> None:
+    """Refuse a ``--cache`` the captures cannot be cached in (a file, a link loop, a place that refuses new
+    entries), before any case runs: every case would fail on it."""
+    if cache is not None:
+        from capssim.output_paths import resolve_output
+
+        resolve_output(cache, kind="folder", overwrite=True, argument="--cache")
+
+
 @contextmanager
 def open_executor(*, workers: int | None = None, scheduler: str | None = None, threads: int | None = None,
                   started: Callable[[object], None] | None = None):

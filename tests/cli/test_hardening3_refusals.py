@@ -38,6 +38,23 @@ def _capture(side: int = 32, *, name: str = "cap") -> Callable[[Path], None]:
     return setup
 
 
+def _cache_file(root: Path) -> None:
+    _suite(root)
+    (root / "cachefile").write_text("not a folder\n")
+
+
+def _wide_psf_dataset(root: Path) -> None:
+    """A ground-truth source of 64 px samples and a PSF of sigma 20 HR px (a 141 px kernel)."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    (root / "gt").mkdir()
+    for angle in (0, 45, 90, 135):
+        cv2.imwrite(str(root / "gt" / f"{angle}.png"), (rng.random((80, 80, 3)) * 200).astype(np.uint8))
+    (root / "ds.yaml").write_text("name: wide\nseed: 0\nsamples: 2\ndefaults: {psf_sigma_hr_px: 20}\n"
+                                  "sources:\n  - {gt: gt, size: 64}\n")
+
+
 def _train(model: str, kind: str) -> Callable[[Path], None]:
     def setup(root: Path) -> None:
         (root / "dataset.yaml").write_text("seed: 0\n")
@@ -117,6 +134,17 @@ ROWS = [
     # item 7: checks that came late
     Row(7, "--memory-gb 0.45 -w 2 (no cluster is started)", [*RECON, "--memory-gb", "0.45", "-w", "2"],
         ("--memory-gb", "2 tile(s)", "fewer --workers"), TILED_WORK, setup=BIG),
+    Row(7, "bench suite --cache FILE", ["bench", "suite", "{root}/tiny.yaml", "-o", "{root}/out", "--cache",
+                                        "{root}/cachefile"], ("--cache", "an existing file", "a folder path"),
+        ("capssim.eval.benchmarks.suite:run_suite",), ("out",), setup=_cache_file),
+    Row(7, "bench budget --cache FILE", ["bench", "budget", "{root}/tiny.yaml", "-o", "{root}/out", "--cache",
+                                         "{root}/cachefile"], ("--cache", "an existing file", "a folder path"),
+        ("capssim.eval.error_budget.runner:run_budget",), ("out",), setup=_cache_file),
+    Row(7, "dataset --dry-run with a PSF wider than the samples", ["dataset", "{root}/ds.yaml", "--dry-run"],
+        ("psf_sigma_hr_px", "141", "at most 64"), setup=_wide_psf_dataset),
+    Row(7, "dataset with a PSF wider than the samples", ["dataset", "{root}/ds.yaml", "-o", "{root}/out"],
+        ("psf_sigma_hr_px", "141", "at most 64"), ("capssim.dataset.generate:generate_dataset",), ("out",),
+        setup=_wide_psf_dataset),
 ]
 
 
