@@ -128,7 +128,7 @@ def reconstruct(
     if uses_full_frames(capture, workers, scheduler):  # a folder of captures, or tiles/frames on Dask
         names = expand_methods(method, first_capture(capture))
         check_recon_outputs(capture, names)
-        check_before_work(capture, names, options, iterations, tiled=True)
+        check_before_work(capture, names, options, iterations, tiled=True, calibration=calibration)
         run_full_frames(capture, names, tile=tile, memory_gb=memory_gb, workers=workers, scheduler=scheduler,
                         echo=lambda folder, name, record: _echo_record(folder, name, record),
                         options_of=lambda name: _method_options(name, options, iterations), **flags)
@@ -136,7 +136,7 @@ def reconstruct(
     rows = []
     names = expand_methods(method, capture)
     check_recon_outputs(capture, names)
-    check_before_work(capture, names, options, iterations, tiled=tile is not None)
+    check_before_work(capture, names, options, iterations, tiled=tile is not None, calibration=calibration)
     check_frames_before_work(capture, None, names, tile=tile, memory_gb=memory_gb, workers=None,
                              options_of=lambda name: _method_options(name, options, iterations, quiet=True))
     for name in names:
@@ -173,7 +173,7 @@ def check_iterations_agree(options: dict, iterations: Optional[int]) -> None:
 
 
 def check_before_work(capture: Path, names: list[str], options: dict, iterations: Optional[int], *,
-                      tiled: bool) -> None:
+                      tiled: bool, calibration: Optional[str] = None) -> None:
     """Every check that can fail before the first method runs: each method's options
     (:func:`check_method_options`), ``-p track_psnr`` (:func:`check_track_psnr`), then the raw frames' range
     (:func:`capssim.cli.reconstruct_checks.warn_raw_range`, a warning)."""
@@ -184,10 +184,22 @@ def check_before_work(capture: Path, names: list[str], options: dict, iterations
     for name in names:
         check_method_options(name, _method_options(name, options, iterations, quiet=True), shared=len(names) > 1)
     folders = capture_folders(capture) or [capture]
+    if any(get_method(name).input_kind == "caps" for name in names):  # DoFP methods take no array model
+        _check_calibration(folders, calibration)
     check_track_psnr(options, folders, tiled=tiled)
     kinds = {get_method(name).input_kind for name in names}
     for folder in folders:
         warn_raw_range(folder, kinds)
+
+
+def _check_calibration(folders: list[Path], calibration: Optional[str]) -> None:
+    """Read the calibration each capture would use (``--calibration FILE``, or its ``meta.json`` calibration_file)
+    as the methods will read it, so that a file they refuse (a gain of 1e300) is refused before any method runs."""
+    from capssim.capture import Capture, read_meta
+    from capssim.reconstruct.calibration_model import resolve_calibration  # start-up time
+
+    for folder in folders:
+        resolve_calibration(Capture(meta=read_meta(folder), caps_raw=None, path=folder), calibration)
 
 
 def _method_options(name: str, options: dict, iterations: Optional[int], *, quiet: bool = False) -> dict:

@@ -55,6 +55,26 @@ def _wide_psf_dataset(root: Path) -> None:
                                   "sources:\n  - {gt: gt, size: 64}\n")
 
 
+def _rig_file(gain=(1.0, 1.0, 1.0, 1.0), constant: float = 1.0) -> Callable[[Path], None]:
+    """A capture, a 12-channel ground truth and ``rig.json``: the ideal rig with ``gain`` and vignetting ``constant``."""
+    def setup(root: Path) -> None:
+        import json
+
+        import cv2
+
+        from capssim.rig import RigModel
+
+        _capture()(root)
+        (root / "gt").mkdir()
+        for angle in (0, 45, 90, 135):
+            cv2.imwrite(str(root / "gt" / f"{angle}.png"), np.full((32, 32, 3), 100, np.uint8))
+        rig = RigModel().to_dict()
+        rig["gain"] = list(gain)
+        rig["vignetting"]["coefficients"] = [[constant] + row[1:] for row in rig["vignetting"]["coefficients"]]
+        (root / "rig.json").write_text(json.dumps({"format": "capssim-rig", "version": 1, "rig": rig}))
+    return setup
+
+
 def _train(model: str, kind: str) -> Callable[[Path], None]:
     def setup(root: Path) -> None:
         (root / "dataset.yaml").write_text("seed: 0\n")
@@ -145,6 +165,25 @@ ROWS = [
     Row(7, "dataset with a PSF wider than the samples", ["dataset", "{root}/ds.yaml", "-o", "{root}/out"],
         ("psf_sigma_hr_px", "141", "at most 64"), ("capssim.dataset.generate:generate_dataset",), ("out",),
         setup=_wide_psf_dataset),
+    # item 8: a gain past any camera's response is refused naming the gain
+    Row(8, "simulate --rig with a gain of 1e300", ["simulate", "{root}/gt", "-o", "{root}/out", "--rig",
+                                                   "{root}/rig.json"],
+        ("--rig", "rig gain", "1e+300", "[0.001, 1000]"), ("capssim.simulate:simulate_capture",), ("out",),
+        setup=_rig_file((1e300, 1, 1, 1))),
+    Row(8, "reconstruct --calibration with a gain of 1e300", [*RECON, "--calibration", "{root}/rig.json"],
+        ("--calibration", "rig gain", "1e+300"), ("capssim.reconstruct.registry:reconstruct",), ("cap/recon",),
+        setup=_rig_file((1e300, 1, 1, 1))),
+    Row(8, "reconstruct --calibration with a gain of 1001", [*RECON, "--calibration", "{root}/rig.json"],
+        ("rig gain", "1001", "[0.001, 1000]"), ("capssim.reconstruct.registry:reconstruct",), ("cap/recon",),
+        setup=_rig_file((1, 1, 1001, 1))),
+    Row(8, "simulate --rig with a flat field of 2000", ["simulate", "{root}/gt", "-o", "{root}/out", "--rig",
+                                                        "{root}/rig.json"],
+        ("vignetting", "2e+03", "<= 1000"), ("capssim.simulate:simulate_capture",), ("out",),
+        setup=_rig_file(constant=2000.0)),
+    Row(8, "bench suite with a scene rig gain of 1e300", ["bench", "suite", "{root}/gain.yaml", "-o", "{root}/out"],
+        ("gain.yaml", "rig.gain", "1e+300"), ("capssim.eval.benchmarks.suite:run_suite",), ("out",),
+        setup=lambda root: (root / "gain.yaml").write_text(SUITE.replace(
+            "size: 32}", "size: 32, rig: {preset: realistic, gain: [1.0e+300, 1, 1, 1]}}"))),
 ]
 
 
@@ -230,3 +269,9 @@ def test_cagf_radius_refusal_suggests_a_radius_the_image_takes():
     with pytest.raises(InputError) as large:
         pairwise_confidence(torch.rand(3, 8, 8), radius=9)
     assert "The paper uses 4" in str(large.value), large.value
+
+
+def test_gains_within_the_bound_load():
+    from capssim.rig import RigModel
+
+    assert RigModel(gain=np.array([0.001, 1.0, 999.0, 1000.0])).gain.max() == 1000.0
