@@ -30,11 +30,11 @@ def _suite(root: Path) -> None:
     (root / "tiny.yaml").write_text(SUITE)
 
 
-def _capture(side: int = 32, *, name: str = "cap") -> Callable[[Path], None]:
+def _capture(side: int = 32, *, name: str = "cap", seed: int = 1) -> Callable[[Path], None]:
     def setup(root: Path) -> None:
         rng = np.random.default_rng(0)
         gt = (0.2 + 0.5 * rng.random((12, side, side))).astype(np.float32)
-        write_capture(root / name, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=1))
+        write_capture(root / name, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=seed))
     return setup
 
 
@@ -92,6 +92,7 @@ class Row:
     absent: tuple = ()  #: paths under the test's folder that must not exist afterwards
     env: dict = field(default_factory=dict)
     setup: Callable[[Path], None] = field(default=lambda root: None)
+    not_in: tuple = ()  #: words the error line must not hold (a fix that would be refused in turn)
 
 
 BAD_ADDRESSES = [("bogus", "'bogus' (no HOST:PORT)"), ("", "got nothing"), ("localhost:abc", "(port 'abc')"),
@@ -184,6 +185,17 @@ ROWS = [
         ("gain.yaml", "rig.gain", "1e+300"), ("capssim.eval.benchmarks.suite:run_suite",), ("out",),
         setup=lambda root: (root / "gain.yaml").write_text(SUITE.replace(
             "size: 32}", "size: 32, rig: {preset: realistic, gain: [1.0e+300, 1, 1, 1]}}"))),
+    # item 9: smaller ones
+    Row(9, "calibrate -o an existing folder", ["calibrate", "{root}/cap", "-o", "{root}/cap"],
+        ("-o/--output", "an existing folder", "a file path"), ("capssim.eval.calibration:calibrate_captures",),
+        setup=_capture(), not_in=("--overwrite",)),
+    Row(9, "calibrate -o an existing file still suggests --overwrite", ["calibrate", "{root}/cap", "-o",
+                                                                        "{root}/cap/meta.json"],
+        ("-o/--output", "--overwrite"), ("capssim.eval.calibration:calibrate_captures",), setup=_capture()),
+    Row(9, "simulate a 64x1 ground truth", ["simulate", "{root}/gt.tiff", "-o", "{root}/out"],
+        ("gt: got size 64x1", "at least 16x16"), ("capssim.simulate:simulate_capture",), ("out",),
+        setup=lambda root: __import__("tifffile").imwrite(root / "gt.tiff", np.full((12, 64, 1), 0.5, np.float32)),
+        not_in=("crop",)),
 ]
 
 
@@ -207,6 +219,8 @@ def test_refused_up_front_in_one_line(row, tmp_path, capsys, monkeypatch):
     assert len(lines) == 1 and lines[0].startswith("error: "), err
     for fragment in row.fragments:
         assert fragment in lines[0], (fragment, err)
+    for word in row.not_in:
+        assert word not in lines[0], (word, err)
     for path in row.absent:
         assert not (tmp_path / path).exists(), f"{path} was created before the refusal"
 
@@ -275,3 +289,48 @@ def test_gains_within_the_bound_load():
     from capssim.rig import RigModel
 
     assert RigModel(gain=np.array([0.001, 1.0, 999.0, 1000.0])).gain.max() == 1000.0
+
+
+def test_evaluate_warns_of_a_ground_truth_far_above_full_scale(tmp_path, capsys, monkeypatch):
+    """Item 9: a ground truth of 1e30 is scored as it is, with one warning that says PSNR means nothing there."""
+    import tifffile
+
+    _capture()(tmp_path)
+    assert run_cli(["reconstruct", tmp_path / "cap", "-m", "dofp-bilinear"], capsys, monkeypatch)[0] == 0
+    status, text = run_cli(["evaluate", tmp_path / "cap"], capsys, monkeypatch)
+    assert status == 0 and "above twice full scale" not in text, text  # a ground truth on [0, 1]: no warning
+    gt = tifffile.imread(tmp_path / "cap" / "gt.tiff")
+    gt[:, :4, :4] = 1e30
+    tifffile.imwrite(tmp_path / "cap" / "gt.tiff", gt)
+    status, text = run_cli(["evaluate", tmp_path / "cap"], capsys, monkeypatch)
+    warnings = [line for line in text.splitlines() if line.startswith("WARNING") and "twice full scale" in line]
+    assert status == 0 and len(warnings) == 1, text
+    assert "192 of 12288 values" in warnings[0] and "1e+30" in warnings[0] and "PSNR" in warnings[0], warnings
+
+
+def test_calibrate_warns_of_captures_from_another_camera(tmp_path, caplog):
+    """Item 9: a flat field of one rig with a polarizer capture of another: one warning naming both; one rig: none."""
+    import json
+    import logging
+
+    from capssim.eval.calibration.calibrate import load_calibration_set
+    from capssim.rig import RigModel
+
+    for seed, (name, target, rig) in enumerate((("flat", {"target": "flat", "level": 0.4}, None),
+                              ("sweep", {"target": "polarizer", "level": 0.4, "polarizer_deg": 0.0}, None),
+                              ("other", {"target": "polarizer", "level": 0.4, "polarizer_deg": 60.0},
+                               RigModel(gain=np.array([1.2, 0.9, 1.0, 1.0])).to_dict()))):
+        _capture(name=name, seed=seed)(tmp_path)
+        meta = json.loads((tmp_path / name / "meta.json").read_text())
+        meta["calibration"] = target
+        if rig is not None:
+            meta["rig"] = rig
+            meta["setup"].pop("rig")  # derived from the top level
+        (tmp_path / name / "meta.json").write_text(json.dumps(meta))
+    with caplog.at_level(logging.WARNING):
+        load_calibration_set([tmp_path / "flat", tmp_path / "sweep"])
+    assert not [r for r in caplog.records if "another camera" in r.getMessage()]
+    with caplog.at_level(logging.WARNING):
+        load_calibration_set([tmp_path / "flat", tmp_path / "sweep", tmp_path / "other"])
+    warned = [r.getMessage() for r in caplog.records if "another camera" in r.getMessage()]
+    assert len(warned) == 1 and "1 of 3 captures" in warned[0] and str(tmp_path / "other") in warned[0], warned
