@@ -10,6 +10,16 @@ import typer
 from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, apply_compute, echo_json
 
 
+def _checked_suites(suites: List[str], *, workers, scheduler, cache) -> list:
+    """Every suite file, then ``--workers``, ``--scheduler`` and ``--cache``, checked before any work."""
+    from capssim.eval.benchmarks.executors import check_execution
+    from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
+
+    specs = [load_suite(name) for name in suites]
+    check_execution(workers=workers, scheduler=scheduler, cache=cache)
+    return specs
+
+
 def budget(
     suites: List[str] = typer.Argument(..., metavar="SUITE...",
                                        help="Suite name(s) (eval/suites/NAME.yaml) or YAML path(s); one suite runs "
@@ -46,16 +56,12 @@ def budget(
     its ceiling. Writes budget.jsonl (one line per case, as it finishes; run again to resume), budget.md
     and a waterfall plot per case into OUTPUT for one suite, into OUTPUT/NAME for each of several.
     """
-    from capssim.eval.benchmarks.executors import check_cache_folder, check_execution
-    from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
     from capssim.eval.error_budget.budget_report import write_report, write_results_page
     from capssim.eval.error_budget.runner import load_budget, run_budget
     from capssim.output_paths import resolve_output
     from capssim.threads import resolve_threads
 
-    specs = [load_suite(name) for name in suites]  # every suite checked before any work
-    check_execution(workers=workers, scheduler=scheduler)  # --scheduler's address, --workers
-    check_cache_folder(cache)
+    specs = _checked_suites(suites, workers=workers, scheduler=scheduler, cache=cache)  # before any work
     target = resolve_output(output, kind="folder", overwrite=True)  # resumed if it exists; links followed
     if results_page is not None:
         resolve_output(results_page, kind="file", overwrite=True, argument="--results-page")

@@ -136,9 +136,7 @@ def reconstruct(
     rows = []
     names = expand_methods(method, capture)
     check_recon_outputs(capture, names)
-    check_before_work(capture, names, options, iterations, tiled=tile is not None, calibration=calibration)
-    check_frames_before_work(capture, None, names, tile=tile, memory_gb=memory_gb, workers=None,
-                             options_of=lambda name: _method_options(name, options, iterations, quiet=True))
+    check_before_work(capture, names, options, iterations, calibration=calibration, frame=(tile, memory_gb))
     for name in names:
         record = _run_one(capture, name, iterations=iterations, progress=progress, options=options,
                           run=frame_runner(tile, memory_gb), **flags)
@@ -173,10 +171,12 @@ def check_iterations_agree(options: dict, iterations: Optional[int]) -> None:
 
 
 def check_before_work(capture: Path, names: list[str], options: dict, iterations: Optional[int], *,
-                      tiled: bool, calibration: Optional[str] = None) -> None:
+                      tiled: Optional[bool] = None, calibration: Optional[str] = None,
+                      frame: Optional[tuple] = None) -> None:
     """Every check that can fail before the first method runs: each method's options
     (:func:`check_method_options`), ``-p track_psnr`` (:func:`check_track_psnr`), then the raw frames' range
-    (:func:`capssim.cli.reconstruct_checks.warn_raw_range`, a warning)."""
+    (:func:`capssim.cli.reconstruct_checks.warn_raw_range`, a warning). ``frame``: ``(--tile, --memory-gb)`` of one
+    capture run here (``tiled`` then defaults to ``--tile`` given), whose tiling is checked from meta.json."""
     from capssim.cli.reconstruct_checks import check_method_options, check_track_psnr, warn_raw_range
     from capssim.reconstruct import get_method  # start-up time
     from capssim.reconstruct.tiles.frames import capture_folders
@@ -186,7 +186,10 @@ def check_before_work(capture: Path, names: list[str], options: dict, iterations
     folders = capture_folders(capture) or [capture]
     if any(get_method(name).input_kind == "caps" for name in names):  # DoFP methods take no array model
         _check_calibration(folders, calibration)
-    check_track_psnr(options, folders, tiled=tiled)
+    check_track_psnr(options, folders, tiled=bool(tiled) if tiled is not None else bool(frame and frame[0] is not None))
+    if frame is not None:  # one capture run here: its tiling (--tile, --memory-gb), from meta.json
+        check_frames_before_work(capture, None, names, tile=frame[0], memory_gb=frame[1], workers=None,
+                                 options_of=lambda name: _method_options(name, options, iterations, quiet=True))
     kinds = {get_method(name).input_kind for name in names}
     for folder in folders:
         warn_raw_range(folder, kinds)
