@@ -86,6 +86,9 @@ def prepare_ground_truth(gt: np.ndarray, *, crop: int | None = None,
         gt = centre_crop(gt, crop)
         info["crop"] = crop
     else:
+        if min(h, w) < MIN_HR_SIZE:  # before the trim, which would report a crop nobody asked for (64x1 -> 64x0)
+            raise InputError("gt", f"size {h}x{w}", f"at least {MIN_HR_SIZE}x{MIN_HR_SIZE} HR pixels",
+                             "Use a larger ground truth (capssim.eval.synthetic makes any size).")
         th, tw = h - h % 4, w - w % 4
         if (th, tw) != (h, w):
             log.warning("ground truth %dx%d is not a multiple of 4; trimmed (centred) to %dx%d", h, w, th, tw)

@@ -171,6 +171,10 @@ def _record_entry(record_path: Path) -> dict[str, Any]:
     return entry
 
 
+#: a ground truth above this many times full scale gets a warning: PSNR and SSIM assume a peak of 1
+GT_WARN_ABOVE = 2.0
+
+
 def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list[str] | None = None,
                      min_s0: float | None = None, min_dolp: float | None = None, border: int | None = None,
                      lpips=None, with_mtf: bool = True, write: bool = True) -> dict:
@@ -212,6 +216,10 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
     capture = read_capture(path, require_gt=True)
     warn_out_of_range(f"{path.name}/gt.tiff", capture.gt, low=0.0, high=None, below_means="negative",
                       consequence="scored as they are (a ground truth is an intensity >= 0: check how it was made)")
+    warn_out_of_range(f"{path.name}/gt.tiff", capture.gt, low=-np.inf, high=GT_WARN_ABOVE,
+                      above_means="above twice full scale",
+                      consequence="scored as they are, but PSNR and SSIM take a peak of 1 (full scale), so their "
+                                  "numbers say nothing there: rescale the ground truth to [0, 1]")
     names = list_reconstructions(path)
     if methods:
         unknown = sorted(set(methods) - set(names))

@@ -58,7 +58,8 @@ SENSOR_KEYS = ("noise", "sigma", "preset", "exposure", "bit_depth")
 _RIG_DICT_KEYS = ("vignetting", "psf")
 
 __all__ = ["DEFAULT_DOFP_LAYOUT", "DEFAULT_NOISE", "DEFAULT_SENSOR_PRESET", "DEFAULT_SIGMA_HR_PX", "SEED_RULE",
-           "SENSOR_KEYS", "SETUP_KEYS", "CameraSetup", "as_setup", "sensor_from_mapping", "sensor_from_options"]
+           "SENSOR_KEYS", "SETUP_KEYS", "CameraSetup", "as_setup", "sensor_from_mapping", "sensor_from_options",
+           "setup_contradiction", "top_level_setup_mapping"]
 
 
 def sensor_from_mapping(mapping, *, where: str = "sensor") -> Sensor:
@@ -181,7 +182,8 @@ class CameraSetup:
         Parameters
         ----------
         mapping : dict or None
-            The keys of :data:`SETUP_KEYS`, each optional (None: the default set-up).
+            The keys of :data:`SETUP_KEYS`, each optional (None: the default set-up); ``sensor`` may be a
+            :class:`~capssim.camera.sensor.Sensor`.
         where : str
             The mapping's name in error messages.
 
@@ -205,7 +207,10 @@ class CameraSetup:
         if mapping.get("seed_rule", SEED_RULE) != SEED_RULE:
             raise InputError(f"{where}.seed_rule", repr(mapping["seed_rule"]), repr(SEED_RULE),
                              "The seed rule is capssim's; remove the key or copy it unchanged.")
-        return cls(sensor=sensor_from_mapping(mapping.get("sensor") or {}, where=f"{where}.sensor"),
+        sensor = mapping.get("sensor")
+        if not isinstance(sensor, Sensor):
+            sensor = sensor_from_mapping(sensor or {}, where=f"{where}.sensor")
+        return cls(sensor=sensor,
                    psf=_psf_from_mapping(mapping, where),
                    dofp_layout=_checked(dofp_layout_name, mapping.get("dofp_layout", DEFAULT_DOFP_LAYOUT),
                                         f"{where}.dofp_layout"),
@@ -214,20 +219,19 @@ class CameraSetup:
 
     @classmethod
     def from_meta(cls, meta: dict) -> "CameraSetup":
-        """The set-up of a capture's ``meta.json``: its "setup" block, or, in a file written before
-        the block existed, the set-up its old keys give (``sensor``, ``psf`` or a render's
-        ``render.optics_psf``, ``dofp_layout``, ``extinction_ratio``, ``rig``)."""
-        if meta.get("setup") is not None:
-            return cls.from_mapping(meta["setup"], where="meta.json setup")
-        sensor = dict(meta.get("sensor") or {})
-        optics = (meta.get("render") or {}).get("optics_psf") if meta.get("kind") == "rendered" else None
-        return cls.from_mapping({
-            "sensor": {k: v for k, v in sensor.items() if k != "raw_dtype"},
-            "psf": optics if optics is not None else (meta.get("psf") or {"type": "none"}),
-            "dofp_layout": meta.get("dofp_layout", DEFAULT_DOFP_LAYOUT),
-            "extinction_ratio": meta.get("extinction_ratio"),
-            "rig": meta.get("rig"),
-        }, where="meta.json")
+        """The set-up of a capture's ``meta.json``.
+
+        The top-level keys the readers use (``sensor``, ``psf`` or a render's ``render.optics_psf``,
+        ``dofp_layout``, ``extinction_ratio``, ``rig``) are the source; the "setup" block repeats them.
+        A key the block leaves out is derived from the top level (a file written before the block
+        existed has none); :func:`setup_contradiction` finds a block key that says otherwise
+        (:func:`capssim.captures.capture_meta.validate_meta` refuses it)."""
+        block = meta.get("setup")
+        if block is None:
+            return cls.from_mapping(top_level_setup_mapping(meta), where="meta.json")
+        if not isinstance(block, dict):
+            return cls.from_mapping(block, where="meta.json setup")
+        return cls.from_mapping(_filled_block(meta), where="meta.json setup")
 
     # views ----------------------------------------------------------------------------------------
     @property
@@ -249,6 +253,68 @@ class CameraSetup:
         return isinstance(other, CameraSetup) and self.to_meta() == other.to_meta()
 
     __hash__ = None  # a sensor and a rig are mutable-looking values: compare set-ups, do not hash them
+
+
+def top_level_setup_mapping(meta: dict) -> dict:
+    """The set-up mapping the top-level keys of a ``meta.json`` give (the readers' source of truth;
+    ``sensor`` is the :class:`~capssim.camera.sensor.Sensor` :func:`~capssim.camera.sensor.sensor_from_meta` reads)."""
+    sensor = meta.get("sensor")
+    optics = (meta.get("render") or {}).get("optics_psf") if meta.get("kind") == "rendered" else None
+    return {  # the sensor as the readers read it (Capture.sensor): no preset filled in
+        "sensor": sensor_from_meta(sensor) if isinstance(sensor, dict) and "model" in sensor else sensor,
+        "psf": optics if optics is not None else (meta.get("psf") or {"type": "none"}),
+        "dofp_layout": meta.get("dofp_layout", DEFAULT_DOFP_LAYOUT),
+        "extinction_ratio": meta.get("extinction_ratio"),
+        "rig": meta.get("rig"),
+    }
+
+
+def _filled_block(meta: dict) -> dict:
+    """The "setup" block with the keys it leaves out taken from the top level."""
+    block, top = dict(meta["setup"]), top_level_setup_mapping(meta)
+    for key, value in top.items():
+        if key not in block and not (key == "psf" and "psf_sigma_hr_px" in block):
+            block[key] = value
+    if isinstance(block.get("sensor"), dict):
+        block["sensor"] = {k: v for k, v in block["sensor"].items() if k != "raw_dtype"}
+    return block
+
+
+#: the set-up block's keys that repeat a top-level key
+_REPEATED_KEYS = ("sensor", "psf", "dofp_layout", "extinction_ratio", "rig")
+
+
+def _first_difference(a, b, path: str):
+    """The first leaf where two JSON values differ, as ``(path, a_leaf, b_leaf)``, or None."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for key in list(a) + [k for k in b if k not in a]:
+            found = _first_difference(a.get(key), b.get(key), f"{path}.{key}")
+            if found:
+                return found
+        return None
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)) and not isinstance(a, bool) \
+            and not isinstance(b, bool):
+        return None if float(a) == float(b) else (path, a, b)
+    return None if a == b else (path, a, b)
+
+
+def setup_contradiction(meta: dict) -> tuple[str, object, object] | None:
+    """Where a ``meta.json``'s "setup" block contradicts its top-level keys: ``(key, setup value,
+    top-level value)`` for the first such key (e.g. ``("setup.psf.sigma_hr_px", 3.0, 0.5)``), or None.
+
+    Both sides are read as :class:`CameraSetup` and compared in the block's spelling, so a value written
+    two ways (``5`` and ``5.0``, a rig as a preset draw and as its parameters) agrees. A rendered
+    capture's top-level ``psf`` is ``none`` (its blur is in ``gt.tiff``): its block's ``psf`` is
+    compared with ``render.optics_psf``."""
+    if not isinstance(meta.get("setup"), dict):
+        return None
+    block = CameraSetup.from_meta(meta).to_meta()
+    top = CameraSetup.from_mapping(top_level_setup_mapping(meta), where="meta.json").to_meta()
+    for key in _REPEATED_KEYS:
+        found = _first_difference(block[key], top[key], f"setup.{key}")
+        if found:
+            return found
+    return None
 
 
 def _checked(function, value, where: str):

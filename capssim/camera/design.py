@@ -5,6 +5,10 @@
 * Theoretical SR magnification ``r_SR = min(f_diffraction / f_Nyquist, sqrt(apertures))`` (eq. 5).
 * Common-overlap width ``R_x = N_x Z / f_P - B`` with ``f_P = f / P`` (eq. 6), and the
   effective fields of view ``FOV_h = 2 atan(N_x / (2 f_P) - B / (2 Z))``, ``FOV_v`` likewise (eq. 7-8).
+
+Refused (one line, naming the option): a depth ``Z`` at or inside the focal length (no real image), a
+depth at which the views do not overlap (``R_x`` or ``R_y`` <= 0: the effective field of view would be
+negative), and inputs that make any quantity infinite or NaN.
 """
 
 from __future__ import annotations
@@ -39,19 +43,31 @@ def system_design(inputs: DesignInputs = DesignInputs()) -> dict:
         raise InputError("apertures", inputs.apertures, "a whole number of apertures")
     f_mm = inputs.focal_length_mm
     p_mm = inputs.pixel_um * 1e-3
+    f_pixels = f_mm / p_mm
+    b_mm = inputs.baseline_mm
+    z_overlap_m = b_mm * f_pixels / min(inputs.width_px, inputs.height_px) * 1e-3  # R_x, R_y > 0 beyond it
+    if inputs.depth_m * 1e3 <= f_mm:
+        nearest = max(2 * f_mm * 1e-3, 1.5 * z_overlap_m)
+        raise InputError("--depth-m", inputs.depth_m, f"a depth beyond the focal length ({f_mm:g} mm = "
+                         f"{f_mm * 1e-3:g} m): nearer, the lens forms no real image",
+                         (f"Use --depth-m {_up(nearest)} or more, or a shorter --focal-length-mm."
+                          if math.isfinite(nearest) else "Use a shorter --focal-length-mm."))
     lam_mm = inputs.wavelength_nm * 1e-6
     a_mm = f_mm / inputs.f_number
     ratio = 2 * a_mm * p_mm / (1.22 * lam_mm * f_mm)
     r_sr = min(ratio, math.sqrt(inputs.apertures))
-    f_pixels = f_mm / p_mm
     z_mm = inputs.depth_m * 1e3
-    b_mm = inputs.baseline_mm
     rx_mm = inputs.width_px * z_mm / f_pixels - b_mm
     ry_mm = inputs.height_px * z_mm / f_pixels - b_mm
     fov_h = 2 * math.degrees(math.atan(inputs.width_px / (2 * f_pixels) - b_mm / (2 * z_mm)))
     fov_v = 2 * math.degrees(math.atan(inputs.height_px / (2 * f_pixels) - b_mm / (2 * z_mm)))
     single_h = 2 * math.degrees(math.atan(inputs.width_px / (2 * f_pixels)))
-    return {
+    if rx_mm <= 0 or ry_mm <= 0:  # the views share no part of the scene: eq. 7-8 turn negative
+        raise InputError("--depth-m", inputs.depth_m, f"a depth at which the apertures' views overlap: more than "
+                         f"{z_overlap_m:.4g} m for --baseline-mm {b_mm:g} (the overlap min(R_x, R_y) = "
+                         f"min(N_x, N_y) Z / f_P - B is {min(rx_mm, ry_mm) * 1e-3:.4g} m at {inputs.depth_m:g} m)",
+                         f"Use --depth-m {_up(z_overlap_m * 1.5)} or more, or a smaller --baseline-mm.")
+    result = {
         "inputs": asdict(inputs),
         "aperture_diameter_mm": a_mm,
         "f_nyquist_cycles_per_mm": 1 / (2 * p_mm),
@@ -68,3 +84,21 @@ def system_design(inputs: DesignInputs = DesignInputs()) -> dict:
         "single_aperture_fov_h_deg": single_h,
         "equivalent_focal_length_mm": math.sqrt(inputs.apertures) * f_mm,
     }
+    for key, value in result.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise InputError("design inputs", f"{key} = {value} from {_shown(inputs)}", "inputs whose every "
+                             "design quantity is a finite number", "Use the values of a real lens and sensor "
+                             "(the defaults are the paper's prototype).")
+    return result
+
+
+def _up(value: float) -> str:
+    """``value`` rounded up to 2 significant digits, for a suggested option value."""
+    if not (math.isfinite(value) and value > 0):
+        return f"{value:g}"
+    digits = 1 - math.floor(math.log10(value))
+    return f"{math.ceil(value * 10.0 ** digits) / 10.0 ** digits:.2g}"
+
+
+def _shown(inputs: DesignInputs) -> str:
+    return " ".join(f"--{k.replace('_', '-')} {v:g}" for k, v in asdict(inputs).items())

@@ -35,7 +35,13 @@ import numpy as np
 
 from capssim.camera.array_geometry import ArrayGeometry
 from capssim.camera.psf import PSF
-from capssim.camera.rig_checks import RIG_FILE_SPEC, check_homographies, check_vignetting
+from capssim.camera.rig_checks import (
+    MAX_FLAT_FIELD,
+    MIN_FLAT_FIELD,
+    RIG_FILE_SPEC,
+    check_homographies,
+    check_vignetting,
+)
 from capssim.camera.rig_parts import (  # noqa: F401  (re-exported: the rig's parts, capssim.camera.rig's public names)
     N_VIGNETTING_TERMS,
     VIGNETTING_MONOMIALS,
@@ -75,7 +81,8 @@ OVERRIDE_KEYS = ("angle_offsets_deg", "extinction_ratio", "gain", "vignetting_co
 
 
 # -- the rig -----------------------------------------------------------------------------------------
-def _array(value, shape: tuple, where: str, *, minimum: float | None = None, allow_inf: bool = False) -> np.ndarray:
+def _array(value, shape: tuple, where: str, *, minimum: float | None = None, maximum: float | None = None,
+           allow_inf: bool = False, fix: str | None = None) -> np.ndarray:
     try:
         arr = np.array([[math.inf if v is None else v for v in row] if isinstance(row, (list, tuple)) else
                         (math.inf if row is None else row) for row in value], dtype=np.float64) \
@@ -87,9 +94,12 @@ def _array(value, shape: tuple, where: str, *, minimum: float | None = None, all
     bad = np.isnan(arr) | (np.isinf(arr) if not allow_inf else np.isneginf(arr))
     if minimum is not None:
         bad |= arr < minimum
+    if maximum is not None:
+        bad |= arr > maximum
     if bad.any():
-        valid = f"finite numbers >= {minimum}" if minimum is not None else "finite numbers"
-        raise InputError(where, arr[bad].tolist()[:4], valid + (" (or null/inf for ideal)" if allow_inf else ""))
+        valid = (f"finite numbers in [{minimum:g}, {maximum:g}]" if minimum is not None and maximum is not None
+                 else f"finite numbers >= {minimum}" if minimum is not None else "finite numbers")
+        raise InputError(where, arr[bad].tolist()[:4], valid + (" (or null/inf for ideal)" if allow_inf else ""), fix)
     return arr
 
 
@@ -125,7 +135,9 @@ class RigModel:
                                               minimum=1.0, allow_inf=True))
         if np.any(self.extinction_ratio <= 1.0):
             raise InputError("rig extinction_ratio", self.extinction_ratio.min(), "T_max/T_min > 1 (inf: ideal)")
-        set_(self, "gain", _array(self.gain, (N_APERTURES,), "rig gain", minimum=1e-3))
+        set_(self, "gain", _array(self.gain, (N_APERTURES,), "rig gain", minimum=MIN_FLAT_FIELD, maximum=MAX_FLAT_FIELD,
+                                  fix="The gain is each aperture's response relative to the nominal 1 (a real array's "
+                                      "spread a few per cent): measure it again with 'capssim calibrate'."))
         set_(self, "vignetting", _array(self.vignetting, (N_APERTURES, N_VIGNETTING_TERMS), "rig vignetting"))
         check_vignetting(self.gain, self.vignetting)  # the flat field > 0 everywhere
         if self.psf is not None:

@@ -1,8 +1,9 @@
 """Physical validity of a camera array, checked when a rig or calibration file (or a ``meta.json`` rig) loads.
 
 * the flat field ``gain_n V_n(u, v)`` is > 0 everywhere on the frame (:func:`check_vignetting`: the
-  vignetting polynomial sampled on a 65 x 65 grid over the frame, corners included, must stay at or
-  above :data:`MIN_FLAT_FIELD`); a negative or zero map would make raw frames negative or black;
+  vignetting polynomial sampled on a 65 x 65 grid over the frame, corners included, must stay within
+  [:data:`MIN_FLAT_FIELD`, :data:`MAX_FLAT_FIELD`]); a negative or zero map would make raw frames negative
+  or black, a huge one (a gain of 1e300) frames of inf;
 * every extinction ratio is > 1 (checked by :class:`capssim.camera.rig.RigModel`);
 * the geometry is finite and invertible (:func:`check_homographies`: each 3x3 homography's condition
   number below :data:`MAX_CONDITION`, and its horizon ``h31 x + h32 y + h33 = 0`` outside the HR grid).
@@ -22,6 +23,9 @@ from capssim.files.schema import AnyMapping, Integer, Mapping, Nullable, Sequenc
 
 #: the least relative response the flat field may reach anywhere on the frame (gain has the same floor)
 MIN_FLAT_FIELD = 1e-3
+#: the largest relative response (gain has the same ceiling): 1000x the nominal response is no camera of the
+#: array; past it the raw frames overflow to inf and the reconstruction diverges without naming the cause
+MAX_FLAT_FIELD = 1e3
 #: the largest condition number of a homography accepted as invertible
 MAX_CONDITION = 1e12
 #: the grid (per side) the vignetting polynomial is sampled on
@@ -73,6 +77,14 @@ def check_vignetting(gain: np.ndarray, vignetting: np.ndarray, *, where: str = "
     """
     u, v = normalised_raw_coordinates((FLAT_FIELD_GRID, FLAT_FIELD_GRID))
     maps = (vignetting_design(u, v) @ np.asarray(vignetting, dtype=np.float64).T) * np.asarray(gain)[None, None, :]
+    highest = float(maps.max())
+    if np.isfinite(highest) and highest > MAX_FLAT_FIELD:
+        row, col, n = np.unravel_index(int(np.argmax(maps)), maps.shape)
+        raise InputError(where, f"aperture {n}'s flat field reaching {highest:.3g} at (u, v) = "
+                                f"({u[row, col]:.2f}, {v[row, col]:.2f})",
+                         f"coefficients whose flat field stays <= {MAX_FLAT_FIELD:g} over the whole frame "
+                         "(a response relative to the nominal 1)",
+                         "Fit the vignetting again, or remove it for a flat frame.")
     worst = float(maps.min())
     if not np.isfinite(worst) or worst < MIN_FLAT_FIELD:
         row, col, n = np.unravel_index(int(np.nanargmin(maps)), maps.shape)

@@ -176,6 +176,8 @@ class Capture:
             return self
         meta = dict(self.meta, cfa="RGGB", dofp_layout=[list(r) for r in mirror_layout(self.dofp_layout, cfa)])
         meta.pop("dofp_layout_name", None)
+        if isinstance(meta.get("setup"), dict):  # the set-up block's layout follows the top level's
+            meta["setup"] = {k: v for k, v in meta["setup"].items() if k != "dofp_layout"}
         return Capture(meta=meta, caps_raw=self.caps_raw, dofp_raw=flip_to_rggb(self.dofp_raw, cfa), gt=None,
                        path=self.path)
 

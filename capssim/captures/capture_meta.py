@@ -15,7 +15,7 @@ import numpy as np
 
 from capssim import __version__
 from capssim.camera.array_geometry import ArrayGeometry
-from capssim.camera.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup
+from capssim.camera.camera_setup import DEFAULT_DOFP_LAYOUT, CameraSetup, setup_contradiction
 from capssim.camera.psf import PSF
 from capssim.camera.rig import RigModel
 from capssim.camera.rig_checks import check_homographies
@@ -233,7 +233,39 @@ def validate_meta(meta: dict, *, path=None) -> None:
     except InputError as exc:
         raise CaptureFormatError(f"{exc} (the true imperfect array; see docs: guides/calibration.md)") from None
     if meta.get("setup") is not None:
-        try:
-            CameraSetup.from_meta(meta)
-        except (InputError, UnknownNameError) as exc:
-            raise CaptureFormatError(f"{exc} (the camera set-up; see docs: guides/simulation.md)") from None
+        _check_setup_block(meta, path)
+
+
+def _check_setup_block(meta: dict, path) -> None:
+    """The "setup" block: valid, and saying what the top-level keys say (they are its source; a key it
+    leaves out is derived from them). A contradiction names the key, both values and the file."""
+    where = f"{path}: " if path is not None else ""
+    try:
+        found = setup_contradiction(meta)
+    except (InputError, UnknownNameError) as exc:
+        argument = getattr(exc, "argument", "")
+        if isinstance(exc, InputError) and argument.startswith("meta.json setup"):
+            raise MetaSchemaError(argument.removeprefix("meta.json "), exc.received, exc.valid,
+                                  exc.fix or "See docs: guides/simulation.md, 'The camera set-up'.",
+                                  config_file=path, kind="meta.json") from None
+        raise CaptureFormatError(f"{where}{exc} (the camera set-up; see docs: guides/simulation.md)") from None
+    if found is None:
+        return
+    key, block_value, top_value = found
+    top_key = key.removeprefix("setup.")
+    if top_key.startswith("psf") and "psf_sigma_hr_px" in meta["setup"]:
+        key = "setup.psf_sigma_hr_px"
+    if top_key.startswith("sensor.noise"):
+        top_key = "sensor.model"
+    elif top_key.startswith("psf") and meta.get("kind") == "rendered":
+        top_key = "render.optics_" + top_key
+    raise MetaSchemaError(key, _short(block_value), f"{_short(top_value)}, the top-level {top_key} (the set-up "
+                          "block repeats the top-level keys, which reconstruct reads)",
+                          f"Make the two agree, or remove {'.'.join(key.split('.')[:2])} (it is then derived "
+                          "from the top level).", config_file=path,
+                          kind="meta.json")
+
+
+def _short(value) -> str:
+    text = json.dumps(value, default=str)
+    return text if len(text) <= 80 else text[:77] + "..."

@@ -22,13 +22,17 @@ def check_suite_names(specs: list[dict], suites: list[str]) -> None:
         seen[spec["name"]] = given
 
 
-def _checked_suites(suites: list[str], *, methods, scenes, workers, scheduler, report_only: bool) -> list[dict]:
-    """Every suite loaded and checked (names, ``-m``, ``--scene``, ``--workers``) before any work."""
+def _checked_suites(suites: list[str], *, methods, scenes, workers, scheduler, cache,
+                    report_only: bool) -> list[dict]:
+    """Every suite loaded and checked (names, ``-m``, ``--scene``, ``--workers``, ``--scheduler``, ``--cache``)
+    before any work."""
+    from capssim.eval.benchmarks.executors import check_execution
     from capssim.eval.benchmarks.suite import load_suite  # start-up time: pulls torch and every method
     from capssim.eval.error_budget.runner import check_budget
 
     specs = [load_suite(name) for name in suites]
     check_suite_names(specs, suites)
+    check_execution(workers=workers, scheduler=scheduler, cache=cache)
     if not report_only:
         for spec in specs:
             check_budget(spec, methods=methods or None, scenes=scenes or None, workers=workers, scheduler=scheduler)
@@ -107,7 +111,7 @@ def budget(
     from capssim.runtime.threads import resolve_threads
 
     specs = _checked_suites(suites, methods=methods, scenes=scenes, workers=workers, scheduler=scheduler,
-                            report_only=report_only)
+                            cache=cache, report_only=report_only)  # before any work
     target = resolve_output(output, kind="folder", overwrite=True)  # resumed if it exists; links followed
     if results_page is not None:
         resolve_output(results_page, kind="file", overwrite=True, argument="--results-page")

@@ -38,16 +38,17 @@ def _progress_events(progress, task):
 
 
 def _check_inputs(spec: dict, *, methods, scenes, workers, scheduler, check, update_baseline, replace_baseline,
-                  results_page) -> tuple[dict | None, dict | None]:
+                  results_page, cache=None) -> tuple[dict | None, dict | None]:
     """Every check of the command line that needs no work, before the output folder is touched:
     ``(the --check baseline, the baseline --update-baseline merges into)``."""
     from capssim.eval.benchmarks.baseline import baseline_to_update, load_baseline
-    from capssim.eval.benchmarks.executors import check_execution
+    from capssim.eval.benchmarks.executors import check_cache_folder, check_execution
     from capssim.eval.benchmarks.suite import plan
     from capssim.files.imageio import check_output_file
 
     plan(spec, methods=methods, scenes=scenes, emit=lambda kind, **info: None)  # -m, --scene, scene memory
     check_execution(workers=workers, scheduler=scheduler)
+    check_cache_folder(cache)
     if replace_baseline and update_baseline is None:
         raise InputError("--replace-baseline", "no --update-baseline", "--replace-baseline with --update-baseline PATH",
                          "Add --update-baseline PATH, or drop --replace-baseline.")
@@ -132,7 +133,7 @@ def suite(
     spec = load_suite(name)
     baseline, previous = _check_inputs(spec, methods=methods or None, scenes=scenes or None, workers=workers,
                                        scheduler=scheduler, check=check, update_baseline=update_baseline,
-                                       replace_baseline=replace_baseline, results_page=results_page)
+                                       replace_baseline=replace_baseline, results_page=results_page, cache=cache)
     apply_compute(threads if threads is not None else resolve_threads(None), device)
     with claim_output(output, spec, allow_other_suite=allow_other_suite) as claim_notes:
         with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

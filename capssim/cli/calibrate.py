@@ -28,9 +28,9 @@ def calibrate(
     The measurement computes on the CPU; --device is checked like every command's.
     """
     apply_compute(threads, device)
-    if output.exists() and not overwrite:
-        raise InputError("-o/--output", str(output), "a file that does not exist yet", "Pass --overwrite to replace it.")
     output = check_output_file(output, argument="-o/--output")  # links followed; a folder in the way refused
+    if output.exists() and not overwrite:  # after: --overwrite would not replace a folder, so it is not suggested
+        raise InputError("-o/--output", str(output), "a file that does not exist yet", "Pass --overwrite to replace it.")
     if report is not None:
         from capssim.files.output_paths import resolve_output
 

@@ -73,7 +73,10 @@ def dataset(
                          "Run: capssim dataset CONFIG -o OUT (see examples/dataset-small.yaml).")
     if workers is not None and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
+    if scheduler is not None:
+        from capssim.dataset.generate import check_scheduler_address  # start-up time
 
+        check_scheduler_address(scheduler)
     if output is not None:  # created, or finished if it exists; links followed
         output = resolve_output(output, kind="folder", overwrite=True)
     from capssim.dataset.config import load_config  # pulls torch, Dask and the scene library (start-up time)
@@ -86,6 +89,7 @@ def dataset(
     _check_disk(cfg, output if output is not None else Path.cwd())
     if dry_run:
         return _dry_run(cfg, config)
+    _check_first_samples(cfg)
     if output is None:
         raise InputError("-o/--output", "nothing", "the dataset folder to create or finish", "Add -o OUT.")
     status = _generate(cfg, output, workers=workers, scheduler=scheduler, threads=threads)
@@ -155,6 +159,15 @@ def _check_disk(cfg, where: Path) -> None:
     largest = max(sample_bytes_estimate(cfg.sample_spec(i)) for i in range(min(cfg.samples, DISK_ESTIMATE_SAMPLES)))
     check_disk("samples", float(cfg.samples) * largest, where, what=f"{cfg.samples} samples of up to {format_bytes(largest)} each",
                fix="Lower 'samples' in the config, or write the dataset where there is room (-o).")
+
+
+def _check_first_samples(cfg) -> None:
+    """Before the dataset folder is made: the first samples checked as ``--dry-run`` checks them all (a PSF wider
+    than the samples, a crop larger than the ground truth, ...), so a config that cannot make them leaves nothing."""
+    from capssim.dataset.sample import check_sample  # start-up time
+
+    for index in range(min(cfg.samples, DISK_ESTIMATE_SAMPLES)):
+        check_sample(cfg.sample_spec(index))
 
 
 def register(app: typer.Typer) -> None:

@@ -13,6 +13,7 @@ from capssim.cli.reconstruct_frames import (
     SchedulerOption,
     TileOption,
     WorkersOption,
+    check_frames_before_work,
     check_full_frame_options,
     first_capture,
     frame_runner,
@@ -127,7 +128,7 @@ def reconstruct(
     if uses_full_frames(capture, workers, scheduler):  # a folder of captures, or tiles/frames on Dask
         names = expand_methods(method, first_capture(capture))
         check_recon_outputs(capture, names)
-        check_before_work(capture, names, options, iterations, tiled=True)
+        check_before_work(capture, names, options, iterations, tiled=True, calibration=calibration)
         run_full_frames(capture, names, tile=tile, memory_gb=memory_gb, workers=workers, scheduler=scheduler,
                         echo=lambda folder, name, record: _echo_record(folder, name, record),
                         options_of=lambda name: _method_options(name, options, iterations), **flags)
@@ -135,7 +136,7 @@ def reconstruct(
     rows = []
     names = expand_methods(method, capture)
     check_recon_outputs(capture, names)
-    check_before_work(capture, names, options, iterations, tiled=tile is not None)
+    check_before_work(capture, names, options, iterations, calibration=calibration, frame=(tile, memory_gb))
     for name in names:
         record = _run_one(capture, name, iterations=iterations, progress=progress, options=options,
                           run=frame_runner(tile, memory_gb), **flags)
@@ -200,10 +201,12 @@ def check_iterations_agree(options: dict, iterations: Optional[int]) -> None:
 
 
 def check_before_work(capture: Path, names: list[str], options: dict, iterations: Optional[int], *,
-                      tiled: bool) -> None:
+                      tiled: Optional[bool] = None, calibration: Optional[str] = None,
+                      frame: Optional[tuple] = None) -> None:
     """Every check that can fail before the first method runs: each method's options
     (:func:`check_method_options`), ``-p track_psnr`` (:func:`check_track_psnr`), then the raw frames' range
-    (:func:`capssim.cli.reconstruct_checks.warn_raw_range`, a warning)."""
+    (:func:`capssim.cli.reconstruct_checks.warn_raw_range`, a warning). ``frame``: ``(--tile, --memory-gb)`` of one
+    capture run here (``tiled`` then defaults to ``--tile`` given), whose tiling is checked from meta.json."""
     from capssim.cli.reconstruct_checks import check_method_options, check_track_psnr, warn_raw_range
     from capssim.reconstruct import get_method  # start-up time
     from capssim.reconstruct.tiles.frames import capture_folders
@@ -211,10 +214,25 @@ def check_before_work(capture: Path, names: list[str], options: dict, iterations
     for name in names:
         check_method_options(name, _method_options(name, options, iterations, quiet=True), shared=len(names) > 1)
     folders = capture_folders(capture) or [capture]
-    check_track_psnr(options, folders, tiled=tiled)
+    if any(get_method(name).input_kind == "caps" for name in names):  # DoFP methods take no array model
+        _check_calibration(folders, calibration)
+    check_track_psnr(options, folders, tiled=bool(tiled) if tiled is not None else bool(frame and frame[0] is not None))
+    if frame is not None:  # one capture run here: its tiling (--tile, --memory-gb), from meta.json
+        check_frames_before_work(capture, None, names, tile=frame[0], memory_gb=frame[1], workers=None,
+                                 options_of=lambda name: _method_options(name, options, iterations, quiet=True))
     kinds = {get_method(name).input_kind for name in names}
     for folder in folders:
         warn_raw_range(folder, kinds)
+
+
+def _check_calibration(folders: list[Path], calibration: Optional[str]) -> None:
+    """Read the calibration each capture would use (``--calibration FILE``, or its ``meta.json`` calibration_file)
+    as the methods will read it, so that a file they refuse (a gain of 1e300) is refused before any method runs."""
+    from capssim.captures.capture import Capture, read_meta
+    from capssim.reconstruct.calibration_model import resolve_calibration  # start-up time
+
+    for folder in folders:
+        resolve_calibration(Capture(meta=read_meta(folder), caps_raw=None, path=folder), calibration)
 
 
 def _method_options(name: str, options: dict, iterations: Optional[int], *, quiet: bool = False) -> dict:

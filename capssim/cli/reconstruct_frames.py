@@ -28,13 +28,18 @@ SchedulerOption = typer.Option(None, "--scheduler", metavar="ADDR",
 
 
 def check_full_frame_options(tile: Optional[int], workers: Optional[int], scheduler: Optional[str]) -> None:
-    """One-line :class:`InputError` for a bad ``--tile``, ``--workers`` or ``--workers`` with ``--scheduler``."""
+    """One-line :class:`InputError` for a bad ``--tile``, ``--workers``, ``--scheduler`` address or ``--workers``
+    with ``--scheduler``."""
     from capssim.reconstruct.tiles import MIN_TILE  # start-up time
 
     if tile is not None and tile < MIN_TILE:
         raise InputError("--tile", tile, f"an integer >= {MIN_TILE} (HR pixels)", f"Use --tile {MIN_TILE} or more.")
     if workers is not None and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
+    if scheduler is not None:
+        from capssim.dataset.generate import check_scheduler_address  # start-up time
+
+        check_scheduler_address(scheduler)
     if workers is not None:
         if workers < 1:
             raise InputError("--workers", workers, "an integer >= 1 (local Dask worker processes)")
@@ -81,6 +86,8 @@ def run_full_frames(capture: Path, methods: list[str], *, tile: Optional[int], m
     from capssim.reconstruct.tiles.frames import capture_folders, reconstruct_frame
 
     folders = capture_folders(capture)
+    check_frames_before_work(capture, folders, methods, tile=tile, memory_gb=memory_gb, workers=workers,
+                             options_of=options_of)
     dask = workers is not None or scheduler is not None
     session = DaskSession(workers=workers, scheduler=scheduler) if dask else None
     try:
@@ -108,3 +115,26 @@ def run_full_frames(capture: Path, methods: list[str], *, tile: Optional[int], m
     finally:
         if session is not None:
             session.__exit__(None, None, None)
+
+
+def check_frames_before_work(capture: Path, folders: Optional[list[Path]], methods: list[str], *,
+                             tile: Optional[int], memory_gb: Optional[float], workers: Optional[int],
+                             options_of: Callable) -> None:
+    """Every refusal of the tiling that needs only ``meta.json`` (:func:`capssim.reconstruct.tiles.run.check_tiling`:
+    the margin's options, ``--tile`` against its margin, ``--memory-gb`` against ``--workers`` tiles), for each CAPS
+    method and capture, before a Dask cluster starts. One capture: its ``--workers`` tiles share ``--memory-gb``; a
+    folder of captures (``folders``): its frames do, as :func:`run_full_frames` shares it."""
+    from capssim.captures.capture import Capture, read_meta
+    from capssim.reconstruct import get_method  # start-up time
+    from capssim.reconstruct.tiles.run import check_tiling
+
+    caps = [name for name in methods if get_method(name).input_kind == "caps"]
+    if folders is None:
+        frames, frame_gb, tiles_at_once = [capture], memory_gb, workers or 1
+    else:
+        frames, tiles_at_once = folders, 1
+        frame_gb = None if memory_gb is None else memory_gb / (workers or 1)
+    for folder in frames if caps else []:
+        frame = Capture(meta=read_meta(folder), caps_raw=None, path=folder)  # the geometry and PSF only
+        for name in caps:
+            check_tiling(frame, options_of(name), tile=tile, memory_gb=frame_gb, workers=tiles_at_once)

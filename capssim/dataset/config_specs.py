@@ -70,7 +70,7 @@ RIG_SPEC = Mapping({
     "angle_offsets_deg": Sequence(Distribution(Number(minimum=-20, maximum=20)), lengths=(4,), what="degrees"),
     "extinction_ratio": Sequence(_ER, lengths=(1, 3, 12), what="extinction ratios (all, R G B, or 4 x R G B)",
                                  bare=_ER),
-    "gain": Sequence(Distribution(Number(minimum=1e-3)), lengths=(4,), what="gains (1 = nominal)"),
+    "gain": Sequence(Distribution(Number(minimum=1e-3, maximum=1e3)), lengths=(4,), what="gains (1 = nominal)"),
     "vignetting_corner": Distribution(Number(minimum=0, maximum=0.9)),
     "psf_sigmas_hr_px": Sequence(Distribution(Number(minimum=0)), lengths=(4,), what="Gaussian PSF stds (HR px)"),
 }, what="an imperfect array (preset, seed, angle_offsets_deg, extinction_ratio, gain, vignetting_corner, "

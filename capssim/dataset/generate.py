@@ -123,6 +123,34 @@ def check_local_workers(workers: int, *, option: str = "--workers") -> None:
                  fix="Use fewer --workers.")
 
 
+#: the address schemes a Dask client connects with (``host:port`` alone means ``tcp://``)
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss", "ucx")
+
+
+def check_scheduler_address(address: str | None, *, option: str = "--scheduler") -> None:
+    """Refuse a Dask scheduler address that cannot name one, before any work (Dask's own parser
+    raises a ``ValueError`` only when the client connects): ``[SCHEME://]HOST:PORT``, the scheme one
+    of :data:`SCHEDULER_SCHEMES`, the port an integer in 1 ... 65535 (IPv6 hosts in brackets)."""
+    if address is None:
+        return
+    text = str(address).strip()
+    valid = ("an address of a running Dask scheduler, [SCHEME://]HOST:PORT with the port an integer in "
+             f"1 ... 65535 and SCHEME one of {', '.join(SCHEDULER_SCHEMES)}")
+    fix = "For example --scheduler tcp://localhost:8786 (the address 'dask scheduler' prints)."
+    scheme, sep, location = text.partition("://")
+    if not sep:
+        scheme, location = "tcp", text
+    if scheme.lower() not in SCHEDULER_SCHEMES:
+        raise InputError(option, f"{text!r} (scheme {scheme!r})", valid, fix)
+    host, colon, port = location.rpartition(":")
+    host = host[1:-1] if host.startswith("[") and host.endswith("]") else host
+    if not colon or not host or any(c.isspace() or c in "/[]" for c in host):
+        what = "nothing" if not text else f"{text!r} (no HOST:PORT)"
+        raise InputError(option, what, valid, fix)
+    if not (port.isascii() and port.isdigit() and 1 <= int(port) <= 65535):
+        raise InputError(option, f"{text!r} (port {port!r})", valid, fix)
+
+
 #: environment variables Dask's nanny would give its workers and that capssim's workers must not have:
 #: an explicit ``MALLOC_TRIM_THRESHOLD_`` turns off glibc's dynamic mmap threshold, so every array of
 #: 128 kB or more is a fresh mmap (page faults, zeroing): the methods ran 3x slower in a worker
@@ -165,7 +193,7 @@ def open_dask_client(*, workers: int | None = None, scheduler: str | None = None
         log.info("connecting to the Dask scheduler at %s", scheduler)
         try:
             client = Client(scheduler, timeout="30s")
-        except OSError as exc:
+        except (OSError, ValueError) as exc:  # ValueError: an address Dask cannot parse
             raise InputError("scheduler", repr(scheduler), "the address of a running Dask scheduler",
                              f"Could not connect ({exc}). Start one with 'dask scheduler' and "
                              "'dask worker ADDRESS', or leave --scheduler out for a local cluster.") from None

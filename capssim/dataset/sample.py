@@ -209,6 +209,7 @@ def check_sample(spec: dict) -> None:
         PoseRanges(**params["pose"])
         rig = setup.rig
         hr_shape = (src["size"], src["size"]) if src.get("size") else _gt_shape(spec["resolved"]["gt_path"])
+        setup.psf.check_extent(hr_shape, option="psf_sigma_hr_px" if setup.psf.type == "gaussian" else "psf")
         for n, aperture_psf in enumerate((rig.psf_objects() if rig is not None else None) or []):
             aperture_psf.check_extent(hr_shape, option=f"rig psf_sigmas_hr_px[{n}]", memory=False)
     else:

@@ -152,16 +152,16 @@ def resolve_output(path: str | os.PathLike, *, kind: Literal["folder", "file"] =
 def _resolve_output(given: Path, *, kind: str, overwrite: bool, argument: str) -> Path:
     target = follow_links(given, argument=argument)
     shown = repr(str(given)) + (f" (a link to {str(target)!r})" if target != given else "")
-    if target.exists():
-        if not overwrite:
-            raise InputError(argument, f"existing path {shown}", "a path that does not exist yet",
-                             f"Choose another {argument}, or pass --overwrite to replace it.")
+    if target.exists():  # what is in the way first: --overwrite replaces an output, never something else
         if kind == "file" and target.is_dir():
             raise InputError(argument, f"{shown}, an existing folder", "a file path",
                              "Remove or rename the folder in the way, or choose another path.")
         if kind == "folder" and not target.is_dir():
             raise InputError(argument, f"{shown}, an existing file", "a folder path",
                              "Remove or rename the file in the way, or choose another path.")
+        if not overwrite:
+            raise InputError(argument, f"existing path {shown}", "a path that does not exist yet",
+                             f"Choose another {argument}, or pass --overwrite to replace it.")
     check_writable_location(target.parent if kind == "file" else target, argument=argument, shown=shown)
     return target
 

@@ -26,8 +26,9 @@ from collections import deque
 from contextlib import contextmanager
 from typing import Callable, Iterator
 
-from capssim.dataset.generate import check_local_workers, open_dask_client
+from capssim.dataset.generate import check_local_workers, check_scheduler_address, open_dask_client
 from capssim.errors import InputError
+from capssim.files.output_paths import resolve_output
 from capssim.runtime.threads import resolve_threads
 
 
@@ -102,14 +103,24 @@ class OnDask:
             yield tag, result, error
 
 
-def check_execution(*, workers: int | None = None, scheduler: str | None = None) -> None:
-    """Refuse ``workers`` < 0, ``workers`` with ``scheduler``, and more local workers than this machine takes."""
+def check_execution(*, workers: int | None = None, scheduler: str | None = None, cache=None) -> None:
+    """Refuse ``workers`` < 0, ``workers`` with ``scheduler``, a ``scheduler`` address that names no scheduler,
+    more local workers than this machine takes, and a ``cache`` folder that cannot be one (:func:`check_cache_folder`)."""
     if workers is not None and workers < 0:
         raise InputError("--workers", workers, "an integer >= 0 (0: run in this process without Dask)")
     if workers and scheduler is not None:
         raise InputError("--workers", workers, "no --workers with --scheduler (the cluster has its own workers)")
+    check_scheduler_address(scheduler)
+    check_cache_folder(cache)
     if workers:
         check_local_workers(workers)
+
+
+def check_cache_folder(cache) -> None:
+    """Refuse a ``--cache`` the captures cannot be cached in (a file, a link loop, a place that refuses new
+    entries), before any case runs: every case would fail on it."""
+    if cache is not None:
+        resolve_output(cache, kind="folder", overwrite=True, argument="--cache")
 
 
 @contextmanager

@@ -75,7 +75,7 @@ RIG_SPEC = Mapping({
     "extinction_ratio": Sequence(Number(minimum=1, exclusive_minimum=True), lengths=(1, 3, 12),
                                  what="extinction ratios (all, R G B, or 4 x R G B)",
                                  bare=Number(minimum=1, exclusive_minimum=True)),
-    "gain": Sequence(Number(minimum=1e-3), lengths=(4,), what="gains (1 = nominal)"),
+    "gain": Sequence(Number(minimum=1e-3, maximum=1e3), lengths=(4,), what="gains (1 = nominal)"),
     "vignetting_corner": Number(minimum=0, maximum=0.9),
     "psf_sigmas_hr_px": Sequence(Number(minimum=0), lengths=(4,), what="Gaussian PSF stds (HR px)"),
     "polarizer_angles": Integer(minimum=MIN_POLARIZER_ANGLES, maximum=180),

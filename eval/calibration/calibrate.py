@@ -20,6 +20,7 @@ fit residuals.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import time
 from dataclasses import replace
@@ -76,7 +77,45 @@ def load_calibration_set(paths) -> dict[str, list[Capture]]:
         raise InputError("CAPTURES", f"raw sizes {sorted(shapes)}", "one size for every calibration capture")
     if not any(groups.values()):
         raise InputError("CAPTURES", "no captures", "at least a flat field")
+    _warn_other_cameras(groups)
     return groups
+
+
+#: what names the camera a calibration capture was taken with (``meta.json`` keys)
+CAMERA_KEYS = ("rig", "sensor", "dofp_layout")
+
+
+def _camera(cap: Capture) -> dict:
+    """The camera of a calibration capture: its ``meta.json`` rig (the true array of a simulated set), sensor and
+    layout, and the rig of the set it belongs to (``index.json`` beside it, when there is one)."""
+    camera = {key: cap.meta.get(key) for key in CAMERA_KEYS}
+    index = Path(cap.path).parent / "index.json" if cap.path is not None else None
+    if index is not None and index.is_file():
+        try:
+            camera["set rig"] = json.loads(index.read_text()).get("rig")
+        except (OSError, ValueError, AttributeError):
+            pass
+    return camera
+
+
+def _warn_other_cameras(groups: dict) -> None:
+    """One warning (with the count) when captures were taken with another camera than the flat field (or, without
+    one, than the first capture): the flat's gains and vignetting would calibrate a rig that took none of them."""
+    captures = [c for g in groups.values() for c in g]
+    reference = (groups["flat"] or captures)[0]
+    ref = _camera(reference)
+    others = []
+    for cap in captures:
+        other = _camera(cap)
+        differ = [key for key in ref if key in other and other[key] != ref[key]]
+        if cap is not reference and differ:
+            others.append((cap, differ))
+    if others:
+        first, differ = others[0]
+        log.warning("CAPTURES: %d of %d captures were taken with another camera than %s (first: %s; %s differ): "
+                    "calibrated as one rig, but a flat field from another rig gives gains and vignetting that are "
+                    "not this rig's; calibrate each rig from its own captures", len(others), len(captures),
+                    reference.path, first.path, ", ".join(differ))
 
 
 def _flat(groups) -> tuple:

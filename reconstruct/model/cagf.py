@@ -106,7 +106,9 @@ def pairwise_confidence(channels: torch.Tensor, *, nu: float = DEFAULT_NU, radiu
         raise InputError("cagf_eps", eps, "a finite positive number (the guided filter's epsilon, eq. 12)")
     if isinstance(radius, bool) or not isinstance(radius, (int, np.integer)) or not 1 <= radius <= max(h, w):
         raise InputError("cagf_radius", radius, f"an integer in [1, {max(h, w)}] (window radius, LR pixels; "
-                                                "at most the image's larger side)", "The paper uses 4.")
+                                                "at most the image's larger side)",
+                         "The paper uses 4." if max(h, w) >= 4 else f"Use -p cagf_radius={max(h, w)} (the paper's 4 "
+                         f"is past this {h}x{w} image).")
     x = channels
     mean = box_mean(x, radius)                                          # (C, h, w)
     second = box_mean(x[:, None] * x[None, :], radius)                  # (C, C, h, w)

@@ -68,7 +68,7 @@ class PipelineConfig:
         Options only the front end takes, with their defaults (e.g. ``{"bayer_method": "ri"}``).
     schedule : callable, optional
         ``schedule(front, options, given) -> CapsOptions``: the method's own choice of options from what
-        its front end measured (e.g. ``caps-plus``'s iteration count from the noise level), run after the
+        its front end measured, run after the
         front end; ``given`` holds the option names set explicitly (``-p``, ``-`` read as ``_``), which
         a schedule leaves as given. None (``caps``): the options as parsed.
     finish : callable, optional

@@ -144,9 +144,11 @@ def select(capture, context: RunContext, options, *, given: frozenset, init: str
     """
     filter_spec = parse_filter(polarization_filter)
     count_open = not given & {"iterations", "preset"}
-    blends = tuple(blends) if "denoiser_blend" not in given else ()
+    has_blend = hasattr(options.prior_parameters, "denoiser_blend")  # -p prior= may choose a prior without one
+    blends = tuple(blends) if has_blend and "denoiser_blend" not in given else ()
     fixed = Choices(options.admm.iterations, None if filter_spec == "auto" else filter_spec,
-                    record={"chosen_by": "options"})
+                    record={"chosen_by": "options", "iterations_from": "options",
+                            "polarization_filter_from": "options"})
     if not (count_open or filter_spec == "auto" or blends):
         return fixed
     with context.timer.stage("selection"):
@@ -170,7 +172,9 @@ def _window_problem(capture, context: RunContext, options, homographies, front):
 
 def _select(capture, context, options, count_open, filter_spec, blends, init, fraction, homographies, front):
     crop, sub, geometry, problem, window = _window_problem(capture, context, options, homographies, front)
-    record = {"window": list(window), "holdout_fraction": float(fraction)}
+    record = {"window": list(window), "holdout_fraction": float(fraction),
+              "iterations_from": "holdout" if count_open else "options",
+              "polarization_filter_from": "holdout" if filter_spec == "auto" else "options"}
     choose_filter = filter_spec == "auto"
     chosen_filter = None if choose_filter else filter_spec
     if choose_filter:
@@ -183,10 +187,12 @@ def _select(capture, context, options, count_open, filter_spec, blends, init, fr
     kept, held = split_held_out(problem.obs.weights, held_out)
     count = options.admm.iterations
     if not (count_open or choose_filter or blends):
-        return Choices(count, chosen_filter, None, {**record, "iterations_from": "options"})
+        return Choices(count, chosen_filter, None, record)
     if float(held.sum()) < MIN_HELD_OUT:
         note = f"fewer than {MIN_HELD_OUT} usable held-out samples: the count {FALLBACK_ITERATIONS}, no filter chosen"
-        return Choices(FALLBACK_ITERATIONS if count_open else count, chosen_filter, None, {**record, "note": note})
+        record.update({"note": note, "iterations_from": "fallback" if count_open else "options",
+                       "polarization_filter_from": "fallback" if choose_filter else record["polarization_filter_from"]})
+        return Choices(FALLBACK_ITERATIONS if count_open else count, chosen_filter, None, record)
     obs = replace(problem.obs, weights=kept)
     seen = obs if problem.seen is problem.obs else replace(problem.seen, weights=kept)
     predict = ConfidenceDataTerm(obs, problem.operator, mixing=problem.mixing).forward  # M I, eq. 15
@@ -210,10 +216,8 @@ def _select(capture, context, options, count_open, filter_spec, blends, init, fr
         choice = best["polarization_filter_choice"]
         chosen_filter = (choice["radius"], choice["eps"]) if choice["radius"] > 0 else None
         record["polarization_filter_candidates"] = choice["candidates"]
-        record["polarization_filter_from"] = "holdout"
     record.update({"holdout_error": error, "holdout_best_iteration": best["holdout_best_iteration"],
-                   "holdout_iterations_run": best["holdout_iterations_run"],
-                   "iterations_from": "holdout" if count_open else "options"})
+                   "holdout_iterations_run": best["holdout_iterations_run"]})
     if blends:
         record["blend_candidates"] = [{"denoiser_blend": b, "holdout_error": e,
                                        "iterations": r["holdout_best_iteration"]} for e, b, r in runs]

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from capssim.captures.capture import read_capture, write_reconstruction
 from capssim.errors import InputError
+from capssim.runtime.resources import image_header_shape
 
 from ..pipeline.options import wants_ground_truth
 from ..registry import get_method, reconstruct
@@ -55,15 +56,25 @@ def frame_job_key(path: str | Path, method: str, settings: dict) -> str:
 
 
 def frame_is_finished(path: str | Path, method: str, key: str) -> bool:
-    """True when ``recon/METHOD.json`` and ``.tiff`` exist and the record's ``job`` is ``key``."""
+    """True when ``recon/METHOD.json`` and ``.tiff`` exist, the record's ``job`` is ``key`` and the TIFF's header
+    says a ``(12, 2H, 2W)`` image of the capture's size (an empty or truncated TIFF is done again)."""
     recon = Path(path) / "recon"
     record, tiff = recon / f"{method}.json", recon / f"{method}.tiff"
     if not (record.is_file() and tiff.is_file()):
         return False
     try:
-        return json.loads(record.read_text()).get("job") == key
-    except (OSError, ValueError, AttributeError):
+        if json.loads(record.read_text()).get("job") != key:
+            return False
+        geometry = json.loads((Path(path) / "meta.json").read_text())["geometry"]
+        expected = (12, int(geometry["hr_height"]), int(geometry["hr_width"]))
+    except (OSError, ValueError, AttributeError, KeyError, TypeError):
         return False
+    shape = image_header_shape(tiff)
+    if shape != expected:
+        log.warning("%s: %s is not a finished %s image (header %s); reconstructing it again", path, tiff.name,
+                    "x".join(map(str, expected)), "unreadable" if shape is None else "x".join(map(str, shape)))
+        return False
+    return True
 
 
 def reconstruct_frame(path: str | Path, method: str, *, tile: int | None = None, memory_gb: float | None = None,

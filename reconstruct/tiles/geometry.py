@@ -152,7 +152,8 @@ def plan_tiles(hr_shape, tile: int, *, margin: int, overlap: int | None = None) 
     if overlap < 0 or overlap % 2 or overlap > 2 * margin:
         raise InputError("overlap", overlap, f"an even number of HR pixels in [0, 2 margin = {2 * margin}]")
     rows, cols = split_axis(hh, tile), split_axis(ww, tile)
-    if overlap and min(b - a for a, b in rows + cols) < overlap:
+    blended = [b - a for axis in (rows, cols) if len(axis) > 1 for a, b in axis]  # one tile wide: nothing to blend
+    if overlap and blended and min(blended) < overlap:
         raise InputError("--tile", tile, f"tiles wider than the blending overlap ({overlap} HR px)",
                          "Use a larger --tile.")
     tiles = []

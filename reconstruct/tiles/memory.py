@@ -63,7 +63,7 @@ def fits(hr_shape, budget_bytes: float, *, workers: int = 1) -> bool:
 
 
 def tile_for_budget(hr_shape, budget_bytes: float, *, margin: int, workers: int = 1,
-                    source: str = "--memory-gb") -> int:
+                    source: str = "--memory-gb", margin_note: str | None = None, smaller: str | None = None) -> int:
     """The largest tile core side (HR pixels, a multiple of 4) whose window fits the budget.
 
     Parameters
@@ -78,6 +78,10 @@ def tile_for_budget(hr_shape, budget_bytes: float, *, margin: int, workers: int 
         Tiles reconstructed at the same time.
     source : str
         Where the budget comes from, for the error message.
+    margin_note : str, optional
+        What the margin is made of, for the error message (``block 8 + search_radius 7 + ...``).
+    smaller : str, optional
+        The option that makes most of the margin (``-p block``), suggested in the error message.
 
     Returns
     -------
@@ -97,8 +101,9 @@ def tile_for_budget(hr_shape, budget_bytes: float, *, margin: int, workers: int 
         need = frame + workers * estimate_bytes((MIN_TILE + 2 * margin, MIN_TILE + 2 * margin))
         raise ResourceError("--memory-gb", budget_bytes,
                             f"the {hr_shape[0]}x{hr_shape[1]} frame and {workers} tile(s) of the smallest size "
-                            f"({MIN_TILE} px + {margin} px margins) need "
+                            f"({MIN_TILE} px + {margin} px margins"
+                            f"{': ' + margin_note if margin_note else ''}) need "
                             f"about {format_bytes(need)}, more than the budget {format_bytes(budget_bytes)} "
                             f"({source}). Give at least --memory-gb {math.ceil(need / 2**30 * 10) / 10:g}, "
-                            "or fewer --workers.")
+                            + (f"or a smaller {smaller}." if smaller else "or fewer --workers."))
     return min(side, max(int(v) for v in hr_shape))

@@ -37,10 +37,20 @@ from ..registry import finite_or_null, get_method, reconstruct, resolve_device, 
 from ..run_context import MethodOutput, RunContext, StageTimer
 from .blend import TileBlender
 from .crop import crop_capture, translation
-from .geometry import Tile, TileLayout, default_margin, plan_tiles
-from .memory import MIN_REGISTRATION_SIDE, fits, memory_budget, registration_bytes, tile_for_budget
+from .geometry import Tile, TileLayout
+from .margins import (
+    check_cores_hold_margin,
+    check_margin_options,
+    check_tiling,
+    choose_layout,
+    margin_parts,
+    tile_margin,
+    warp_reach,
+)
+from .memory import MIN_REGISTRATION_SIDE, memory_budget, registration_bytes
 
-__all__ = ["choose_layout", "frame_warps", "registration_window", "reconstruct_tile", "reconstruct_tiled", "tile_margin"]
+__all__ = ["check_cores_hold_margin", "check_margin_options", "check_tiling", "choose_layout", "frame_warps", "margin_parts",
+           "registration_window", "reconstruct_tile", "reconstruct_tiled", "tile_margin", "warp_reach"]
 
 #: ``runner(function, jobs) -> iterable of (index, result)`` in any order: serial by default, Dask in .distributed
 Runner = Callable[[Callable, list], Iterable[tuple[int, object]]]
@@ -50,53 +60,6 @@ def serial_runner(function: Callable, jobs: list) -> Iterable[tuple[int, object]
     """Run ``function(*job)`` for each job here, in order."""
     for index, job in enumerate(jobs):
         yield index, function(*job)
-
-
-def warp_reach(aperture_homographies, hr_shape, side: int) -> int:
-    """How far (HR pixels) a warp departs from a translation over a ``side`` window at the frame's centre."""
-    cy, cx = (hr_shape[0] - 1) / 2.0, (hr_shape[1] - 1) / 2.0
-    half = side / 2.0
-    corners = np.array([[cx + sx * half, cy + sy * half, 1.0] for sx in (-1, 1) for sy in (-1, 1)])
-    worst = 0.0
-    for hom in np.asarray(aperture_homographies, dtype=np.float64):
-        c = hom @ np.array([cx, cy, 1.0])
-        p = corners @ hom.T
-        moved = p[:, :2] / p[:, 2:] - c[:2] / c[2]
-        worst = max(worst, float(np.max(np.abs(moved - (corners[:, :2] - [cx, cy])))))
-    return int(math.ceil(worst)) + 4  # + the crop's rounding to whole RGGB cells (<= 2 px) and a safety pixel
-
-
-def tile_margin(capture: Capture, options: dict, *, aperture_homographies, side: int) -> int:
-    """The margin (HR pixels) of ``side`` tiles: NLSTR search + block, CAGF window, PSF radius, warp reach."""
-    def opt(name, default):
-        return int(float(options.get(name, options.get(name.replace("_", "-"), default))))
-
-    psf_radius = int(np.asarray(capture.psf_kernel()).shape[-1]) // 2
-    return default_margin(block=opt("block", 8), search_radius=opt("search_radius", 7),
-                          cagf_radius=opt("cagf_radius", 4), psf_radius=psf_radius,
-                          warp_reach=warp_reach(aperture_homographies, capture.hr_shape, side))
-
-
-def choose_layout(capture: Capture, options: dict, *, aperture_homographies, tile: int | None = None,
-                  memory_gb: float | None = None, workers: int = 1, margin: int | None = None
-                  ) -> TileLayout | None:
-    """The tiles to reconstruct ``capture`` in, or ``None`` for one untiled run.
-
-    ``tile`` (HR pixels) is the core side asked for; else ``memory_gb`` (or, when neither is given, the
-    machine's memory limit) picks the largest tile that fits with ``workers`` tiles side by side; a frame
-    that fits whole runs untiled unless ``tile`` asks for tiles.
-    """
-    hr_shape = capture.hr_shape
-    if tile is None:
-        budget, source = memory_budget(memory_gb)
-        if fits(hr_shape, budget):
-            return None
-        first = margin if margin is not None else tile_margin(capture, options, aperture_homographies=aperture_homographies,
-                                                               side=max(hr_shape))
-        tile = tile_for_budget(hr_shape, budget, margin=first, workers=workers, source=source)
-    if margin is None:
-        margin = tile_margin(capture, options, aperture_homographies=aperture_homographies, side=tile)
-    return plan_tiles(hr_shape, int(tile), margin=margin)
 
 
 def frame_warps(capture: Capture, *, device, true_warps: bool, registration: str, reuse_registration: bool,
@@ -256,11 +219,9 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     if spec.input_kind != "caps":
         raise InputError("--tile", f"method {method}", "a CAPS-input method (DoFP methods run untiled)",
                          "Leave --tile and --memory-gb out for DoFP methods.")
-    budget, source = memory_budget(memory_gb)
-    if tile is None:
-        if fits(capture.hr_shape, budget):
-            return None  # the whole frame fits: the untiled run
-        tile_for_budget(capture.hr_shape, budget, margin=default_margin(), workers=workers, source=source)  # early
+    if not check_tiling(capture, options, tile=tile, memory_gb=memory_gb, workers=workers, margin=margin):
+        return None  # the whole frame fits: the untiled run
+    budget, _ = memory_budget(memory_gb)
     t0 = time.perf_counter()
     homographies, reg_record = frame_warps(capture, device=device, true_warps=true_warps, registration=registration,
                                            reuse_registration=reuse_registration, calibration=calibration,

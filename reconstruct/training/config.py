@@ -118,6 +118,9 @@ MODEL_SPECS = {
                                "patches": Integer(minimum=1, maximum=10**6)},
                               what="a jcpd-dictionary model (network, patch, atoms, sparsity, patches)"),
 }
+#: the channels of each input's images (a network's ``channels`` must match: the pairs have no other count)
+INPUT_CHANNELS = {"aperture": 3, "noisy-gt": 12}
+INPUT_CHANNEL_NAMES = {"aperture": "one aperture's demosaicked RGB", "noisy-gt": "RGB x 4 polarizer angles"}
 #: the constructor defaults of each network, for the memory estimate (the config keeps only what it sets)
 NETWORK_DEFAULTS = {"cpdnet": {"features": 24, "colour_blocks": 2, "polarization_blocks": 2},
                     "edsr": {"channels": 3, "features": 32, "blocks": 4},
@@ -189,6 +192,10 @@ def _model(raw: dict) -> tuple[str, dict, str]:
     kind = raw["input"]
     if MODEL_INPUTS[network] != kind:
         _fail("input", repr(kind), f"{MODEL_INPUTS[network]} for the {network} model")
+    channels = INPUT_CHANNELS.get(kind)
+    if "channels" in model and channels is not None and model["channels"] != channels:
+        _fail("model.channels", model["channels"], f"{channels} (the {kind} input's images have {channels} channels: "
+              f"{INPUT_CHANNEL_NAMES[kind]})", f"Remove model.channels, or write channels: {channels}.")
     if network == DICTIONARY_MODEL:
         model = {**DICTIONARY_DEFAULTS, **model}
         if model["patches"] < model["atoms"]:

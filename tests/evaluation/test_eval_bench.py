@@ -191,7 +191,7 @@ def test_suites_and_helpers():
         assert spec["methods"] and spec["scenes"]
     ablation = load_suite("ablation")
     assert {m["name"] for m in ablation["methods"]} == {"caps", "caps-iccp", "caps-no-cagf", "caps-no-nlstr", "caps-naive",
-                                                        "caps-plus", "caps-plus-pnp", "caps-plus-cv"}
+                                                        "caps-plus", "caps-plus-cv"}
     assert not any(m.get("true_warps") for m in ablation["methods"])  # estimated warps, as the paper's study
     quick = load_suite("quick")
     assert {m["name"] for m in quick["methods"]} >= {"caps", "caps-naive", "dofp-bilinear", "dofp-eari"}

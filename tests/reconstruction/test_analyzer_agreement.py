@@ -15,6 +15,9 @@ from capssim.reconstruct.model.data_term import confidence_mix
 from capssim.reconstruct.model.polarization_split import angle_mean, split_confidence_mix
 from capssim.simulate import simulate_capture
 
+#: the selection record of a run whose every choice was given as an option
+SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
+
 SIZE = 48
 
 
@@ -99,51 +102,59 @@ def capture(smooth_random_scene):
 
 
 def test_caps_plus_runs_with_the_agreement_data_term(capture):
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=5, data_term="cagf-agree")
+    fixed = {"true_warps": True, "iterations": 5, "polarization_filter": "none"}
+    out, record = reconstruct(capture, "caps-plus", data_term="cagf-agree", **fixed)
     assert record["params"]["data_term"] == "cagf-agree" and record["params"]["init"] == "agree"
     assert "agreement" in record["stages_s"]
     assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
-    split, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5, data_term="cagf-split")
+    split, _ = reconstruct(capture, "caps-plus", data_term="cagf-split", **fixed)
     assert not np.array_equal(out.image, split.image)
 
 
 def test_the_agree_initialization_lies_between_split_and_fusion(capture):
     """-p init=agree: the fusion's analyzer mean; per pixel, its polarization part between the demosaicked
-    apertures' (alpha 0) and the fusion's (alpha 1) (read through 0 iterations, inside a 4 px border)."""
-    start = {"true_warps": True, "prior": "none", "iterations": 0, "physical_projection": False}
+    apertures' (alpha 0: ``split``, the fusion's analyzer mean with the apertures' polarization part) and the
+    fusion's (alpha 1) (read through 0 iterations, inside a 4 px border)."""
+    start = {"true_warps": True, "prior": "none", "iterations": 0, "physical_projection": False,
+             "polarization_filter": "none"}
     images = {}
-    for init in ("agree", "split", "fusion"):
+    for init in ("agree", "naive", "fusion"):
         out, record = reconstruct(capture, "caps-plus", init=init, **start)
         assert record["params"]["init"] == init
         images[init] = torch.from_numpy(out.image[:, 4:-4, 4:-4]).double()
-    agree, split, fusion = images["agree"], images["split"], images["fusion"]
+    agree, naive, fusion = images["agree"], images["naive"], images["fusion"]
+    split = (angle_mean(fusion) + naive - angle_mean(naive)).clamp(0.0, 1.0)
     assert torch.allclose(angle_mean(agree), angle_mean(fusion), atol=1e-5)
     lo, hi = torch.minimum(split, fusion), torch.maximum(split, fusion)
     assert bool(((agree >= lo - 1e-5) & (agree <= hi + 1e-5)).all())
     assert not torch.allclose(agree, split, atol=1e-4) and not torch.allclose(agree, fusion, atol=1e-4)
 
 
-def test_an_unknown_initialization_lists_agree(capture):
+@pytest.mark.parametrize("init", ["zeros", "split"])
+def test_an_unknown_initialization_lists_agree(capture, init):
     with pytest.raises(CapssimError, match="agree"):
-        reconstruct(capture, "caps-plus", true_warps=True, init="zeros")
+        reconstruct(capture, "caps-plus", true_warps=True, init=init)
 
 
 def test_the_start_and_the_data_term_share_one_agreement_map(capture, monkeypatch):
-    """caps-plus's defaults use alpha twice (init=agree, data_term=cagf-agree): it is computed once per problem."""
+    """caps-plus's defaults use alpha twice (init=agree, data_term=cagf-stokes): it is computed once per problem
+    (here one: the choices are given, so no validation problem is built)."""
     import capssim.reconstruct.pipeline.slots as slots
 
     computed = []
     original = slots.analyzer_agreement_map
     monkeypatch.setattr(slots, "analyzer_agreement_map", lambda *a, **k: computed.append(1) or original(*a, **k))
-    reconstruct(capture, "caps-plus", true_warps=True, iterations=2)
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=2, polarization_filter="none")
+    assert record["params"]["selection"] == SELECTED_NOTHING
     assert len(computed) == 1
 
 
 def test_the_agree_all_initialization_blends_the_analyzer_mean_too(capture):
-    """-p init=agree-all (caps-plus-cv's start): per pixel ``alpha fusion + (1 - alpha) naive`` for every channel,
+    """-p init=agree-all: per pixel ``alpha fusion + (1 - alpha) naive`` for every channel,
     so it lies between the two starts, keeps init=agree's polarization part and differs from it only in the
     analyzer mean (read through 0 iterations, inside a 4 px border)."""
-    start = {"true_warps": True, "prior": "none", "iterations": 0, "physical_projection": False}
+    start = {"true_warps": True, "prior": "none", "iterations": 0, "physical_projection": False,
+             "polarization_filter": "none"}
     images = {}
     for init in ("agree-all", "agree", "naive", "fusion"):
         out, record = reconstruct(capture, "caps-plus", init=init, **start)

@@ -1,5 +1,5 @@
-"""``caps-plus`` (issue 36, item 2): the polarization-split data term, the demosaicked initialization and
-the method as a configuration of the CAPS pipeline."""
+"""``caps-plus`` (issue 36, item 2): the polarization-split data term, the demosaicked start and the method as
+caps's pipeline with its slots changed. Its choices (count, filter): tests/reconstruction/test_caps_plus_model.py."""
 
 from __future__ import annotations
 
@@ -8,10 +8,9 @@ import pytest
 import torch
 
 from capssim.camera.sensor import make_sensor
-from capssim.errors import CapssimError
+from capssim.errors import CapssimError, InputError
 from capssim.eval.metrics import score
 from capssim.reconstruct import reconstruct
-from capssim.reconstruct.methods.caps_plus import frame_iterations, noise_adaptive_iterations, raw_noise_sigma
 from capssim.reconstruct.model.data_term import confidence_mix
 from capssim.reconstruct.model.polarization_split import angle_mean, split_confidence_mix
 from capssim.simulate import simulate_capture
@@ -86,15 +85,17 @@ def test_caps_plus_runs_and_records_its_ingredients(capture):
     assert out.image.shape == (12, SIZE, SIZE) and out.image.dtype == np.float32 and np.isfinite(out.image).all()
     params = record["params"]
     assert params["data_term"] == "cagf-stokes" and params["init"] == "agree"
-    assert params["mu0"] == 0.25 and params["c2"] == 0.01 and params["iterations"] == 6
+    assert params["mu0"] == 0.25 and params["c2"] == 0.01 and params["iterations"] == 6 and len(out.history) == 6
+    assert params["holdout_fraction"] == 0.05 and params["selection"]["iterations_from"] == "options"
     assert "init_demosaic" in record["stages_s"]
     assert score(out.image, capture.gt, with_ssim=False)["psnr_mean"] > 25
 
 
 def test_caps_plus_is_caps_with_its_slots_changed(capture):
-    """With caps's data term, initialization and schedule, caps-plus is caps, bit for bit."""
+    """With caps's data term, start, schedule and no polarization filter, caps-plus is caps, bit for bit."""
     same = {"iterations": 4, "mu0": 0.5, "c2": 0.02}
-    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, data_term="cagf", init="fusion", **same)
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, data_term="cagf", init="fusion",
+                          polarization_filter="none", **same)
     caps, _ = reconstruct(capture, "caps", true_warps=True, **same)
     assert np.array_equal(plus.image, caps.image)
 
@@ -102,7 +103,8 @@ def test_caps_plus_is_caps_with_its_slots_changed(capture):
 def test_the_naive_initialization_is_caps_naives_image(capture):
     """-p prior=none with 0 iterations of steepest descent leaves the initialization: caps-naive's image
     (inside a 4 px border, where the two methods' unobserved pixels are filled differently)."""
-    plus, record = reconstruct(capture, "caps-plus", true_warps=True, prior="none", iterations=0, init="naive")
+    plus, record = reconstruct(capture, "caps-plus", true_warps=True, prior="none", iterations=0, init="naive",
+                               polarization_filter="none")
     naive, _ = reconstruct(capture, "caps-naive", true_warps=True)
     inner = (slice(None), slice(4, -4), slice(4, -4))
     assert np.allclose(plus.image[inner], naive.image[inner], atol=1e-5)
@@ -110,57 +112,19 @@ def test_the_naive_initialization_is_caps_naives_image(capture):
                                                           iterations=0)[0].image[inner], atol=1e-3)
 
 
-def test_the_split_initialization_takes_the_fusions_mean_and_the_apertures_polarization(capture):
-    """-p init=split: the analyzer mean of each colour from caps's fused start, the rest from the demosaicked
-    apertures (read through 0 iterations of steepest descent, no physical projection; inside a 4 px border)."""
-    start = {"true_warps": True, "prior": "none", "iterations": 0, "physical_projection": False}
-    split, record = reconstruct(capture, "caps-plus", init="split", **start)
-    fusion, _ = reconstruct(capture, "caps-plus", init="fusion", **start)
-    naive, _ = reconstruct(capture, "caps-plus", init="naive", **start)
-    assert record["params"]["init"] == "split"
-    inner = (slice(None), slice(4, -4), slice(4, -4))
-    split, fusion, naive = (torch.from_numpy(x.image[inner]) for x in (split, fusion, naive))
-    assert torch.allclose(angle_mean(split), angle_mean(fusion), atol=1e-5)
-    assert torch.allclose(split - angle_mean(split), naive - angle_mean(naive), atol=1e-5)
-    assert not torch.allclose(split, naive, atol=1e-3) and not torch.allclose(split, fusion, atol=1e-3)
+def test_caps_naive_still_offers_the_moved_demosaicking_helpers():
+    """demosaicked_frames and bicubic_warp moved to capssim.reconstruct.model.aperture_demosaic; caps_naive
+    re-exports them (the same functions)."""
+    from capssim.reconstruct.methods import caps_naive
+    from capssim.reconstruct.model import aperture_demosaic
+
+    assert caps_naive.demosaicked_frames is aperture_demosaic.demosaicked_frames
+    assert caps_naive.bicubic_warp is aperture_demosaic.bicubic_warp
 
 
-def test_caps_plus_refuses_an_unknown_initialization(capture):
-    with pytest.raises(CapssimError, match="init"):
-        reconstruct(capture, "caps-plus", true_warps=True, init="zeros")
-
-
-# -- the noise-adaptive schedule ---------------------------------------------------------------------
-def test_the_iteration_count_grows_with_the_noise_and_is_clipped():
-    assert [noise_adaptive_iterations(s) for s in (0.0, 0.005, 0.01, 0.02, 0.5)] == [10, 15, 20, 30, 50]
-    assert noise_adaptive_iterations(float("nan")) == 50 and noise_adaptive_iterations(float("inf")) == 50
-
-
-def test_raw_noise_sigma_reads_white_noise_on_smooth_planes():
-    g = torch.Generator().manual_seed(0)
-    ramp = 0.2 + 0.5 * torch.linspace(0, 1, 64)[None, :, None] * torch.ones(16, 64, 64)
-    assert raw_noise_sigma(ramp) < 1e-5  # a linear ramp holds no noise
-    for sigma in (0.005, 0.01, 0.02):
-        assert raw_noise_sigma(ramp + sigma * torch.randn(16, 64, 64, generator=g)) == pytest.approx(sigma, rel=0.1)
-    assert raw_noise_sigma(torch.zeros(16, 2, 2)) == 0.0  # too small to estimate
-
-
-def test_caps_plus_takes_its_iterations_from_the_noise_unless_given(capture):
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, stopping="noise")
-    params = record["params"]
-    assert params["iterations_from"] == "noise" and 0.005 < params["noise_sigma_estimate"] < 0.03
-    assert params["iterations"] == noise_adaptive_iterations(params["noise_sigma_estimate"])
-    assert len(out.history) == params["iterations"]
-    assert frame_iterations(capture, {}) == {"stopping": "noise", "polarization_filter": "none", "iterations": params["iterations"]}  # a tiled run
-    assert frame_iterations(capture, {"stopping": "holdout"}) == {}
-    for given, count in (({"iterations": 3}, 3), ({"preset": "fast"}, 7)):
-        out, record = reconstruct(capture, "caps-plus", true_warps=True, **given)
-        assert record["params"]["iterations_from"] == "options" and frame_iterations(capture, given) == {}
-        assert record["params"]["iterations"] == count and len(out.history) == count
-
-
-def test_a_clean_capture_gets_fewer_iterations_than_a_noisy_one(smooth_random_scene):
-    scene = smooth_random_scene(SIZE, seed=3)
-    sensors = (make_sensor("none"), make_sensor("gaussian", sigma=0.01), make_sensor("gaussian", sigma=0.03))
-    counts = [frame_iterations(simulate_capture(scene, sensor, seed=3), {})["iterations"] for sensor in sensors]
-    assert counts[0] < counts[1] < counts[2]
+@pytest.mark.parametrize("init", ["zeros", "split"])
+def test_caps_plus_refuses_an_unknown_initialization_listing_the_starts(capture, init):
+    """``split`` (the fusion's analyzer mean, the apertures' polarization part) is no start of caps-plus any more."""
+    with pytest.raises(InputError, match="option init") as refused:
+        reconstruct(capture, "caps-plus", true_warps=True, iterations=1, init=init)
+    assert all(name in str(refused.value) for name in ("agree", "agree-all", "fusion", "naive"))

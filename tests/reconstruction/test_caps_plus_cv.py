@@ -1,21 +1,21 @@
-"""``caps-plus-cv`` (issue 36): the prior's blend and the iteration count chosen per capture by held-out raw
-pixels, the denoiser's per-iteration noise schedule, and the options' errors."""
+"""``caps-plus-cv`` (issue 36): ``caps-plus`` with the ``nlstr-denoiser`` prior, whose selection layer also chooses
+the denoiser's blend among :data:`~capssim.reconstruct.methods.caps_plus_cv.BLEND_CANDIDATES` by held-out raw pixels;
+its record and its options. The prior itself: tests/reconstruction/test_nlstr_denoiser.py."""
 
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import numpy as np
 import pytest
-import torch
 
 from capssim.camera.sensor import make_sensor
 from capssim.errors import CapssimError, InputError
 from capssim.reconstruct import reconstruct
-from capssim.reconstruct.model.polarization_filter import apply_chosen_filter
-from capssim.reconstruct.priors.nlstr_denoiser import DenoiserParameters, NLSTRDenoiserPrior, denoiser_dtype
+from capssim.reconstruct.methods.caps_plus_cv import BLEND_CANDIDATES, DENOISER_SIGMA_STEPS
+from capssim.reconstruct.registry import get_method
 from capssim.simulate import simulate_capture
-from capssim.stokes.physical_validity import project_to_physical
+
+#: the selection record of a run whose every choice was given as an option
+SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 SIZE = 40
 
@@ -30,102 +30,111 @@ def chosen(capture, tiny_denoiser_weights):
     return reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_denoiser_weights))
 
 
-def test_every_candidate_is_validated_and_the_lowest_held_out_error_wins(chosen):
+def test_every_candidate_is_validated_in_turn_and_the_lowest_held_out_error_wins(chosen):
     out, record = chosen
-    params = record["params"]
-    candidates = params["holdout_candidates"]
+    params, selection = record["params"], record["params"]["selection"]
+    candidates = selection["blend_candidates"]
     blends, errors = [c["denoiser_blend"] for c in candidates], [c["holdout_error"] for c in candidates]
-    assert len(blends) >= 2 and blends == [0.0, 0.5, 0.75][:len(blends)]
+    assert BLEND_CANDIDATES == (0.0, 0.5, 0.75)
+    assert len(blends) >= 2 and blends == list(BLEND_CANDIDATES[:len(blends)])
     # the walk stops one past the lowest error: every error but the last falls
     assert all(a >= b for a, b in zip(errors[:-2], errors[1:-1]))
-    assert len(blends) == 3 or errors[-1] > errors[-2]
+    assert len(blends) == len(BLEND_CANDIDATES) or errors[-1] > errors[-2]
     best = min(candidates, key=lambda c: c["holdout_error"])
-    assert params["holdout_choice"] == {"denoiser_blend": best["denoiser_blend"]}
     assert params["denoiser_blend"] == best["denoiser_blend"] and params["iterations"] == best["iterations"]
-    assert params["holdout_error"] == pytest.approx(best["holdout_error"])
+    assert selection["holdout_error"] == pytest.approx(best["holdout_error"])
+    assert selection["iterations_from"] == "holdout" and params["init"] == "agree"
+    assert params["prior"] == "nlstr-denoiser" and params["denoiser_sigma_steps"] == DENOISER_SIGMA_STEPS
+    assert record["resolved_options"] == {"iterations": best["iterations"], "denoiser_blend": best["denoiser_blend"],
+                                          "polarization_filter": params["polarization_filter"]}
     assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
 
 
-def test_the_start_is_the_whole_agreement_blend_and_init_agree_gives_caps_plus_start(capture, tiny_denoiser_weights,
-                                                                                       chosen):
-    assert chosen[1]["params"]["init"] == "agree-all"
-    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5)
-    agree, record = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=5, denoiser_blend=0.0,
-                                init="agree", denoiser_weights=str(tiny_denoiser_weights))
-    assert record["params"]["init"] == "agree"
-    np.testing.assert_array_equal(agree.image, plus.image)
-
-
-def test_the_final_image_is_the_chosen_blend_and_count_run_with_every_pixel(capture, tiny_denoiser_weights, chosen):
+def test_the_final_image_is_caps_plus_with_the_prior_run_with_the_resolved_choices(capture, tiny_denoiser_weights,
+                                                                                    chosen):
+    """caps-plus-cv is caps-plus with the nlstr-denoiser prior: caps-plus given that prior and the resolved choices
+    gives its image bit for bit, and so does caps-plus-cv given them (nothing is selected again)."""
     out, record = chosen
-    params = record["params"]
-    fixed, _ = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
-                           denoiser_sigma_steps=15, denoiser_blend=params["denoiser_blend"], init="agree-all",
-                           iterations=params["iterations"], physical_projection=False)
-    # then the polarization filter the held-out pixels chose, then the physical projection
-    filtered = apply_chosen_filter(torch.from_numpy(fixed.image), params["polarization_filter_choice"]).numpy()
-    expected, _ = project_to_physical(filtered, unobserved=fixed.unobserved)
-    np.testing.assert_allclose(out.image, expected, atol=1e-6)
+    weights = str(tiny_denoiser_weights)
+    plus, plus_record = reconstruct(capture, "caps-plus", true_warps=True, prior="nlstr-denoiser",
+                                    denoiser_weights=weights, denoiser_sigma_steps=DENOISER_SIGMA_STEPS,
+                                    **record["resolved_options"])
+    np.testing.assert_array_equal(plus.image, out.image)
+    again, again_record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=weights,
+                                      **record["resolved_options"])
+    np.testing.assert_array_equal(again.image, out.image)
+    assert again_record["params"]["selection"] == SELECTED_NOTHING
 
 
-def test_a_candidate_validation_is_the_same_as_that_blend_validated_alone(capture, tiny_denoiser_weights, chosen):
-    """The whole-frame validation of each candidate is caps-plus-pnp's own held-out stopping at that blend."""
-    _, record = chosen
-    for candidate in record["params"]["holdout_candidates"]:
-        _, alone = reconstruct(capture, "caps-plus-pnp", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
-                               denoiser_sigma_steps=15, denoiser_blend=candidate["denoiser_blend"],
-                               stopping="holdout", init="agree-all")
-        assert alone["params"]["holdout_error"] == pytest.approx(candidate["holdout_error"], rel=1e-5)
-        assert alone["params"]["iterations"] == candidate["iterations"]
+def test_the_first_candidates_validation_is_caps_plus_own(capture, chosen):
+    """Blend 0 is NLSTR alone: its held-out validation is caps-plus's, error and count."""
+    first = chosen[1]["params"]["selection"]["blend_candidates"][0]
+    _, plus = reconstruct(capture, "caps-plus", true_warps=True)
+    assert first["denoiser_blend"] == 0.0
+    assert plus["params"]["selection"]["holdout_error"] == pytest.approx(first["holdout_error"], rel=1e-6)
+    assert plus["params"]["selection"]["holdout_best_iteration"] == first["iterations"]
 
 
-def test_blend_zero_is_caps_plus_from_the_same_start_exactly(capture, tiny_denoiser_weights):
-    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=5, init="agree-all")
-    zero, _ = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=5, denoiser_blend=0.0,
-                          denoiser_weights=str(tiny_denoiser_weights))
+def test_blend_zero_is_caps_plus_exactly(capture, tiny_denoiser_weights):
+    fixed = {"iterations": 5, "polarization_filter": "none"}
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, **fixed)
+    zero, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_blend=0.0,
+                               denoiser_weights=str(tiny_denoiser_weights), **fixed)
     np.testing.assert_array_equal(zero.image, plus.image)
+    assert record["params"]["selection"] == SELECTED_NOTHING
 
 
-@pytest.mark.parametrize("options", [{"denoiser_blend": 0.5}, {"iterations": 4}, {"stopping": "noise"}])
-def test_a_fixed_blend_count_or_rule_turns_the_choice_off(capture, tiny_denoiser_weights, options):
-    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_denoiser_weights), **options)
-    params = record["params"]
-    assert "holdout_candidates" not in params and params["denoiser_blend"] == options.get("denoiser_blend", 0.5)
-    assert ("blend_note" in params) == ("denoiser_blend" not in options)  # the record says no blend was chosen
+def test_a_given_blend_is_not_chosen_and_a_given_count_leaves_the_blend_open(capture, tiny_denoiser_weights):
+    weights = str(tiny_denoiser_weights)
+    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=weights, denoiser_blend=0.5,
+                            polarization_filter="none", iterations=3)
+    assert record["params"]["denoiser_blend"] == 0.5 and record["params"]["selection"] == SELECTED_NOTHING
+    assert "denoiser_blend" not in record["resolved_options"]
+    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=weights, iterations=3,
+                            polarization_filter="none")
+    params, selection = record["params"], record["params"]["selection"]
+    assert params["iterations"] == 3 and selection["iterations_from"] == "options"
+    assert [c["denoiser_blend"] for c in selection["blend_candidates"]][0] == 0.0
+    assert all(c["iterations"] <= 3 for c in selection["blend_candidates"])
+    assert record["resolved_options"]["denoiser_blend"] == params["denoiser_blend"]
 
 
-def test_the_per_iteration_schedule_does_not_depend_on_the_run_length():
-    """denoiser_sigma_steps=N: iteration k has the same noise level in a run of any length (held-out stopping)."""
-    class _Identity:
-        def begin(self):
-            pass
+def test_the_walk_stops_once_the_held_out_error_rises(capture, tiny_denoiser_weights, monkeypatch):
+    """Candidates ordered 0, 1, 0.5 (the count fixed at 3): the validations run in that order, and once an error
+    rises above the one before, no further candidate runs."""
+    import capssim.reconstruct.methods.caps_plus_cv as caps_plus_cv
 
-        def estimate(self, z, *, mu, iteration, stage):
-            return z.clone(), {}
+    monkeypatch.setattr(caps_plus_cv, "BLEND_CANDIDATES", (0.0, 1.0, 0.5))
+    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
+                            iterations=3, polarization_filter="none")
+    candidates = record["params"]["selection"]["blend_candidates"]
+    assert [c["denoiser_blend"] for c in candidates] == [0.0, 1.0, 0.5][:len(candidates)]
+    if candidates[1]["holdout_error"] > candidates[0]["holdout_error"]:
+        assert len(candidates) == 2 and record["params"]["denoiser_blend"] == 0.0
+    else:
+        assert len(candidates) == 3
 
-    z = torch.rand(12, 4, 4)
-    levels = {}
-    for length in (10, 40):
-        prior = NLSTRDenoiserPrior(_Identity(), lambda x, level: x, DenoiserParameters(denoiser_sigma_steps=15), length)
-        levels[length] = [prior.estimate(z, mu=1.0, iteration=k, stage=lambda n: nullcontext())[1]["denoiser_sigma"]
-                          for k in (0, 7, 14, 30)]
-    assert levels[10] == levels[40]
-    assert levels[10][0] == pytest.approx(0.05) and levels[10][2] == pytest.approx(0.005)
-    assert levels[10][3] == pytest.approx(0.005)
+
+def test_caps_plus_cv_lists_the_denoiser_options_and_caps_plus_own():
+    names = [o.name for o in get_method("caps-plus-cv").options()]
+    plus = [o.name for o in get_method("caps-plus").options()]
+    assert set(plus) <= set(names)
+    assert set(names) - set(plus) == {"denoiser_weights", "denoiser_blend", "denoiser_sigma_start",
+                                      "denoiser_sigma_end", "denoiser_sigma_steps", "denoiser_precision"}
+    defaults = {o.name: o.default for o in get_method("caps-plus-cv").options()}
+    assert defaults["prior"] == "nlstr-denoiser" and defaults["denoiser_sigma_steps"] == DENOISER_SIGMA_STEPS
 
 
 @pytest.mark.parametrize("options, match", [
-    ({"blend_candidates": "0.5"}, "blend_candidates"),
-    ({"blend_candidates": "0,2"}, "blend_candidates"),
-    ({"blend_candidates": "a,b"}, "blend_candidates"),
-    ({"blend_candidates": "0,0.5", "prior": "nlstr"}, "blend_candidates"),
+    ({"blend_candidates": "0,0.5"}, "blend_candidates"),  # no option of caps-plus-cv any more
+    ({"holdout_rule": "one-se"}, "holdout_rule"),
     ({"denoiser_sigma_steps": -1}, "denoiser_sigma_steps"),
     ({"denoiser_precision": "float16"}, "denoiser_precision"),
 ])
 def test_bad_options_name_themselves(capture, tiny_denoiser_weights, options, match):
-    extra = {} if options.get("prior") == "nlstr" else {"denoiser_weights": str(tiny_denoiser_weights)}
     with pytest.raises(InputError, match=match):
-        reconstruct(capture, "caps-plus-cv", true_warps=True, **extra, **options)
+        reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=1, denoiser_weights=str(tiny_denoiser_weights),
+                    **options)
 
 
 def test_caps_plus_does_not_take_the_candidates(capture):
@@ -133,38 +142,10 @@ def test_caps_plus_does_not_take_the_candidates(capture):
         reconstruct(capture, "caps-plus", true_warps=True, iterations=2, blend_candidates="0,0.5")
 
 
-def test_the_walk_stops_once_the_held_out_error_rises(capture, tiny_denoiser_weights):
-    """Candidates ordered 1, 0.5, 0: with the untrained network the largest blend validates worst, so the walk
-    stops at the second candidate unless its error fell."""
-    _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=str(tiny_denoiser_weights),
-                            blend_candidates="0,1,0.5")
-    candidates = record["params"]["holdout_candidates"]
-    assert [c["denoiser_blend"] for c in candidates][:2] == [0.0, 1.0]
-    if candidates[1]["holdout_error"] > candidates[0]["holdout_error"]:
-        assert len(candidates) == 2 and record["params"]["denoiser_blend"] == 0.0
-
-
-def test_bfloat16_denoising_stays_close_to_float32(capture):
-    """The shipped network in bfloat16 (the default where the CPU computes it natively) against float32."""
-    full, r32 = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4, denoiser_precision="float32")
-    half, r16 = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=4, denoiser_precision="bfloat16")
-    assert r32["params"]["denoiser_dtype"] == "float32" and r16["params"]["denoiser_dtype"] == "bfloat16"
-    assert np.abs(full.image - half.image).max() < 5e-3
-    assert np.sqrt(np.mean((full.image - half.image) ** 2)) < 1e-3
-
-
-def test_another_prior_drops_the_choice_and_the_denoiser_defaults(capture):
-    """-p prior=nlstr: caps-plus-cv's denoiser defaults and its blend candidates fall away: caps-plus from its
-    start exactly."""
-    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=4, init="agree-all")
-    other, record = reconstruct(capture, "caps-plus-cv", true_warps=True, iterations=4, prior="nlstr")
+def test_another_prior_drops_the_choice(capture):
+    """-p prior=nlstr: caps-plus-cv's blend choice and denoiser defaults fall away: caps-plus exactly."""
+    fixed = {"iterations": 4, "polarization_filter": "none"}
+    plus, _ = reconstruct(capture, "caps-plus", true_warps=True, **fixed)
+    other, record = reconstruct(capture, "caps-plus-cv", true_warps=True, prior="nlstr", **fixed)
     np.testing.assert_array_equal(other.image, plus.image)
     assert record["params"]["prior"] == "nlstr" and "denoiser_sigma_steps" not in record["params"]
-
-
-def test_auto_precision_is_bfloat16_only_where_native():
-    assert denoiser_dtype("float32", torch.device("cpu")) == torch.float32
-    assert denoiser_dtype("bfloat16", torch.device("cpu")) == torch.bfloat16
-    auto = denoiser_dtype("auto", torch.device("cpu"))
-    native = torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported()
-    assert auto == (torch.bfloat16 if native else torch.float32)

@@ -74,6 +74,7 @@ def as_pattern(capture: Capture, cfa: str, *, declared: str | None = None) -> Ca
     cell = cell[::-1] if flip_rows else cell
     meta["dofp_layout"] = (cell[:, ::-1] if flip_cols else cell).tolist()
     meta.pop("dofp_layout_name")
+    meta["setup"].pop("dofp_layout")  # derived from the top level
     return Capture(meta=meta, caps_raw=flip_to_rggb(capture.caps_raw, cfa), dofp_raw=flip_to_rggb(capture.dofp_raw, cfa),
                    gt=flip_to_rggb(capture.gt, cfa))
 

@@ -1,5 +1,6 @@
-"""Held-out validation as a stopping rule (``caps-plus -p stopping=holdout``): the mask, the filled raw frames,
-the rule's choice of iterate, the solvers' use of it and the pipeline's final solve with all the data."""
+"""Held-out validation (:mod:`capssim.reconstruct.model.holdout`): the mask, the filled raw frames, the rule's choice
+of iterate and the solvers' use of it; ``caps-plus``'s selection layer choosing its count by it on the central window,
+then solving with all the data (:mod:`capssim.reconstruct.selection`)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,13 @@ from capssim.conventions import split_bayer
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.holdout import HoldoutValidation, fill_held_out, holdout_mask, split_held_out
+from capssim.reconstruct.selection import (
+    FALLBACK_ITERATIONS,
+    HOLDOUT_MAX_ITERATIONS,
+    HOLDOUT_PATIENCE,
+    HOLDOUT_WINDOW,
+    selection_window,
+)
 from capssim.reconstruct.solvers.admm import ADMMParameters, admm
 from capssim.reconstruct.solvers.descent import steepest_descent
 from capssim.simulate import simulate_capture
@@ -124,91 +132,95 @@ def test_both_solvers_stop_early_and_return_the_rules_iterate(solver):
     assert abs(float(image.mean()) - 0.5) < 0.2
 
 
-def test_caps_plus_holdout_solves_again_with_all_the_data_for_the_chosen_count(capture):
-    """The final image is caps-plus with every pixel for the count the held-out pixels chose."""
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, stopping="holdout", patience=3,
-                              polarization_filter="none")
-    params = record["params"]
+def test_caps_plus_validates_then_solves_with_all_the_data_for_the_chosen_count(capture):
+    """The count is the validation's best iteration (it ran HOLDOUT_PATIENCE past it); the final image is
+    caps-plus with every pixel for that count and the chosen filter."""
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="none")
+    params, selection = record["params"], record["params"]["selection"]
     count = params["iterations"]
-    assert params["stopping"] == "holdout" and params["iterations_from"] == "holdout"
-    assert count == params["holdout_best_iteration"] <= params["holdout_iterations_run"] - 3
-    passes = [h["pass"] for h in record["history"]]
-    assert passes.count("final") == count and passes.count("validation") == params["holdout_iterations_run"]
-    same, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=count)
-    assert np.allclose(out.image, same.image, atol=1e-6)
+    assert selection["iterations_from"] == "holdout" and selection["holdout_fraction"] == 0.05
+    assert count == selection["holdout_best_iteration"]
+    assert selection["holdout_iterations_run"] == min(count + HOLDOUT_PATIENCE, HOLDOUT_MAX_ITERATIONS)
+    assert len(record["history"]) == count and "pass" not in (record["history"] or [{}])[0]
+    same, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=count, polarization_filter="none")
+    np.testing.assert_array_equal(out.image, same.image)
 
 
 def test_the_held_out_start_does_not_see_the_held_out_pixels(capture, monkeypatch):
-    """The validation run's start is built from raw frames whose held-out pixels were replaced."""
-    import capssim.reconstruct.methods.caps_plus as caps_plus
+    """The validation's start is built from raw frames whose held-out pixels were replaced; the final start from
+    all of them."""
+    import capssim.reconstruct.pipeline.start as start
 
     seen = []
-    real = caps_plus.demosaicked_frames
+    real = start.demosaicked_frames
 
     def spy(cap, context, method, *, held_out=None):
         seen.append(held_out)
         return real(cap, context, method, held_out=held_out)
 
-    monkeypatch.setattr(caps_plus, "demosaicked_frames", spy)
-    reconstruct(capture, "caps-plus", true_warps=True, stopping="holdout", iterations=2)
-    assert len(seen) == 2 and seen[0] is not None and seen[0].mean() > 0.02 and seen[1] is None
+    monkeypatch.setattr(start, "demosaicked_frames", spy)
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=2)
+    assert record["params"]["selection"]["polarization_filter_from"] == "holdout"  # a validation ran
+    assert len(seen) == 2 and seen[0] is not None and 0.03 < seen[0].mean() < 0.07 and seen[1] is None
 
 
-@pytest.mark.parametrize("option, value", [("stopping", "sometimes"), ("holdout_fraction", "0.9"),
-                                           ("patience", "0")])
-def test_caps_plus_refuses_bad_stopping_options(capture, option, value, monkeypatch):
-    """Refused before any work: the front end (registration, operator) never runs."""
+@pytest.mark.parametrize("option, value", [("holdout_fraction", "0.9"), ("holdout_fraction", "0"),
+                                           ("init", "split"), ("polarization_filter", "holdout"),
+                                           ("stopping", "holdout"), ("patience", "3")])
+def test_caps_plus_refuses_bad_selection_options_before_any_work(capture, option, value, monkeypatch):
+    """Refused before any work: the front end (registration, operator) never runs. ``stopping`` and ``patience``
+    are no options of caps-plus any more."""
     import capssim.reconstruct.methods.caps_plus as caps_plus
 
     monkeypatch.setattr(caps_plus, "caps_observations", lambda *a, **k: pytest.fail("the front end ran"))
-    with pytest.raises(InputError, match=option):
-        reconstruct(capture, "caps-plus", true_warps=True, iterations=2, **{"stopping": "holdout", option: value})
-
-
-def test_held_out_stopping_is_caps_plus_default_and_a_given_count_turns_it_off(capture):
-    _, record = reconstruct(capture, "caps-plus", true_warps=True)
-    assert record["params"]["stopping"] == "holdout" and record["params"]["iterations_from"] == "holdout"
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
-    assert record["params"]["stopping"] == "noise" and record["params"]["iterations"] == 4 and len(out.history) == 4
-    _, record = reconstruct(capture, "caps-plus-pnp", true_warps=True, iterations=2)
-    assert record["params"]["stopping"] == "noise"
+    with pytest.raises(InputError, match=f"option {option}"):
+        reconstruct(capture, "caps-plus", true_warps=True, **{option: value})
 
 
 def test_a_larger_frame_is_validated_on_its_central_window(smooth_random_scene, monkeypatch):
     """Above HOLDOUT_WINDOW the count comes from a held-out run on the central window's crop, and the whole
     frame runs it once with all its pixels: the result is caps-plus with that count."""
-    import capssim.reconstruct.methods.caps_plus as caps_plus
+    import capssim.reconstruct.selection.holdout_selection as holdout_selection
 
-    monkeypatch.setattr(caps_plus, "HOLDOUT_WINDOW", 32)
+    monkeypatch.setattr(holdout_selection, "HOLDOUT_WINDOW", 32)
     capture = simulate_capture(smooth_random_scene(64, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, patience=2)
-    params = record["params"]
-    assert params["stopping"] == "window" and params["iterations_from"] == "holdout"
-    assert params["holdout_window"] == [16, 16, 48, 48]
-    assert params["iterations"] == params["holdout_count"] == params["holdout_best_iteration"]
-    assert "pass" not in record["history"][0] and len(record["history"]) == params["iterations"]
-    assert "holdout_validation" in record["stages_s"]
-    same, _ = reconstruct(capture, "caps-plus", true_warps=True, iterations=params["iterations"])
-    assert np.allclose(out.image, same.image, atol=1e-6)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="none")
+    params, selection = record["params"], record["params"]["selection"]
+    assert selection["window"] == [16, 16, 48, 48] and selection["iterations_from"] == "holdout"
+    assert params["iterations"] == selection["holdout_best_iteration"] == len(record["history"])
+    assert "selection" in record["stages_s"]
+    same, _ = reconstruct(capture, "caps-plus", true_warps=True, **record["resolved_options"])
+    np.testing.assert_array_equal(out.image, same.image)
 
 
-def test_a_tiny_frame_falls_back_to_the_noise_count(smooth_random_scene):
-    """Too few usable pixels to hold out (16 px: 3 held-out raw pixels expected): the noise rule, said so."""
+def test_the_window_is_central_aligned_and_the_whole_of_a_smaller_frame():
+    from capssim.reconstruct.model.window_capture import WINDOW_ALIGN
+
+    assert selection_window((128, 96)) == (0, 0, 128, 96)
+    assert selection_window((512, 512)) == (128, 128, 384, 384)
+    top, left, bottom, right = selection_window((1000, 602))
+    assert (bottom - top, right - left) == (HOLDOUT_WINDOW, HOLDOUT_WINDOW)
+    assert top % WINDOW_ALIGN == 0 and left % WINDOW_ALIGN == 0
+    assert abs((top + bottom) / 2 - 500) <= WINDOW_ALIGN and abs((left + right) / 2 - 301) <= WINDOW_ALIGN
+
+
+def test_a_tiny_frame_falls_back_to_the_papers_count(smooth_random_scene):
+    """Too few usable pixels to hold out (16 px: about 13 held-out raw pixels): the fallback count, said so."""
     tiny = simulate_capture(smooth_random_scene(16, seed=2), make_sensor("gaussian", sigma=0.01), seed=2)
-    out, record = reconstruct(tiny, "caps-plus", true_warps=True)
+    out, record = reconstruct(tiny, "caps-plus", true_warps=True, prior="none", polarization_filter="none")
     params = record["params"]
-    assert params["stopping"] == "noise" and "fewer than" in params["stopping_note"]
-    assert params["iterations_from"] == "noise" and np.isfinite(out.image).all()
+    assert "fewer than" in params["selection"]["note"] and params["iterations"] == FALLBACK_ITERATIONS
+    assert record["resolved_options"]["iterations"] == FALLBACK_ITERATIONS and np.isfinite(out.image).all()
 
 
 def test_a_window_with_too_few_usable_pixels_falls_back_without_an_error(smooth_random_scene, monkeypatch):
-    """The central window falls back to the noise rule (too few usable held-out pixels): the whole frame is
-    then validated itself, and here falls back too, said in the record."""
-    import capssim.reconstruct.methods.caps_plus as caps_plus
+    import capssim.reconstruct.selection.holdout_selection as holdout_selection
 
-    monkeypatch.setattr(caps_plus, "HOLDOUT_WINDOW", 32)
-    monkeypatch.setattr(caps_plus, "MIN_HELD_OUT", 10 ** 9)
+    monkeypatch.setattr(holdout_selection, "HOLDOUT_WINDOW", 32)
+    monkeypatch.setattr(holdout_selection, "MIN_HELD_OUT", 10 ** 9)
     capture = simulate_capture(smooth_random_scene(64, seed=6), make_sensor("gaussian", sigma=0.01), seed=6)
-    out, record = reconstruct(capture, "caps-plus", true_warps=True)
-    assert record["params"]["stopping"] == "noise" and "fewer than" in record["params"]["stopping_note"]
-    assert "holdout_window" not in record["params"] and np.isfinite(out.image).all()
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, prior="none")
+    selection = record["params"]["selection"]
+    assert "fewer than" in selection["note"] and selection["window"] == [16, 16, 48, 48]
+    assert record["params"]["iterations"] == FALLBACK_ITERATIONS and np.isfinite(out.image).all()
+    assert "holdout_error" not in selection and selection.get("polarization_filter_from") != "holdout"

@@ -194,7 +194,7 @@ def test_coerce_option_refuses_values_of_another_type(raw, kind):
 
 def test_a_method_schedule_sees_the_front_end_and_the_options_given(capture, monkeypatch):
     """PipelineConfig.schedule runs after the front end, is told which options were given, and its options
-    are the ones the solver runs (caps-plus's noise-adaptive iteration count is such a schedule)."""
+    are the ones the solver runs (a method's own choice of options from what its front end measured)."""
     from dataclasses import replace
 
     from capssim.reconstruct import registry

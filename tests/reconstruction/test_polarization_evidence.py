@@ -1,4 +1,4 @@
-"""The Stokes-consistency test of ``caps-plus``'s ``-p polarization_filter=auto``
+"""The Stokes-consistency test that ``caps-plus``'s selection layer asks first (``-p polarization_filter=auto``)
 (:mod:`capssim.reconstruct.model.polarization_evidence`): the ratio ``T`` of the local variance of
 ``I_0 - I_45 + I_90 - I_135`` to that of the polarization differences, below 1 where the analyzers show
 polarization structure."""
@@ -14,8 +14,12 @@ from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.observation_model import unmix_analyzer
 from capssim.reconstruct.model.polarization_evidence import STRUCTURE_THRESHOLD, stokes_inconsistency_ratio
-from capssim.reconstruct.model.polarization_filter import UNSTRUCTURED_FILTER, filter_polarization
+from capssim.reconstruct.model.polarization_filter import POLARIZATION_FILTERS, UNSTRUCTURED_FILTER, filter_polarization
+from capssim.reconstruct.selection import format_filter
 from capssim.simulate import simulate_capture
+
+#: the selection record of a run whose every choice was given as an option
+SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 ANGLES = torch.tensor([0.0, 45.0, 90.0, 135.0]) * torch.pi / 180
 
@@ -77,29 +81,32 @@ def _unpolarized_capture(size: int, seed: int):
 
 def test_caps_plus_smooths_the_polarization_of_a_capture_without_polarization_structure():
     capture = _unpolarized_capture(64, seed=9)
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=8, physical_projection=False)
-    params = record["params"]
-    evidence = params["polarization_evidence"]
+    common = {"true_warps": True, "iterations": 8, "physical_projection": False}
+    out, record = reconstruct(capture, "caps-plus", **common)
+    params, selection = record["params"], record["params"]["selection"]
+    evidence = selection["polarization_evidence"]
     assert evidence["stokes_inconsistency"] >= STRUCTURE_THRESHOLD and evidence["structure"] is False
-    choice = params["polarization_filter_choice"]
-    assert (choice["radius"], choice["eps"], choice["chosen_by"]) == (*UNSTRUCTURED_FILTER, "stokes-consistency")
-    plain, plain_record = reconstruct(capture, "caps-plus", true_warps=True, iterations=8, physical_projection=False,
-                                      polarization_filter="none")
-    assert "polarization_evidence" not in plain_record["params"]
+    assert selection["polarization_filter_from"] == "stokes-consistency" and "holdout_error" not in selection
+    assert params["polarization_filter"] == format_filter(UNSTRUCTURED_FILTER) == record["resolved_options"][
+        "polarization_filter"]
+    plain, plain_record = reconstruct(capture, "caps-plus", polarization_filter="none", **common)
+    assert plain_record["params"]["selection"] == SELECTED_NOTHING  # the test is not asked
     expected = filter_polarization(torch.from_numpy(plain.image), *UNSTRUCTURED_FILTER).numpy()
     np.testing.assert_allclose(out.image, expected, atol=1e-6, rtol=0)
-    held, held_record = reconstruct(capture, "caps-plus", true_warps=True, iterations=8, polarization_filter="holdout")
-    assert "polarization_evidence" not in held_record["params"]  # held-out pixels only: the test is not asked
+    given, given_record = reconstruct(capture, "caps-plus", polarization_filter=format_filter(UNSTRUCTURED_FILTER),
+                                      **common)
+    np.testing.assert_array_equal(given.image, out.image)
+    assert "polarization_evidence" not in given_record["params"]["selection"]
 
 
 def test_polarization_structure_is_left_to_the_held_out_pixels(smooth_random_scene):
     capture = simulate_capture(smooth_random_scene(48, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
-    out, record = reconstruct(capture, "caps-plus", true_warps=True)
-    params = record["params"]
-    assert params["polarization_evidence"]["structure"] is True
-    assert "candidates" in params["polarization_filter_choice"]  # chosen by the held-out pixels
-    held, _ = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="holdout")
-    np.testing.assert_array_equal(out.image, held.image)
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
+    selection = record["params"]["selection"]
+    assert selection["polarization_evidence"]["structure"] is True
+    assert selection["polarization_evidence"]["stokes_inconsistency"] < STRUCTURE_THRESHOLD
+    assert selection["polarization_filter_from"] == "holdout"
+    assert len(selection["polarization_filter_candidates"]) == len(POLARIZATION_FILTERS)
 
 
 def test_the_ratio_is_finite_when_only_the_inconsistency_varies():
@@ -111,7 +118,10 @@ def test_the_ratio_is_finite_when_only_the_inconsistency_varies():
 
 
 @pytest.mark.parametrize("case", ["black", "constant", "dark", "saturated", "tiny", "odd"])
-def test_the_test_on_hard_captures_gives_a_finite_record_and_image(case, smooth_random_scene):
+def test_the_test_on_hard_captures_gives_a_consistent_record_and_a_finite_image(case, smooth_random_scene):
+    """The record's verdict is the ratio's (T < 1), and the filter follows it: the most smoothing one where there is
+    no structure, else the held-out pixels' (or none, where too few held-out samples). A black frame's analyzers
+    tell nothing (T exactly 1); neither it nor a constant scene shows structure."""
     size = {"tiny": 16, "odd": 40}.get(case, 32)
     gt = smooth_random_scene(size, seed=12)
     if case == "black":
@@ -125,17 +135,17 @@ def test_the_test_on_hard_captures_gives_a_finite_record_and_image(case, smooth_
     sigma = 0.0 if case in ("black", "constant") else 0.01
     capture = simulate_capture(gt.astype(np.float32), make_sensor("gaussian", sigma=sigma) if sigma else None, seed=12)
     out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
-    evidence = record["params"]["polarization_evidence"]
+    selection = record["params"]["selection"]
+    evidence = selection["polarization_evidence"]
     ratio = evidence["stokes_inconsistency"]
-    assert np.isfinite(ratio) and ratio >= 0
-    assert evidence["structure"] is bool(ratio < STRUCTURE_THRESHOLD)  # the verdict is the ratio's, not a guess
-    if case == "black":  # analyzers that do not differ tell nothing: the test's null value
+    assert np.isfinite(ratio) and ratio >= 0 and evidence["structure"] is bool(ratio < STRUCTURE_THRESHOLD)
+    if case == "black":  # four identical (zero) analyzer images tell nothing: exactly the null value
         assert ratio == 1.0
-    if case in ("black", "constant"):  # no polarization anywhere: never read as structure
+    if case in ("black", "constant"):  # no polarization in the scene
         assert evidence["structure"] is False
-    choice = record["params"].get("polarization_filter_choice")
-    if evidence["structure"]:  # structure: the held-out pixels choose the filter
-        assert choice is None or choice.get("chosen_by") != "stokes-consistency"
-    else:  # none: the most smoothing filter, chosen by the test
-        assert (choice["radius"], choice["eps"], choice["chosen_by"]) == (*UNSTRUCTURED_FILTER, "stokes-consistency")
-    assert np.isfinite(out.image).all()
+    if evidence["structure"]:
+        assert selection.get("polarization_filter_from") == "holdout" or "fewer than" in selection.get("note", "")
+    else:
+        assert selection["polarization_filter_from"] == "stokes-consistency"
+        assert record["params"]["polarization_filter"] == format_filter(UNSTRUCTURED_FILTER)
+    assert record["params"]["iterations"] == 4 and np.isfinite(out.image).all()

@@ -1,6 +1,7 @@
-"""The polarization filter of ``caps-plus`` (``-p polarization_filter=holdout``): a guided filter of each analyzer's
-deviation from its colour's analyzer mean, chosen per capture by held-out raw pixels. The Stokes-consistency test
-that ``auto`` asks first: tests/reconstruction/test_polarization_evidence.py."""
+"""The polarization filter of ``caps-plus`` (``-p polarization_filter=auto``, the default): a guided filter of each
+analyzer's deviation from its colour's analyzer mean, chosen per frame by held-out raw pixels where the analyzers show
+polarization structure. The Stokes-consistency test that ``auto`` asks first:
+tests/reconstruction/test_polarization_evidence.py; a given ``R,EPS``: tests/reconstruction/test_caps_plus_model.py."""
 
 from __future__ import annotations
 
@@ -13,11 +14,15 @@ from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.holdout import HoldoutValidation
 from capssim.reconstruct.model.polarization_filter import (
+    POLARIZATION_FILTERS,
     apply_chosen_filter,
     choose_polarization_filter,
     filter_polarization,
 )
 from capssim.simulate import simulate_capture
+
+#: the selection record of a run whose every choice was given as an option
+SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 
 def _intensity(size: int = 64, seed: int = 0) -> torch.Tensor:
@@ -102,22 +107,42 @@ def test_the_validation_records_its_choice_only_when_asked():
 
 
 def test_caps_plus_records_and_applies_the_choice(smooth_random_scene):
+    """The held-out pixels' choice (made on the count's validation) is recorded, and the final image is the
+    unfiltered solve with that filter applied."""
     capture = simulate_capture(smooth_random_scene(48, seed=5), make_sensor("gaussian", sigma=0.02), seed=5)
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="holdout")
-    choice = record["params"]["polarization_filter_choice"]
-    assert {"radius", "eps", "candidates"} <= set(choice)
-    plain, plain_record = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="none")
-    assert "polarization_filter_choice" not in plain_record["params"]
-    assert plain_record["params"]["iterations"] == record["params"]["iterations"]
-    if choice["radius"] == 0:
+    common = {"true_warps": True, "physical_projection": False}
+    out, record = reconstruct(capture, "caps-plus", **common)
+    selection = record["params"]["selection"]
+    assert selection["polarization_evidence"]["structure"] is True
+    assert selection["polarization_filter_from"] == "holdout"
+    candidates = selection["polarization_filter_candidates"]
+    assert [(row["radius"], row["eps"]) for row in candidates] == [tuple(f) for f in POLARIZATION_FILTERS]
+    chosen = record["params"]["polarization_filter"]
+    assert chosen == record["resolved_options"]["polarization_filter"]
+    plain, _ = reconstruct(capture, "caps-plus", iterations=record["params"]["iterations"], polarization_filter="none",
+                           **common)
+    if chosen == "none":
         np.testing.assert_array_equal(out.image, plain.image)
     else:
-        assert not np.array_equal(out.image, plain.image)
-    fixed, fixed_record = reconstruct(capture, "caps-plus", true_warps=True, iterations=5, polarization_filter="holdout")
-    assert "polarization_filter_choice" not in fixed_record["params"]  # no validation, nothing chosen
+        radius, eps = chosen.split(",")
+        assert (int(radius), float(eps)) in POLARIZATION_FILTERS
+        expected = filter_polarization(torch.from_numpy(plain.image), int(radius), float(eps)).numpy()
+        np.testing.assert_allclose(out.image, expected, atol=1e-6, rtol=0)
 
 
-def test_a_bad_mode_is_refused_with_the_option_named(smooth_random_scene):
+def test_a_given_count_still_chooses_the_filter_and_none_turns_it_off(smooth_random_scene):
+    capture = simulate_capture(smooth_random_scene(32, seed=5), make_sensor("gaussian", sigma=0.02), seed=5)
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=3)
+    selection = record["params"]["selection"]
+    assert selection["iterations_from"] == "options" and record["params"]["iterations"] == 3
+    assert selection["polarization_filter_from"] in ("holdout", "stokes-consistency")
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=3, polarization_filter="none")
+    assert record["params"]["selection"] == SELECTED_NOTHING and record["params"]["polarization_filter"] == "none"
+
+
+@pytest.mark.parametrize("mode", ["gaussian", "holdout"])
+def test_a_bad_mode_is_refused_with_the_option_named(smooth_random_scene, mode):
+    """``holdout`` (the held-out pixels without the Stokes-consistency test) is no mode any more."""
     capture = simulate_capture(smooth_random_scene(32, seed=6), make_sensor("gaussian", sigma=0.01), seed=6)
-    with pytest.raises(InputError, match="polarization_filter"):
-        reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="gaussian")
+    with pytest.raises(InputError, match="option polarization_filter"):
+        reconstruct(capture, "caps-plus", true_warps=True, polarization_filter=mode)

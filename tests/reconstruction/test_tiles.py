@@ -24,6 +24,9 @@ from capssim.reconstruct.tiles.memory import FRAME_BYTES_PER_HR_PIXEL
 from capssim.reconstruct.tiles.run import choose_layout
 from capssim.simulate import simulate_capture
 
+#: the selection record of a run whose every choice was given as an option
+SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
+
 GIB = 2**30
 
 
@@ -150,9 +153,11 @@ def _psnr(image, gt):
 def test_tiled_caps_plus_equals_untiled(capture128, smooth_random_scene):
     """caps-plus's front-end initialization (the demosaicked apertures) is cut with the tile like the rest."""
     gt = smooth_random_scene(128, seed=1)
-    whole, _ = reconstruct(capture128, "caps-plus", true_warps=True, iterations=2)
-    tiled, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, iterations=2)
+    fixed = {"iterations": 2, "polarization_filter": "none"}
+    whole, _ = reconstruct(capture128, "caps-plus", true_warps=True, **fixed)
+    tiled, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, **fixed)
     assert record["tiles"]["grid"] == [2, 2]
+    assert record["frame_options"] == fixed  # every choice given: nothing selected, the values passed on
     assert abs(_psnr(tiled.image, gt) - _psnr(whole.image, gt)) < 0.05
 
 
@@ -215,23 +220,28 @@ def test_warps_registered_on_a_window_are_the_whole_frames(capture128, monkeypat
     np.testing.assert_allclose(homs, truth, atol=1e-9)
 
 
-def test_a_tiled_caps_plus_fixes_its_noise_adaptive_iterations_once_for_the_frame(capture128):
-    """caps-plus derives its iteration count from the raw noise: a tiled run takes it from the whole frame, so
-    every tile runs the same schedule (a tile's own estimate could differ)."""
-    from capssim.reconstruct.methods.caps_plus import frame_iterations
+def test_a_tiled_caps_plus_makes_its_choices_once_for_the_frame(capture128, monkeypatch):
+    """caps-plus chooses its count and filter on the frame's central window: a tiled run chooses them once, before
+    the frame is cut, and every tile runs them as given (a tile's own validation could choose otherwise). The
+    untiled run's choices on the same window: tests/reconstruction/test_caps_plus_model.py."""
+    import capssim.reconstruct.selection.holdout_selection as holdout_selection
 
-    frame = frame_iterations(capture128, {})["iterations"]
+    monkeypatch.setattr(holdout_selection, "HOLDOUT_WINDOW", 64)  # a window inside the frame, as on a large one
     calls = []
 
     def recording_runner(function, jobs):
         for index, job in enumerate(jobs):
-            calls.append(job[3].get("iterations"))
+            calls.append(dict(job[3]))
             yield index, function(*job)
 
     _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, runner=recording_runner,
                                   prior="none")
-    assert calls == [frame] * 4 and record["options"]["iterations"] == frame
-    assert record["frame_options"] == {"stopping": "noise", "polarization_filter": "none", "iterations": frame}
-    _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, iterations=1)
-    assert record["options"]["iterations"] == 1 and record["params"]["iterations"] == 1
-    assert record["frame_options"] == {}
+    frame = record["frame_options"]
+    assert set(frame) == {"iterations", "polarization_filter"} and isinstance(frame["iterations"], int)
+    assert calls == [{"prior": "none", **frame}] * 4 and record["options"] == {"prior": "none", **frame}
+    assert record["params"]["iterations"] == frame["iterations"]
+    assert record["params"]["selection"] == SELECTED_NOTHING  # the tile selected nothing
+    _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, iterations=1,
+                                  polarization_filter="4,0.01", prior="none")
+    assert record["frame_options"] == {"iterations": 1, "polarization_filter": "4,0.01"}
+    assert record["params"]["iterations"] == 1 and record["params"]["polarization_filter"] == "4,0.01"
