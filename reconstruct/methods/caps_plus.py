@@ -52,7 +52,7 @@ __all__ = ["CAPS_PLUS", "TUNED_ON", "caps_plus_frame_choices", "caps_plus_option
 #: caps-plus: caps's pipeline options it changes, and its own (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_observations,
                            defaults={"data_term": "cagf-stokes", "mu0": MU0, "c2": C2},
-                           front_end_options={"init": "agree", "polarization_filter": "auto",
+                           front_end_options={"init": "agree", "polarization_filter": "none",
                                               "holdout_fraction": HOLDOUT_FRACTION})
 
 #: one line of meaning of caps-plus's own options
