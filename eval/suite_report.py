@@ -79,8 +79,8 @@ TUNED_LEGEND = (f"{TUNED_MARK}: the method's defaults were chosen on this suite 
 def tuned_labels(spec: dict) -> set[str]:
     """The method labels of ``spec`` whose method lists the suite's name in its ``tuned_on``."""
     methods = available_methods()
-    return {m["label"] for m in spec.get("methods", [])
-            if m["name"] in methods and spec.get("name") in methods[m["name"]].tuned_on}
+    return {m.get("label", m.get("name")) for m in spec.get("methods", []) if isinstance(m, dict)
+            and m.get("name") in methods and spec.get("name") in methods[m["name"]].tuned_on}
 
 
 def paired_section(spec: dict, recs: list[dict]) -> list[str]:
@@ -91,8 +91,9 @@ def paired_section(spec: dict, recs: list[dict]) -> list[str]:
     if not reference:
         return []
     ok = [r for r in recs if r["status"] == "ok"]
-    rows = [(reference, m["label"], summarize(paired_rows(ok, ok, reference, m["label"], metric), metric))
-            for metric in DEFAULT_METRICS for m in spec["methods"] if m["label"] != reference]
+    labels = [m["label"] if isinstance(m, dict) else str(m) for m in spec.get("methods", [])]
+    rows = [(reference, label, summarize(paired_rows(ok, ok, reference, label, metric), metric))
+            for metric in DEFAULT_METRICS for label in labels if label != reference]
     return ["## Paired comparison", "",
             f"`{reference}` against every other method over the cases both scored: per-case differences (dB), their "
             "mean and its paired standard error, wins / losses / ties (a tie: within 0.001 dB), and the worst case "

@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from capssim.cli._options import JsonOption, echo_json
+from capssim.cli._options import DeviceOption, JsonOption, ThreadsOption, echo_json
 
 
 def compare(
@@ -25,6 +25,8 @@ def compare(
                                                 help="Metric of results.jsonl (repeatable; default: psnr_mean, "
                                                      "dolp_psnr)."),
     cases: bool = typer.Option(False, "--cases", help="Also print every case's difference."),
+    threads: Optional[int] = ThreadsOption,
+    device: str = DeviceOption,
     as_json: bool = JsonOption,
 ) -> None:
     """Paired comparison: per-case differences A - B, their mean with its paired standard error, wins and losses.

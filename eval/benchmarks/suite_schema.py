@@ -308,6 +308,8 @@ def _check_method_entry_options(method: dict, path: str) -> None:
     try:
         check_method_options(method["name"], options)
     except InputError as exc:
+        if not str(exc.argument).startswith("option "):  # e.g. a weights file made by a training run later
+            return
         raise ConfigError(path, f"{show(options)} ({exc.argument}: got {exc.received})", f"{exc.valid} "
                           f"(the options of method {method['name']!r})", exc.fix) from None
     except CapssimError as exc:

@@ -15,14 +15,15 @@ Not the paper's method: capssim's own model beside it (docs: notes/caps-plus-mod
    The iteration therefore minimizes no single stated objective; it is stopped early on purpose (3).
 2. **the start** (``init=agree``, :mod:`capssim.reconstruct.pipeline.start`): eq. 24's fusion where the analyzers
    agree, each aperture demosaicked on its own where they disagree (the polarization part only).
-3. **the choices of the frame** (:mod:`capssim.reconstruct.selection`): ADMM from ``mu0 = 0.25`` with ``c2 = 0.01``
+3. **the count of the frame** (:mod:`capssim.reconstruct.selection`): ADMM from ``mu0 = 0.25`` with ``c2 = 0.01``
    (``caps``: 0.5, 0.02) runs for the count ``K`` whose prediction of 5 % held-out raw pixels is best, on the
-   central 256 px window; the final image's polarization part is guided-filtered by its intensity where the
-   held-out pixels, or the absence of polarization structure (the Stokes-consistency test), ask for it.
+   central 256 px window. With ``-p polarization_filter=auto`` the final image's polarization part is also
+   guided-filtered by its intensity where the held-out pixels, or the absence of polarization structure (the
+   Stokes-consistency test), ask for it; off by default (it did not earn its place on the development data).
 
 Options beyond ``caps``'s (``capssim reconstruct --options caps-plus``): ``init``, ``polarization_filter``
-(``auto``, ``none`` or ``R,EPS``), ``holdout_fraction``. Giving ``iterations`` (or a ``preset``) fixes the count;
-giving a ``polarization_filter`` other than ``auto`` fixes the filter; nothing else changes meaning. The record's
+(``none``, the default, ``auto`` or ``R,EPS``), ``holdout_fraction``. Giving ``iterations`` (or a ``preset``) fixes
+the count; a ``polarization_filter`` other than ``auto`` fixes the filter; nothing else changes meaning. The record's
 ``selection`` says how each choice was made, and ``resolved_options`` holds the values the solve ran with: a
 tiled run and the error budget pass them to every tile and rung.
 
@@ -52,7 +53,7 @@ __all__ = ["CAPS_PLUS", "TUNED_ON", "caps_plus_frame_choices", "caps_plus_option
 #: caps-plus: caps's pipeline options it changes, and its own (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_observations,
                            defaults={"data_term": "cagf-stokes", "mu0": MU0, "c2": C2},
-                           front_end_options={"init": "agree", "polarization_filter": "auto",
+                           front_end_options={"init": "agree", "polarization_filter": "none",
                                               "holdout_fraction": HOLDOUT_FRACTION})
 
 #: one line of meaning of caps-plus's own options

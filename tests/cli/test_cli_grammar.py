@@ -59,6 +59,7 @@ INPUT_NAMES = {"--gt", "--input", "--in", "--capture", "--captures", "--config",
 
 #: (command, option) -> a text option with a plural name or commas that is ONE value with fixed components
 VECTORS = {
+    ("reconstruct", "--options"): "one method name, whose options are listed (not a list)",
     ("*", "--angle-offsets"): "the 4 apertures' polarizer angle errors a,b,c,d",
     ("*", "--gains"): "the 4 cameras' gains a,b,c,d",
     ("*", "--aperture-psf-sigmas"): "the 4 apertures' PSF widths a,b,c,d",

@@ -35,8 +35,9 @@ def capture(smooth_random_scene):
 
 @pytest.fixture(scope="module")
 def chosen(capture):
-    """caps-plus with every choice open: the count and the filter chosen by the held-out pixels."""
-    return reconstruct(capture, "caps-plus", true_warps=True)
+    """caps-plus with every choice open: the count and the filter chosen by the held-out pixels (the filter is
+    chosen only when asked: -p polarization_filter=auto)."""
+    return reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="auto")
 
 
 def _names(method: str) -> list[str]:
@@ -98,6 +99,9 @@ def test_the_record_says_how_each_choice_was_made(chosen):
 def test_the_resolved_options_give_the_same_image_and_select_nothing(capture, chosen):
     out, record = chosen
     again, again_record = reconstruct(capture, "caps-plus", true_warps=True, **record["resolved_options"])
+    default, default_record = reconstruct(capture, "caps-plus", true_warps=True)  # the default chooses the count only
+    assert default_record["params"]["selection"]["polarization_filter_from"] == "options"
+    assert default_record["params"]["polarization_filter"] == "none"
     assert np.array_equal(again.image, out.image)
     assert again_record["params"]["selection"] == SELECTED_NOTHING
     assert again_record["resolved_options"] == record["resolved_options"]

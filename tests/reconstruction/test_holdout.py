@@ -159,7 +159,7 @@ def test_the_held_out_start_does_not_see_the_held_out_pixels(capture, monkeypatc
         return real(cap, context, method, held_out=held_out)
 
     monkeypatch.setattr(start, "demosaicked_frames", spy)
-    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=2)
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=2, polarization_filter="auto")
     assert record["params"]["selection"]["polarization_filter_from"] == "holdout"  # a validation ran
     assert len(seen) == 2 and seen[0] is not None and 0.03 < seen[0].mean() < 0.07 and seen[1] is None
 

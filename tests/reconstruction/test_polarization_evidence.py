@@ -82,7 +82,7 @@ def _unpolarized_capture(size: int, seed: int):
 def test_caps_plus_smooths_the_polarization_of_a_capture_without_polarization_structure():
     capture = _unpolarized_capture(64, seed=9)
     common = {"true_warps": True, "iterations": 8, "physical_projection": False}
-    out, record = reconstruct(capture, "caps-plus", **common)
+    out, record = reconstruct(capture, "caps-plus", polarization_filter="auto", **common)
     params, selection = record["params"], record["params"]["selection"]
     evidence = selection["polarization_evidence"]
     assert evidence["stokes_inconsistency"] >= STRUCTURE_THRESHOLD and evidence["structure"] is False
@@ -101,7 +101,7 @@ def test_caps_plus_smooths_the_polarization_of_a_capture_without_polarization_st
 
 def test_polarization_structure_is_left_to_the_held_out_pixels(smooth_random_scene):
     capture = simulate_capture(smooth_random_scene(48, seed=5), make_sensor("gaussian", sigma=0.01), seed=5)
-    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4, polarization_filter="auto")
     selection = record["params"]["selection"]
     assert selection["polarization_evidence"]["structure"] is True
     assert selection["polarization_evidence"]["stokes_inconsistency"] < STRUCTURE_THRESHOLD
@@ -134,7 +134,7 @@ def test_the_test_on_hard_captures_gives_a_consistent_record_and_a_finite_image(
         gt = gt * 4.0  # most of the frame above full scale
     sigma = 0.0 if case in ("black", "constant") else 0.01
     capture = simulate_capture(gt.astype(np.float32), make_sensor("gaussian", sigma=sigma) if sigma else None, seed=12)
-    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=4, polarization_filter="auto")
     selection = record["params"]["selection"]
     evidence = selection["polarization_evidence"]
     ratio = evidence["stokes_inconsistency"]

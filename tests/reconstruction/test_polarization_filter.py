@@ -111,7 +111,7 @@ def test_caps_plus_records_and_applies_the_choice(smooth_random_scene):
     unfiltered solve with that filter applied."""
     capture = simulate_capture(smooth_random_scene(48, seed=5), make_sensor("gaussian", sigma=0.02), seed=5)
     common = {"true_warps": True, "physical_projection": False}
-    out, record = reconstruct(capture, "caps-plus", **common)
+    out, record = reconstruct(capture, "caps-plus", polarization_filter="auto", **common)
     selection = record["params"]["selection"]
     assert selection["polarization_evidence"]["structure"] is True
     assert selection["polarization_filter_from"] == "holdout"
@@ -132,7 +132,7 @@ def test_caps_plus_records_and_applies_the_choice(smooth_random_scene):
 
 def test_a_given_count_still_chooses_the_filter_and_none_turns_it_off(smooth_random_scene):
     capture = simulate_capture(smooth_random_scene(32, seed=5), make_sensor("gaussian", sigma=0.02), seed=5)
-    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=3)
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=3, polarization_filter="auto")
     selection = record["params"]["selection"]
     assert selection["iterations_from"] == "options" and record["params"]["iterations"] == 3
     assert selection["polarization_filter_from"] in ("holdout", "stokes-consistency")
