@@ -15,7 +15,9 @@ lazily). capssim's own rooms, lowest first (docs/architecture.md, "The rooms of 
 
 The modules that moved into the rooms keep their old names (``import capssim.capture``,
 ``from capssim.sensor import make_sensor``): a finder on ``sys.meta_path`` hands out the moved module itself
-under its old name, imported only when asked for, so ``import capssim`` stays as light as before.
+under its old name, imported only when asked for, so ``import capssim`` stays as light as before. The same holds
+for ``capssim.eval.calibration`` (now ``capssim.reconstruct.calibration``) and the held-out validation and
+polarization filter of ``capssim.reconstruct.model`` (now ``capssim.reconstruct.selection``).
 """
 
 import importlib
@@ -37,6 +39,12 @@ MOVED_MODULES = {
     **{f"capssim.{name}": f"capssim.files.{name}" for name in ("imageio", "output_paths", "schema")},
     **{f"capssim.{name}": f"capssim.stokes.{name}" for name in ("polarization", "physical_validity")},
     **{f"capssim.{name}": f"capssim.runtime.{name}" for name in ("resources", "threads", "allocator", "data_range")},
+    # rooms of the reconstruction: the rig's estimation out of eval/, a method's choices out of the forward model
+    "capssim.eval.calibration": "capssim.reconstruct.calibration",
+    **{f"capssim.eval.calibration.{name}": f"capssim.reconstruct.calibration.{name}" for name in (
+        "calibrate", "flat_field", "geometry_fit", "malus", "psf_fit", "report")},
+    **{f"capssim.reconstruct.model.{name}": f"capssim.reconstruct.selection.{name}" for name in (
+        "holdout", "polarization_filter", "polarization_evidence")},
 }
 
 

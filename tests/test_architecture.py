@@ -138,6 +138,7 @@ RECONSTRUCT_ROOMS = (
     ("filters", "calibration_model", "run_context"),
     ("dofp",),
     ("registration",),
+    ("calibration",),  # the rig estimated from calibration captures (flat field, geometry, Malus, PSF)
     ("model",),
     ("solvers",),
     ("networks",),  # the learned networks: below the priors, which may hold one (nlstr-denoiser)

@@ -35,8 +35,8 @@ def calibrate(
         from capssim.files.output_paths import resolve_output
 
         report = resolve_output(report, kind="folder", overwrite=True, argument="--report")
-    from capssim.eval.calibration import calibrate_captures  # pulls torch
-    from capssim.eval.calibration.report import summary_lines, write_report
+    from capssim.reconstruct.calibration import calibrate_captures  # pulls torch
+    from capssim.reconstruct.calibration.report import summary_lines, write_report
 
     result = calibrate_captures(captures, output)
     if as_json:

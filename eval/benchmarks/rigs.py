@@ -25,8 +25,8 @@ from capssim.camera.rig import RigModel
 from capssim.dataset.calibration_captures import make_calibration_captures, seeded_aperture_homographies
 from capssim.errors import InputError
 from capssim.files.imageio import atomic_write_json
+from capssim.reconstruct.calibration import calibrate_captures
 
-from ..calibration import calibrate_captures
 from .provenance import code_fingerprint, content_hash
 
 log = logging.getLogger(__name__)
@@ -38,7 +38,7 @@ RIG_KEYS = ("preset", "seed", "geometry_seed", "angle_offsets_deg", "extinction_
             "vignetting_corner", "psf_sigmas_hr_px", "polarizer_angles")
 #: the file a rig scene's capture folder holds its measured calibration in
 CALIBRATION_FILE = "calibration.json"
-CALIBRATION_CODE = ("capssim", "eval/calibration", "scenes")
+CALIBRATION_CODE = ("capssim", "reconstruct/calibration", "scenes")
 
 
 def check_rig_spec(spec, scene_name: str) -> None:

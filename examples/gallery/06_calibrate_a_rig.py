@@ -4,7 +4,7 @@ A real array's polarizers sit a little off their nominal angles, with a finite e
 ratio, and its cameras differ in gain and vignetting. This example simulates the calibration
 captures of such a rig (`capssim.dataset.calibration_captures.make_calibration_captures`: a
 flat field, a polarizer sweep, a geometry target and a Siemens star), measures the rig from them
-with `capssim.eval.calibration.calibrate_captures` (which writes a ``capssim-rig`` file) and
+with `capssim.reconstruct.calibration.calibrate_captures` (which writes a ``capssim-rig`` file) and
 compares the measurement with the truth. The guide
 [Real rigs and calibration](../guides/calibration.md) describes the procedure with a real rig and
 each estimator. Sizes here are small (64 px, 8 sweep angles) to keep the example fast; the
@@ -21,7 +21,7 @@ from capssim.camera.rig import RigModel
 from capssim.camera.sensor import make_sensor
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.dataset.calibration_captures import make_calibration_captures
-from capssim.eval.calibration import calibrate_captures
+from capssim.reconstruct.calibration import calibrate_captures
 
 truth = RigModel.preset("realistic", seed=3)                   # angle offsets, extinction, gains, vignetting
 

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 from dataclasses import replace
 
-from ..model.polarization_filter import apply_chosen_filter
 from ..pipeline import PipelineConfig, caps_observations
 from ..pipeline.option_table import MethodOption, caps_method_options, check_option_names
 from ..pipeline.options import given_option_names
@@ -46,6 +45,7 @@ from ..registry import MethodOutput, RunContext, register_method, resolve_device
 from ..run_context import StageTimer
 from ..selection import HOLDOUT_MAX_ITERATIONS, check_holdout_fraction, parse_filter, select
 from ..selection.constants import C2, HOLDOUT_FRACTION, MU0, TUNED_ON
+from ..selection.polarization_filter import apply_chosen_filter
 from .caps import REFERENCE as CAPS_REFERENCE
 
 __all__ = ["CAPS_PLUS", "TUNED_ON", "caps_plus_frame_choices", "caps_plus_options", "run_caps_plus"]
@@ -137,7 +137,7 @@ def caps_plus_frame_choices(capture, options: dict, *, homographies, device, con
 @register_method("caps-plus", input_kind="caps", frame_options=caps_plus_frame_choices, tuned_on=TUNED_ON,
                  options=caps_plus_options, reference=CAPS_REFERENCE + " with capssim's changes (not the paper's)",
                  description="CAPS pipeline, not the paper's: polarization-aware CAGF data direction in the Stokes "
-                             "subspace, agreement start, ADMM count and polarization filter chosen per frame by "
-                             "held-out raw pixels")
+                             "subspace, agreement start, ADMM count chosen per frame by held-out raw pixels "
+                             "(a polarization filter on request)")
 def caps_plus(capture, *, context: RunContext) -> MethodOutput:
     return run_caps_plus(capture, context)

@@ -20,10 +20,9 @@ from capssim.errors import InputError, UnknownNameError
 
 from ..dofp.residual_interpolation import ri_bayer_demosaic_frames
 from ..run_context import RunContext
-from .holdout import fill_held_out
 
 __all__ = ["BAYER_METHODS", "BAYER_PAD", "bayer_demosaic_function", "bicubic_warp", "demosaic_apertures",
-           "demosaicked_frames", "flat_corrected_raw", "ri_demosaic_frame", "sampling_grid"]
+           "demosaicked_frames", "fill_held_out", "flat_corrected_raw", "ri_demosaic_frame", "sampling_grid"]
 
 #: the selectable Bayer demosaicking algorithms: residual interpolation (``ri``, Kiku et al. 2016, the
 #: colour stage of EARI [15]; :func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic`) and three of colour-demosaicing
@@ -128,9 +127,32 @@ def demosaicked_frames(capture, context: RunContext, bayer_method: str, *, held_
     """Step 1: ``(4, 3, H, W)`` float32 on the context device, each aperture's raw frame (flat field divided
     out with a calibration, :func:`flat_corrected_raw`) demosaicked on its own (:func:`demosaic_apertures`).
     ``held_out`` ``(4, H, W)`` bool (optional): raw pixels replaced by their same-colour neighbours first
-    (:func:`~capssim.reconstruct.model.holdout.fill_held_out`)."""
+    (:func:`fill_held_out`)."""
     raw, clip_max = flat_corrected_raw(capture, context)  # gain and vignetting divided out (calibrated)
     if held_out is not None:
         raw = fill_held_out(raw, held_out)
     rgb = demosaic_apertures(raw, bayer_method=bayer_method, clip_max=clip_max, cfa=capture.cfa)
     return torch.from_numpy(rgb).to(context.device)
+
+
+def fill_held_out(raw: np.ndarray, held_out: np.ndarray) -> np.ndarray:
+    """``raw`` ``(4, H, W)`` with each held-out pixel replaced by the mean of its unheld same-colour neighbours
+    (the 8 raw pixels two rows or columns away, the Bayer period); the plane's mean of unheld pixels where
+    all 8 are held out. Used for the demosaicked start, which must not see the held-out values
+    (:mod:`capssim.reconstruct.selection.holdout`)."""
+    raw = np.asarray(raw, dtype=np.float32)
+    held = np.asarray(held_out, dtype=bool)
+    if not held.any():
+        return raw
+    keep = torch.from_numpy((~held).astype(np.float32))[:, None]
+    values = torch.from_numpy(raw)[:, None] * keep
+    kernel = torch.zeros(1, 1, 5, 5)
+    kernel[0, 0, ::2, ::2] = 1.0
+    kernel[0, 0, 2, 2] = 0.0
+    total = F.conv2d(values, kernel, padding=2)[:, 0]
+    count = F.conv2d(keep, kernel, padding=2)[:, 0]
+    plane_mean = (values.sum(dim=(1, 2, 3)) / keep.sum(dim=(1, 2, 3)).clamp_min(1.0))[:, None, None]
+    filled = torch.where(count > 0, total / count.clamp_min(1.0), plane_mean.expand_as(total))
+    out = raw.copy()
+    out[held] = filled.numpy()[held]
+    return out

@@ -27,7 +27,7 @@ The solver sees only the data-fidelity and prior protocols
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
 import numpy as np
@@ -217,17 +217,7 @@ def _solve_problem(capture, context: RunContext, opts: CapsOptions, defaults: Ca
 
     hooks = {"stage": timer.stage, "progress": progress, "observer": observer}
     image, history = _run_solver(data, init, prior, admm_params, opts, defaults, stopping=problem.stopping, **hooks)
-    refit = getattr(problem.stopping, "refit", None)
-    if refit is None:
-        return _Solved(problem, data, init, image, history, problem.stopping)
-    # the rule chose the iteration count on part of the data: solve again with all of it, for that count
-    count = int(problem.stopping.chosen_iteration)
-    data = get_data_term(opts.data_term).factory(refit, options=opts, stage=timer.stage)
-    with timer.stage("init"):
-        init = refit.init if refit.init is not None else fused_initialization(refit)
-    image, final = _run_solver(data, init, prior, replace(admm_params, iterations=count), opts, defaults, **hooks)
-    history = [{**h, "pass": "validation"} for h in history] + [{**h, "pass": "final"} for h in final]
-    return _Solved(refit, data, init, image, history, problem.stopping)
+    return _Solved(problem, data, init, image, history, problem.stopping)
 
 
 def _run_solver(data, init, prior, admm_params, opts: CapsOptions, defaults: CapsOptions, **hooks):

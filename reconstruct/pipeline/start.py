@@ -55,7 +55,7 @@ def demosaicked_initialization(capture, context: RunContext, geometry, *, held_o
     HR reference grid by one bicubic warp through ``geometry.raw_homographies``; channel ``c = 3 p + k``;
     unmixed by a calibrated analyzer; clipped to [0, 1]. ``held_out`` ``(4, H, W)`` bool: raw pixels the
     start must not see, filled from their same-colour neighbours first
-    (:func:`~capssim.reconstruct.model.holdout.fill_held_out`).
+    (:func:`~capssim.reconstruct.model.aperture_demosaic.fill_held_out`).
     """
     rgb = demosaicked_frames(capture, context, INIT_BAYER_METHOD, held_out=held_out)
     image = bicubic_warp(rgb, geometry.raw_homographies, geometry.hr_shape).reshape(12, *geometry.hr_shape)

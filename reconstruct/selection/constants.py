@@ -7,7 +7,7 @@ in docs/results/caps-plus.md ("What the development data decided").
 
 from __future__ import annotations
 
-from ..model.polarization_filter import POLARIZATION_FILTERS, UNSTRUCTURED_FILTER
+from .polarization_filter import POLARIZATION_FILTERS, UNSTRUCTURED_FILTER
 
 __all__ = ["C2", "FALLBACK_ITERATIONS", "HOLDOUT_FRACTION", "HOLDOUT_MAX_ITERATIONS", "HOLDOUT_PATIENCE",
            "HOLDOUT_WINDOW", "MIN_HELD_OUT", "MU0", "POLARIZATION_FILTERS", "TUNED_ON", "UNSTRUCTURED_FILTER"]

@@ -4,17 +4,17 @@ The choices, each one a plain option value afterwards (:class:`Choices`):
 
 - **the iteration count** ``K``. ``caps-plus`` stops early on purpose: past some iteration the prior's smoothing
   costs more than it removes, and where that iteration lies depends on the scene and the noise. A fixed
-  :data:`~capssim.reconstruct.model.holdout.HOLDOUT_SEED` draw of ``holdout_fraction`` of the raw pixels is left
+  :data:`~capssim.reconstruct.selection.holdout.HOLDOUT_SEED` draw of ``holdout_fraction`` of the raw pixels is left
   out of a validation solve of the window; after every ADMM iteration the held-out pixels are predicted through
   ``M`` (eq. 15) and ``K`` is the iteration of the lowest prediction error (the run stops
   :data:`HOLDOUT_PATIENCE` iterations after it, at most :data:`HOLDOUT_MAX_ITERATIONS`;
-  :class:`~capssim.reconstruct.model.holdout.HoldoutValidation`). This is hold-out validation for early stopping
+  :class:`~capssim.reconstruct.selection.holdout.HoldoutValidation`). This is hold-out validation for early stopping
   (Prechelt, "Early stopping - but when?", 1998).
-- **the polarization filter** of the final image (:mod:`capssim.reconstruct.model.polarization_filter`): none
+- **the polarization filter** of the final image (:mod:`capssim.reconstruct.selection.polarization_filter`): none
   where the Stokes-consistency test of the window finds polarization structure and the held-out pixels prefer no
   filter by less than one standard error; the held-out pixels' filter where they prefer one; the most smoothing
   filter where the analyzers show no polarization structure at all
-  (:mod:`capssim.reconstruct.model.polarization_evidence`).
+  (:mod:`capssim.reconstruct.selection.polarization_evidence`).
 - **the denoiser blend** (only with the ``nlstr-denoiser`` prior and ``blends`` given): the validation runs once
   per blend, in order, until the held-out error rises; the blend of the lowest error is taken.
 
@@ -37,9 +37,6 @@ from dataclasses import dataclass, field, replace
 from capssim.errors import InputError
 
 from ..model.data_term import ConfidenceDataTerm
-from ..model.holdout import HoldoutValidation, holdout_mask, split_held_out
-from ..model.polarization_evidence import problem_polarization_evidence
-from ..model.polarization_filter import UNSTRUCTURED_FILTER
 from ..model.window_capture import WINDOW_ALIGN, crop_window
 from ..pipeline.front_end import caps_observations
 from ..pipeline.problem import FrontEnd
@@ -47,6 +44,9 @@ from ..pipeline.run import solve_front_end
 from ..pipeline.start import start_image
 from ..run_context import RunContext, StageTimer
 from .constants import FALLBACK_ITERATIONS, HOLDOUT_MAX_ITERATIONS, HOLDOUT_PATIENCE, HOLDOUT_WINDOW, MIN_HELD_OUT
+from .holdout import HoldoutValidation, holdout_mask, split_held_out
+from .polarization_evidence import problem_polarization_evidence
+from .polarization_filter import UNSTRUCTURED_FILTER
 
 __all__ = ["FALLBACK_ITERATIONS", "HOLDOUT_MAX_ITERATIONS", "HOLDOUT_PATIENCE", "HOLDOUT_WINDOW", "MIN_HELD_OUT",
            "Choices", "check_holdout_fraction", "format_filter", "parse_filter", "select", "selection_window"]
@@ -203,7 +203,7 @@ def _select(capture, context, options, count_open, filter_spec, blends, init, fr
         if blend is not None:
             run_options = replace(run_options, prior_parameters=replace(options.prior_parameters,
                                                                          denoiser_blend=float(blend)))
-        rule = HoldoutValidation(predict, obs.images, held, patience=HOLDOUT_PATIENCE, refit=None, rule="min",
+        rule = HoldoutValidation(predict, obs.images, held, patience=HOLDOUT_PATIENCE,
                                  choose_filter=choose_filter)
         validation = replace(problem, obs=obs, seen=seen, derived={}, init=None, stopping=rule)
         validation.init = start_image(crop, sub, geometry, validation, run_options, init, held_out=held_out)

@@ -84,7 +84,7 @@ class Prior(Protocol):
 
 class StoppingRule(Protocol):
     """When an iterative solver stops, and which iterate it returns (e.g. the held-out validation of
-    :class:`capssim.reconstruct.model.holdout.HoldoutValidation`). Without one a solver runs its iteration
+    :class:`capssim.reconstruct.selection.holdout.HoldoutValidation`). Without one a solver runs its iteration
     count and returns the last iterate."""
 
     def begin(self, init: torch.Tensor) -> dict:

@@ -188,11 +188,11 @@ ROWS = [
             "size: 32}", "size: 32, rig: {preset: realistic, gain: [1.0e+300, 1, 1, 1]}}"))),
     # item 9: smaller ones
     Row(9, "calibrate -o an existing folder", ["calibrate", "{root}/cap", "-o", "{root}/cap"],
-        ("-o/--output", "an existing folder", "a file path"), ("capssim.eval.calibration:calibrate_captures",),
+        ("-o/--output", "an existing folder", "a file path"), ("capssim.reconstruct.calibration:calibrate_captures",),
         setup=_capture(), not_in=("--overwrite",)),
     Row(9, "calibrate -o an existing file still suggests --overwrite", ["calibrate", "{root}/cap", "-o",
                                                                         "{root}/cap/meta.json"],
-        ("-o/--output", "--overwrite"), ("capssim.eval.calibration:calibrate_captures",), setup=_capture()),
+        ("-o/--output", "--overwrite"), ("capssim.reconstruct.calibration:calibrate_captures",), setup=_capture()),
     Row(9, "simulate a 64x1 ground truth", ["simulate", "{root}/gt.tiff", "-o", "{root}/out"],
         ("gt: got size 64x1", "at least 16x16"), ("capssim.simulate:simulate_capture",), ("out",),
         setup=lambda root: __import__("tifffile").imwrite(root / "gt.tiff", np.full((12, 64, 1), 0.5, np.float32)),
@@ -320,7 +320,7 @@ def test_calibrate_warns_of_captures_from_another_camera(tmp_path, caplog):
     import logging
 
     from capssim.camera.rig import RigModel
-    from capssim.eval.calibration.calibrate import load_calibration_set
+    from capssim.reconstruct.calibration.calibrate import load_calibration_set
 
     for seed, (name, target, rig) in enumerate((("flat", {"target": "flat", "level": 0.4}, None),
                               ("sweep", {"target": "polarizer", "level": 0.4, "polarizer_deg": 0.0}, None),

@@ -13,9 +13,9 @@ from capssim.errors import InputError
 from capssim.eval.error_budget import ladder
 from capssim.eval.evaluate import CaptureScorer
 from capssim.reconstruct import reconstruct
-from capssim.reconstruct.model.polarization_filter import POLARIZATION_FILTERS, filter_polarization
 from capssim.reconstruct.registry import get_method
 from capssim.reconstruct.selection import format_filter, parse_filter
+from capssim.reconstruct.selection.polarization_filter import POLARIZATION_FILTERS, filter_polarization
 from capssim.reconstruct.tiles import reconstruct_tiled
 from capssim.simulate import simulate_capture
 

@@ -1,4 +1,4 @@
-"""Held-out validation (:mod:`capssim.reconstruct.model.holdout`): the mask, the filled raw frames, the rule's choice
+"""Held-out validation (:mod:`capssim.reconstruct.selection.holdout`): the mask, the filled raw frames, the rule's choice
 of iterate and the solvers' use of it; ``caps-plus``'s selection layer choosing its count by it on the central window,
 then solving with all the data (:mod:`capssim.reconstruct.selection`)."""
 
@@ -12,7 +12,6 @@ from capssim.camera.sensor import make_sensor
 from capssim.conventions import split_bayer
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
-from capssim.reconstruct.model.holdout import HoldoutValidation, fill_held_out, holdout_mask, split_held_out
 from capssim.reconstruct.selection import (
     FALLBACK_ITERATIONS,
     HOLDOUT_MAX_ITERATIONS,
@@ -20,6 +19,7 @@ from capssim.reconstruct.selection import (
     HOLDOUT_WINDOW,
     selection_window,
 )
+from capssim.reconstruct.selection.holdout import HoldoutValidation, fill_held_out, holdout_mask, split_held_out
 from capssim.reconstruct.solvers.admm import ADMMParameters, admm
 from capssim.reconstruct.solvers.descent import steepest_descent
 from capssim.simulate import simulate_capture

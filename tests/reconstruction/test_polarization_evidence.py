@@ -1,5 +1,5 @@
 """The Stokes-consistency test that ``caps-plus``'s selection layer asks first (``-p polarization_filter=auto``)
-(:mod:`capssim.reconstruct.model.polarization_evidence`): the ratio ``T`` of the local variance of
+(:mod:`capssim.reconstruct.selection.polarization_evidence`): the ratio ``T`` of the local variance of
 ``I_0 - I_45 + I_90 - I_135`` to that of the polarization differences, below 1 where the analyzers show
 polarization structure."""
 
@@ -13,9 +13,13 @@ from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.observation_model import unmix_analyzer
-from capssim.reconstruct.model.polarization_evidence import STRUCTURE_THRESHOLD, stokes_inconsistency_ratio
-from capssim.reconstruct.model.polarization_filter import POLARIZATION_FILTERS, UNSTRUCTURED_FILTER, filter_polarization
 from capssim.reconstruct.selection import format_filter
+from capssim.reconstruct.selection.polarization_evidence import STRUCTURE_THRESHOLD, stokes_inconsistency_ratio
+from capssim.reconstruct.selection.polarization_filter import (
+    POLARIZATION_FILTERS,
+    UNSTRUCTURED_FILTER,
+    filter_polarization,
+)
 from capssim.simulate import simulate_capture
 
 #: the selection record of a run whose every choice was given as an option

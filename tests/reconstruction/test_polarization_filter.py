@@ -12,8 +12,8 @@ import torch
 from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
-from capssim.reconstruct.model.holdout import HoldoutValidation
-from capssim.reconstruct.model.polarization_filter import (
+from capssim.reconstruct.selection.holdout import HoldoutValidation
+from capssim.reconstruct.selection.polarization_filter import (
     POLARIZATION_FILTERS,
     apply_chosen_filter,
     choose_polarization_filter,

@@ -189,7 +189,7 @@ def test_valid_rig_files_still_load(tmp_path):
 
 # -- calibrate A A (class 12) ---------------------------------------------------------------------------
 def test_calibrate_the_same_capture_twice_counts_it_once(tmp_path, caplog):
-    from capssim.eval.calibration.calibrate import load_calibration_set
+    from capssim.reconstruct.calibration.calibrate import load_calibration_set
 
     outcome, text = invoke(["calibration-captures", "-o", tmp_path / "set", "--size", 32, "--frames", 1,
                             "--polarizer-angles", 3])

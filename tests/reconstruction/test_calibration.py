@@ -16,12 +16,12 @@ from capssim.camera.sensor import make_sensor
 from capssim.captures.capture import read_capture, write_capture
 from capssim.dataset.calibration_captures import make_calibration_captures, polarized_field, sweep_angles
 from capssim.errors import InputError
-from capssim.eval.calibration import calibrate_captures
-from capssim.eval.calibration.flat_field import fit_flat_field
-from capssim.eval.calibration.malus import fit_malus
-from capssim.eval.calibration.psf_fit import lanczos_warp
 from capssim.eval.metrics import score
 from capssim.reconstruct import reconstruct
+from capssim.reconstruct.calibration import calibrate_captures
+from capssim.reconstruct.calibration.flat_field import fit_flat_field
+from capssim.reconstruct.calibration.malus import fit_malus
+from capssim.reconstruct.calibration.psf_fit import lanczos_warp
 from capssim.reconstruct.model.data_term import ConfidenceDataTerm
 from capssim.reconstruct.model.rearrange import rearrange_raw
 from capssim.simulate import simulate_capture

@@ -35,8 +35,8 @@ import torch
 from capssim.conventions import N_CHANNELS
 from capssim.errors import InputError
 
-from .cagf import DEFAULT_RADIUS, aligned_channel_images, box_mean
-from .observation_model import unmix_analyzer
+from ..model.cagf import DEFAULT_RADIUS, aligned_channel_images, box_mean
+from ..model.observation_model import unmix_analyzer
 
 __all__ = ["STRUCTURE_THRESHOLD", "polarization_evidence", "problem_polarization_evidence", "stokes_inconsistency_ratio"]
 

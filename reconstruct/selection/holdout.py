@@ -20,17 +20,6 @@ which partitions the measured samples the same way).
 The solver keeps the best iterate and stops ``patience`` iterations after it
 (:class:`HoldoutValidation`, the :class:`~capssim.reconstruct.solvers.interfaces.StoppingRule` protocol).
 
-Which count a final solve with all the data runs (``rule``):
-
-- ``min``: the iteration of the lowest ``e``.
-- ``one-se``: the earliest iteration ``k >= min_iterations`` whose error is within one standard error of the
-  lowest, ``mean_m(d_m) <= std_m(d_m) / sqrt(n)`` with ``d_m = w_m ((y_m - (M I_k)_m)^2 - (y_m - (M I_best)_m)^2)``
-  the paired per-sample differences over the ``n`` held-out samples (the one-standard-error rule of
-  cross-validation: Breiman, Friedman, Olshen, Stone, *Classification and Regression Trees*, 1984, 3.4.3; Hastie,
-  Tibshirani, Friedman, *The Elements of Statistical Learning*, 2nd ed., 2009, 7.10). Near its minimum ``e`` is
-  flat within its own noise, and the argmin lands late by chance; the rule takes the least-iterated count the
-  held-out pixels cannot tell from it. It keeps every iteration's ``n`` sample errors (8 bytes each).
-
 Units: raw values on the sensor's [0, 1] full scale; ``e`` in those units squared.
 """
 
@@ -40,18 +29,14 @@ import math
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from capssim.conventions import N_CHANNELS, split_bayer
 from capssim.errors import InputError
 
+from ..model.aperture_demosaic import fill_held_out  # noqa: F401  (re-exported: the start's fill of the held-out pixels)
 from .polarization_filter import choose_polarization_filter
 
-__all__ = ["HOLDOUT_RULES", "HOLDOUT_SEED", "HoldoutValidation", "check_holdout_rule", "fill_held_out", "holdout_mask",
-           "split_held_out"]
-
-#: the counts a validation can name for the final solve (module docstring)
-HOLDOUT_RULES = ("min", "one-se")
+__all__ = ["HOLDOUT_SEED", "HoldoutValidation", "fill_held_out", "holdout_mask", "split_held_out"]
 
 #: the seed of the held-out pixels: a run is reproducible, and every method that holds out sees the same pixels
 HOLDOUT_SEED = 20261127
@@ -68,42 +53,12 @@ def holdout_mask(raw_shape: tuple[int, int, int], fraction: float, *, seed: int 
     return rng.random(tuple(raw_shape)) < fraction
 
 
-def fill_held_out(raw: np.ndarray, held_out: np.ndarray) -> np.ndarray:
-    """``raw`` ``(4, H, W)`` with each held-out pixel replaced by the mean of its unheld same-colour neighbours
-    (the 8 raw pixels two rows or columns away, the Bayer period); the plane's mean of unheld pixels where
-    all 8 are held out. Used for the demosaicked start, which must not see the held-out values."""
-    raw = np.asarray(raw, dtype=np.float32)
-    held = np.asarray(held_out, dtype=bool)
-    if not held.any():
-        return raw
-    keep = torch.from_numpy((~held).astype(np.float32))[:, None]
-    values = torch.from_numpy(raw)[:, None] * keep
-    kernel = torch.zeros(1, 1, 5, 5)
-    kernel[0, 0, ::2, ::2] = 1.0
-    kernel[0, 0, 2, 2] = 0.0
-    total = F.conv2d(values, kernel, padding=2)[:, 0]
-    count = F.conv2d(keep, kernel, padding=2)[:, 0]
-    plane_mean = (values.sum(dim=(1, 2, 3)) / keep.sum(dim=(1, 2, 3)).clamp_min(1.0))[:, None, None]
-    filled = torch.where(count > 0, total / count.clamp_min(1.0), plane_mean.expand_as(total))
-    out = raw.copy()
-    out[held] = filled.numpy()[held]
-    return out
-
-
 def split_held_out(weights: torch.Tensor, held_out: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """The data weights ``(16, h, w)`` split by the raw mask ``held_out`` ``(4, H, W)``: ``(weights the solver
     keeps, weights of the held-out samples)``; the two sum to ``weights``."""
     lr = torch.as_tensor(split_bayer(np.asarray(held_out, dtype=bool), argument="held_out"),
                          dtype=weights.dtype, device=weights.device)
     return weights * (1.0 - lr), weights * lr
-
-
-def check_holdout_rule(rule: str, *, name: str = "holdout_rule") -> str:
-    """``rule`` if it is one of :data:`HOLDOUT_RULES`; :class:`InputError` naming ``name`` otherwise."""
-    if rule not in HOLDOUT_RULES:
-        raise InputError(name, repr(rule), "one of " + ", ".join(HOLDOUT_RULES),
-                         "Use -p holdout_rule=min (the lowest held-out error) or -p holdout_rule=one-se.")
-    return rule
 
 
 class HoldoutValidation:
@@ -121,32 +76,23 @@ class HoldoutValidation:
         Iterations without a new best after which the solver stops (>= 1).
     min_iterations : int
         Iterations always run (>= 0).
-    refit : object, optional
-        The problem with all the data, which the pipeline solves again for :attr:`chosen_iteration` iterations
-        once this rule has stopped its run (:func:`capssim.reconstruct.pipeline.run.run_pipeline`); ``None``:
-        the best iterate of this run is the result.
-    rule : str
-        Which count :attr:`chosen_iteration` names: ``min`` (:attr:`best_iteration`) or ``one-se`` (module
-        docstring).
     choose_filter : bool
         Also choose the polarization filter of the final image on the best iterate
-        (:func:`~capssim.reconstruct.model.polarization_filter.choose_polarization_filter`;
+        (:func:`~capssim.reconstruct.selection.polarization_filter.choose_polarization_filter`;
         ``polarization_filter_choice`` in :meth:`record`).
     """
 
     def __init__(self, forward, images: torch.Tensor, weights: torch.Tensor, *, patience: int = 5,
-                 min_iterations: int = 3, refit=None, rule: str = "min", choose_filter: bool = False):
+                 min_iterations: int = 3, choose_filter: bool = False):
         if int(patience) < 1:
             raise InputError("patience", patience, "an integer >= 1", "Use -p patience=5.")
-        check_holdout_rule(rule)
         self.forward, self.images, self.weights = forward, images, weights
         self.total = float(weights.sum())
         if self.total <= 0:
             raise InputError("holdout_fraction", "no held-out sample with a data weight",
                              "a fraction that holds out some usable pixels", "Use -p holdout_fraction=0.05.")
-        self.patience, self.min_iterations, self.refit, self.rule = int(patience), int(min_iterations), refit, rule
+        self.patience, self.min_iterations = int(patience), int(min_iterations)
         self.held = weights > 0
-        self.sample_errors: list[torch.Tensor] = []  # rule one-se: each iterate's weighted squared errors
         self.best_image: torch.Tensor | None = None
         self.best_error, self.best_iteration, self.last_iteration = math.inf, 0, 0
         self.init_error = math.inf
@@ -165,16 +111,12 @@ class HoldoutValidation:
         return self.weights * residual.square()
 
     def _measure(self, image: torch.Tensor) -> float:
-        """:meth:`error` of an iterate, whose sample errors ``rule="one-se"`` keeps."""
-        weighted = self._weighted_errors(image)
-        if self.rule == "one-se":
-            self.sample_errors.append(weighted[self.held].double())
-        return float(weighted.sum()) / self.total
+        return self.error(image)
 
     def begin(self, init: torch.Tensor) -> dict:
         """Start a run from ``init`` (iteration 0, a candidate itself); its error, which the first
         :meth:`update` reports too."""
-        self.sample_errors, self._filter_choice = [], None
+        self._filter_choice = None
         self.best_error, self.best_iteration, self.last_iteration = self._measure(init), 0, 0
         self.best_image = init.detach().clone()
         self.init_error = self.best_error
@@ -198,36 +140,15 @@ class HoldoutValidation:
         return (self.last_iteration >= self.min_iterations
                 and self.last_iteration - self.best_iteration >= self.patience)
 
-    @property
-    def chosen_iteration(self) -> int:
-        """The count a final solve with all the data runs: :attr:`best_iteration` (``rule="min"``), or the earliest
-        count from ``min_iterations`` on whose paired error difference to it is within one standard error
-        (``rule="one-se"``)."""
-        best = self.best_iteration
-        if self.rule == "min" or best <= self.min_iterations or len(self.sample_errors) <= best:
-            return best
-        reference = self.sample_errors[best]
-        n = reference.numel()
-        for k in range(self.min_iterations, best):
-            diff = self.sample_errors[k] - reference
-            if float(diff.mean()) <= float(diff.std()) / math.sqrt(n):
-                return k
-        return best
-
     def final(self, image: torch.Tensor) -> torch.Tensor:
         """The image the solver returns: the best iterate (``image`` if the rule never began)."""
         return image if self.best_image is None else self.best_image
 
     def record(self) -> dict:
-        """What the method's record keeps: the count run (``iterations``: the chosen one where the problem is solved
-        again, else that of the best iterate, which is the result), the count a final solve runs
-        (``holdout_chosen_iteration``), the lowest held-out error, where it was and the iterations the
-        validation run took."""
-        chosen = self.chosen_iteration
-        out = {"iterations": chosen if self.refit is not None else self.best_iteration,
-               "holdout_best_iteration": self.best_iteration, "holdout_chosen_iteration": chosen,
-               "holdout_rule": self.rule, "holdout_error": self.best_error,
-               "holdout_iterations_run": self.last_iteration}
+        """What the method's record keeps: the count of the best iterate, which is the result (``iterations``,
+        ``holdout_best_iteration``), the lowest held-out error and the iterations the validation run took."""
+        out = {"iterations": self.best_iteration, "holdout_best_iteration": self.best_iteration,
+               "holdout_error": self.best_error, "holdout_iterations_run": self.last_iteration}
         if self.choose_filter and self.best_image is not None and self.best_image.shape[0] == N_CHANNELS:
             if self._filter_choice is None:
                 self._filter_choice = choose_polarization_filter(self.held_out_errors, self.best_image)

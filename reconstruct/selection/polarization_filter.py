@@ -13,7 +13,7 @@ mean is not changed (the filtered deviations are re-centred to sum to 0 over the
 A fixed filter smooths real polarization structure where the intensity does not show it (polarization stars,
 the cellphone cases; docs: notes/beyond-the-paper.md, section 9), so the filter is chosen per capture: each
 candidate of :data:`POLARIZATION_FILTERS` is applied to the held-out validation's best iterate
-(:class:`~capssim.reconstruct.model.holdout.HoldoutValidation`), its held-out raw pixels are predicted through
+(:class:`~capssim.reconstruct.selection.holdout.HoldoutValidation`), its held-out raw pixels are predicted through
 ``M`` (eq. 15), and the candidate with the lowest mean error is taken only if it lowers the error by more than one
 standard error of the paired per-sample differences (else no filter). The chosen filter is then applied to the
 final image, before the physical projection.
@@ -22,7 +22,7 @@ The held-out pixels cannot judge a capture whose analyzers differ only by the ap
 differ by detail the HR grid cannot hold (aliasing each aperture samples differently), the 12-channel image can only
 explain it as polarization, and the held-out pixels reward that false polarization (docs: notes/beyond-the-paper.md,
 sections 16-18). So the selection first asks the Stokes-consistency test
-(:mod:`capssim.reconstruct.model.polarization_evidence`) whether the analyzers show polarization structure at all;
+(:mod:`capssim.reconstruct.selection.polarization_evidence`) whether the analyzers show polarization structure at all;
 where they do not, the final image gets :data:`UNSTRUCTURED_FILTER`, the most smoothing candidate, and the held-out
 pixels choose nothing.
 """
@@ -37,7 +37,7 @@ import torch
 from capssim.conventions import N_CHANNELS
 from capssim.errors import InputError
 
-from .cagf import box_mean
+from ..model.cagf import box_mean
 
 __all__ = ["POLARIZATION_FILTERS", "UNSTRUCTURED_FILTER", "apply_chosen_filter", "choose_polarization_filter",
            "filter_polarization"]
