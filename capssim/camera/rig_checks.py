@@ -79,20 +79,23 @@ def check_vignetting(gain: np.ndarray, vignetting: np.ndarray, *, where: str = "
     maps = (vignetting_design(u, v) @ np.asarray(vignetting, dtype=np.float64).T) * np.asarray(gain)[None, None, :]
     highest = float(maps.max())
     if np.isfinite(highest) and highest > MAX_FLAT_FIELD:
-        row, col, n = np.unravel_index(int(np.argmax(maps)), maps.shape)
-        raise InputError(where, f"aperture {n}'s flat field reaching {highest:.3g} at (u, v) = "
-                                f"({u[row, col]:.2f}, {v[row, col]:.2f})",
-                         f"coefficients whose flat field stays <= {MAX_FLAT_FIELD:g} over the whole frame "
-                         "(a response relative to the nominal 1)",
-                         "Fit the vignetting again, or remove it for a flat frame.")
+        _refuse_flat_field(where, maps, u, v, int(np.argmax(maps)), highest,
+                           f"<= {MAX_FLAT_FIELD:g} over the whole frame (a response relative to the nominal 1)")
     worst = float(maps.min())
     if not np.isfinite(worst) or worst < MIN_FLAT_FIELD:
-        row, col, n = np.unravel_index(int(np.nanargmin(maps)), maps.shape)
-        raise InputError(where, f"aperture {n}'s flat field reaching {worst:.3g} at (u, v) = "
-                                f"({u[row, col]:.2f}, {v[row, col]:.2f})",
-                         f"coefficients whose flat field stays >= {MIN_FLAT_FIELD:g} over the whole frame "
-                         "(a relative response; the constant term 1 is no vignetting)",
-                         "Fit the vignetting again, or remove it for a flat frame.")
+        _refuse_flat_field(where, maps, u, v, int(np.nanargmin(maps)), worst,
+                           f">= {MIN_FLAT_FIELD:g} over the whole frame (a relative response; the constant term 1 "
+                           "is no vignetting)")
+
+
+def _refuse_flat_field(where: str, maps: np.ndarray, u: np.ndarray, v: np.ndarray, flat_index: int, value: float,
+                       bound: str) -> None:
+    """Raise the :class:`InputError` of a flat field out of its bound at ``maps``' flat index ``flat_index``."""
+    row, col, n = np.unravel_index(flat_index, maps.shape)
+    raise InputError(where, f"aperture {n}'s flat field reaching {value:.3g} at (u, v) = "
+                            f"({u[row, col]:.2f}, {v[row, col]:.2f})",
+                     f"coefficients whose flat field stays {bound}",
+                     "Fit the vignetting again, or remove it for a flat frame.")
 
 
 def check_homographies(homographies, hr_shape, *, where: str, horizon: bool = True) -> None:

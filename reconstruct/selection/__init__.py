@@ -13,6 +13,7 @@ from .holdout_selection import (
     HOLDOUT_PATIENCE,
     HOLDOUT_WINDOW,
     MIN_HELD_OUT,
+    SELECTED_NOTHING,
     Choices,
     check_holdout_fraction,
     format_filter,
@@ -22,4 +23,4 @@ from .holdout_selection import (
 )
 
 __all__ = ["FALLBACK_ITERATIONS", "HOLDOUT_MAX_ITERATIONS", "HOLDOUT_PATIENCE", "HOLDOUT_WINDOW", "MIN_HELD_OUT",
-           "Choices", "check_holdout_fraction", "format_filter", "parse_filter", "select", "selection_window"]
+           "SELECTED_NOTHING", "Choices", "check_holdout_fraction", "format_filter", "parse_filter", "select", "selection_window"]

@@ -49,7 +49,10 @@ from .polarization_evidence import problem_polarization_evidence
 from .polarization_filter import UNSTRUCTURED_FILTER
 
 __all__ = ["FALLBACK_ITERATIONS", "HOLDOUT_MAX_ITERATIONS", "HOLDOUT_PATIENCE", "HOLDOUT_WINDOW", "MIN_HELD_OUT",
-           "Choices", "check_holdout_fraction", "format_filter", "parse_filter", "select", "selection_window"]
+           "SELECTED_NOTHING", "Choices", "check_holdout_fraction", "format_filter", "parse_filter", "select", "selection_window"]
+
+#: the selection record of a run whose every choice its options fixed (nothing was selected)
+SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 #: the largest guided-filter radius ``polarization_filter=R,EPS`` takes (HR px)
 MAX_FILTER_RADIUS = 32
@@ -147,8 +150,7 @@ def select(capture, context: RunContext, options, *, given: frozenset, init: str
     has_blend = hasattr(options.prior_parameters, "denoiser_blend")  # -p prior= may choose a prior without one
     blends = tuple(blends) if has_blend and "denoiser_blend" not in given else ()
     fixed = Choices(options.admm.iterations, None if filter_spec == "auto" else filter_spec,
-                    record={"chosen_by": "options", "iterations_from": "options",
-                            "polarization_filter_from": "options"})
+                    record=dict(SELECTED_NOTHING))
     if not (count_open or filter_spec == "auto" or blends):
         return fixed
     with context.timer.stage("selection"):

@@ -22,6 +22,7 @@ from capssim.camera.rig import (
     vignetting_design,
     write_rig_json,
 )
+from capssim.camera.rig_checks import check_vignetting
 from capssim.errors import InputError
 from capssim.operators import (
     BayerSplit,
@@ -171,3 +172,18 @@ def test_realistic_preset_is_reproducible_and_within_its_ranges():
     assert np.all((corner > 0.7) & (corner < 0.9))
     with pytest.raises(InputError, match="rig"):
         RigModel.preset("perfect")
+
+
+@pytest.mark.parametrize("constant, aperture, phrase", [(2e3, 2, "<= 1000"), (-0.5, 1, ">= 0.001")])
+def test_a_flat_field_out_of_its_bounds_names_the_aperture_and_the_bound(constant, aperture, phrase):
+    """``check_vignetting`` refuses a flat field above the gain ceiling or below the floor, naming which aperture,
+    the value it reaches and the bound it broke; an in-bounds one passes."""
+    vignetting = np.zeros((4, 15))
+    vignetting[:, 0] = 1.0
+    check_vignetting(np.ones(4), vignetting)  # no vignetting: accepted
+    vignetting[aperture, 0] = constant
+    with pytest.raises(InputError) as info:
+        check_vignetting(np.ones(4), vignetting, where="rig.vignetting")
+    message = str(info.value)
+    assert "rig.vignetting" in message and f"aperture {aperture}'s flat field reaching {constant:.3g}" in message
+    assert phrase in message

@@ -13,10 +13,10 @@ from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.analyzer_agreement import agreement_confidence_mix, analyzer_agreement
 from capssim.reconstruct.model.data_term import confidence_mix
 from capssim.reconstruct.model.polarization_split import angle_mean, split_confidence_mix
+from capssim.reconstruct.selection import SELECTED_NOTHING
 from capssim.simulate import simulate_capture
 
 #: the selection record of a run whose every choice was given as an option
-SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 SIZE = 48
 

@@ -12,10 +12,10 @@ from capssim.errors import CapssimError, InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.methods.caps_plus_cv import BLEND_CANDIDATES, DENOISER_SIGMA_STEPS
 from capssim.reconstruct.registry import get_method
+from capssim.reconstruct.selection import SELECTED_NOTHING
 from capssim.simulate import simulate_capture
 
 #: the selection record of a run whose every choice was given as an option
-SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 SIZE = 40
 

@@ -14,13 +14,12 @@ from capssim.eval.error_budget import ladder
 from capssim.eval.evaluate import CaptureScorer
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.registry import get_method
-from capssim.reconstruct.selection import format_filter, parse_filter
+from capssim.reconstruct.selection import SELECTED_NOTHING, format_filter, parse_filter
 from capssim.reconstruct.selection.polarization_filter import POLARIZATION_FILTERS, filter_polarization
 from capssim.reconstruct.tiles import reconstruct_tiled
 from capssim.simulate import simulate_capture
 
 #: the selection record of a run whose every choice was given as an option
-SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 SIZE = 32
 #: options caps-plus took before its refactor, and a misspelling: refused by name

@@ -13,7 +13,7 @@ from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
 from capssim.reconstruct.model.observation_model import unmix_analyzer
-from capssim.reconstruct.selection import format_filter
+from capssim.reconstruct.selection import SELECTED_NOTHING, format_filter
 from capssim.reconstruct.selection.polarization_evidence import STRUCTURE_THRESHOLD, stokes_inconsistency_ratio
 from capssim.reconstruct.selection.polarization_filter import (
     POLARIZATION_FILTERS,
@@ -23,7 +23,6 @@ from capssim.reconstruct.selection.polarization_filter import (
 from capssim.simulate import simulate_capture
 
 #: the selection record of a run whose every choice was given as an option
-SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 ANGLES = torch.tensor([0.0, 45.0, 90.0, 135.0]) * torch.pi / 180
 

@@ -12,6 +12,7 @@ import torch
 from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
 from capssim.reconstruct import reconstruct
+from capssim.reconstruct.selection import SELECTED_NOTHING
 from capssim.reconstruct.selection.holdout import HoldoutValidation
 from capssim.reconstruct.selection.polarization_filter import (
     POLARIZATION_FILTERS,
@@ -22,7 +23,6 @@ from capssim.reconstruct.selection.polarization_filter import (
 from capssim.simulate import simulate_capture
 
 #: the selection record of a run whose every choice was given as an option
-SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 
 def _intensity(size: int = 64, seed: int = 0) -> torch.Tensor:

@@ -9,6 +9,7 @@ import torch
 
 from capssim.errors import InputError, ResourceError
 from capssim.reconstruct import reconstruct
+from capssim.reconstruct.selection import SELECTED_NOTHING
 from capssim.reconstruct.tiles import (
     MIN_TILE,
     TileBlender,
@@ -25,7 +26,6 @@ from capssim.reconstruct.tiles.run import choose_layout
 from capssim.simulate import simulate_capture
 
 #: the selection record of a run whose every choice was given as an option
-SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
 
 GIB = 2**30
 
