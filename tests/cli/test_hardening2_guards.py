@@ -16,7 +16,7 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from support.fuzz import run_cli
+from support.fuzz import refused_before_work
 
 from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_image_memory, image_header_shape
 
@@ -129,25 +129,8 @@ ROWS = [
 @pytest.mark.parametrize("row", ROWS, ids=lambda r: f"class{r.cls}-{r.name}")
 def test_refused_before_work_in_one_line(row, tmp_path, capsys, monkeypatch):
     row.setup(tmp_path)
-    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
-    for key, value in row.env.items():
-        monkeypatch.setenv(key, value)
-    if row.forbid:
-        import importlib
-
-        module, name = row.forbid.split(":")
-
-        def must_not_run(*args, **kwargs):
-            raise AssertionError(f"{row.forbid} ran: the input was not refused before the work")
-        monkeypatch.setattr(importlib.import_module(module), name, must_not_run)
-    args = [str(a).replace("{root}", str(tmp_path)) for a in row.args]
-    status, err = run_cli(args, capsys, monkeypatch, quiet=True)
-    assert status == 2, err
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for fragment in row.fragments:
-        assert fragment in lines[0], (fragment, err)
+    refused_before_work(row.args, tmp_path, capsys, monkeypatch, fragments=row.fragments, forbid=row.forbid,
+                        env=row.env)
 
 
 def test_header_shapes_are_read_without_decoding(tmp_path):

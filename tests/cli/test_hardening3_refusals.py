@@ -7,7 +7,6 @@ command's work starts (``forbid``: the function that would do it is replaced by 
 
 from __future__ import annotations
 
-import importlib
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -15,11 +14,10 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from support.fuzz import run_cli
+from support.fuzz import refused_before_work, run_cli
 
 from capssim.camera.sensor import make_sensor
 from capssim.captures.capture import write_capture
-from capssim.runtime.resources import MEMORY_LIMIT_ENV
 from capssim.simulate import simulate_capture
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -208,27 +206,8 @@ def test_refused_up_front_in_one_line(row, tmp_path, capsys, monkeypatch):
     finally:
         logging.disable(logging.NOTSET)
     capsys.readouterr()
-    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
-    for key, value in row.env.items():
-        monkeypatch.setenv(key, value)
-    for target in row.forbid:
-        module, name = target.split(":")
-
-        def must_not_run(*args, _target=target, **kwargs):
-            raise AssertionError(f"{_target} ran: the input was not refused before the work")
-        monkeypatch.setattr(importlib.import_module(module), name, must_not_run)
-    args = [str(a).replace("{root}", str(tmp_path)) for a in row.args]
-    status, err = run_cli(args, capsys, monkeypatch, quiet=True)
-    assert status == 2, err
-    assert "Traceback" not in err, err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), err
-    for fragment in row.fragments:
-        assert fragment in lines[0], (fragment, err)
-    for word in row.not_in:
-        assert word not in lines[0], (word, err)
-    for path in row.absent:
-        assert not (tmp_path / path).exists(), f"{path} was created before the refusal"
+    refused_before_work(row.args, tmp_path, capsys, monkeypatch, fragments=row.fragments, forbid=row.forbid,
+                        env=row.env, not_in=row.not_in, absent=row.absent)
 
 
 def test_well_formed_scheduler_addresses_pass_the_check():

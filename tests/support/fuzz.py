@@ -6,6 +6,7 @@ deadline (a machine shared with other jobs varies in speed) and keeps no example
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import resource
@@ -18,6 +19,7 @@ from typer.testing import CliRunner
 
 from capssim.cli import app
 from capssim.errors import CapssimError
+from capssim.runtime.resources import MEMORY_LIMIT_ENV
 
 #: ``CAPSSIM_FUZZ_SCALE=N`` runs N times the examples (a longer search, locally; CI runs the default 1)
 FUZZ_SCALE = float(os.environ.get("CAPSSIM_FUZZ_SCALE", "1"))
@@ -154,3 +156,26 @@ def one_error_line(status: int, text: str, *fragments: str, skip_log_lines: bool
     for word in forbidden:
         assert word not in lines[0], (word, text)
     return lines[0]
+
+
+def refused_before_work(args: list, root, capsys, monkeypatch, *, fragments: tuple = (), forbid=(),
+                        env: dict | None = None, not_in: tuple = (), absent: tuple = ()) -> str:
+    """Run ``capssim -q ARGS`` (``{root}`` in an argument is the test's folder ``root``) with the command's work
+    ``forbid`` (``"module:function"``, one or several) replaced by a function that fails the test, under the
+    environment ``env`` (the memory limit of the machine unset otherwise); the command must be refused in one
+    ``error:`` line holding every fragment and none of ``not_in``, and leave none of ``absent`` (paths under
+    ``root``). Returns the line."""
+    monkeypatch.delenv(MEMORY_LIMIT_ENV, raising=False)
+    for key, value in (env or {}).items():
+        monkeypatch.setenv(key, value)
+    for target in ((forbid,) if isinstance(forbid, str) and forbid else tuple(forbid or ())):
+        module, name = target.split(":")
+
+        def must_not_run(*_args, _target=target, **_kwargs):
+            raise AssertionError(f"{_target} ran: the input was not refused before the work")
+        monkeypatch.setattr(importlib.import_module(module), name, must_not_run)
+    status, err = run_cli([str(a).replace("{root}", str(root)) for a in args], capsys, monkeypatch, quiet=True)
+    line = one_error_line(status, err, *fragments, forbidden=not_in)
+    for path in absent:
+        assert not (root / path).exists(), f"{path} was created before the refusal"
+    return line
