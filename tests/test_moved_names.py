@@ -3,12 +3,17 @@
 from __future__ import annotations
 
 import importlib
+import json
 import subprocess
 import sys
 
 import pytest
 
 import capssim
+from capssim.captures.capture import read_capture, write_capture
+from capssim.captures.capture_meta import SCHEMA
+from capssim.eval.synthetic import texture_scene
+from capssim.simulate import simulate_capture
 
 #: old dotted name -> one public name that ``from <old name> import NAME`` must find
 PUBLIC_NAME = {
@@ -75,3 +80,13 @@ def test_unknown_attribute_still_raises():
         capssim.no_such_module  # noqa: B018
     with pytest.raises(ModuleNotFoundError):
         importlib.import_module("capssim.no_such_module")
+
+
+def test_file_formats_keep_their_names_when_code_moves(tmp_path):
+    """A capture folder written before the rooms (``meta.json`` schema ``capssim.capture``) is still read: the
+    schema names the file format, not the module that writes it."""
+    assert SCHEMA == "capssim.capture"
+    write_capture(tmp_path / "cap", simulate_capture(texture_scene(16, seed=0)[0], seed=0))
+    meta = json.loads((tmp_path / "cap" / "meta.json").read_text())
+    assert meta["schema"] == "capssim.capture"
+    assert read_capture(tmp_path / "cap").caps_raw.shape == (4, 8, 8)

@@ -35,7 +35,7 @@ from capssim.conventions import (
 )
 from capssim.errors import CaptureFormatError, InputError, UnknownNameError
 
-SCHEMA = "capssim.captures.capture"
+SCHEMA = "capssim.capture"  # the file format's name (not the module's: it stays when code moves)
 SCHEMA_VERSION = 1
 
 
