@@ -104,7 +104,7 @@ def _head(spec: dict, records: list[dict], command: str | None) -> list[str]:
     methods = ", ".join(f"{m['label']} ({r})" for m in spec["methods"]
                         for r in [next((x.get("kind") for x in records if x.get("method") == m["label"]), "?")])
     lines = [f"# Design map: {spec['name']}", "", spec.get("description", "").strip(), "",
-             f"- scene: `{spec['scene']}`", f"- axes: " + "; ".join(f"`{a}` {v}" for a, v in spec["axes"].items()),
+             f"- scene: `{spec['scene']}`", "- axes: " + "; ".join(f"`{a}` {v}" for a, v in spec["axes"].items()),
              f"- fixed: {spec.get('fixed') or 'nothing (the simulate defaults)'}", f"- seeds: {spec['seeds']}",
              f"- methods (kind): {methods}",
              f"- cases: {len(records)} ({len(failed)} not ok)",
