@@ -42,6 +42,7 @@ from capssim.files.schema import (
     show,
     validate,
 )
+from capssim.render import get_scene
 
 from ..benchmarks.suite_schema import (
     _SENSOR_FIELDS,
@@ -140,9 +141,23 @@ def _check_against_scene(axes: dict, fixed: dict, scene: dict) -> None:
             raise ConfigError(join(where, name), "depth_m with a " + scene["source"] + " scene",
                               "depth_m only with a rendered scene (source: render)",
                               "Use a render scene whose parameters take depth_m, or drop the axis.")
+    if "depth_m" in names and render:
+        _check_render_depth(scene, names["depth_m"])
     if "offset_px" in names and "shift_max" in names:
         raise ConfigError(join(names["offset_px"], "offset_px"), "offset_px with shift_max",
                           "one of offset_px (a regular pattern) or shift_max (random offsets)", "Drop one of them.")
+
+
+def _check_render_depth(scene: dict, where: str) -> None:
+    """A rendered scene swept in ``depth_m`` must take that parameter (the planar library scenes do)."""
+    try:
+        takes = "depth_m" in (get_scene(scene["scene"]).info.defaults or {})
+    except Exception:  # noqa: BLE001 - a renderer that cannot load the scene: the case is skipped at run time
+        return
+    if not takes:
+        raise ConfigError(join(where, "depth_m"), f"depth_m with the render scene {scene['scene']!r}",
+                          "a render scene whose parameters take depth_m (the planar ones: capssim scenes)",
+                          "Use e.g. scene: textured or siemens-star, or drop the axis.")
 
 
 def cell_noise(values: dict) -> dict:

@@ -12,10 +12,12 @@ import yaml
 from typer.testing import CliRunner
 
 from capssim.camera.camera_setup import CameraSetup
+from capssim.camera.homography import registration_error_hr_px
 from capssim.camera.psf import DEFAULT_PSF
 from capssim.camera.sensor import make_sensor
 from capssim.cli import app
 from capssim.eval.evaluate import CaptureScorer
+from capssim.eval.maps.cells import perturbed_warps
 from capssim.eval.maps.margins import cell_margin
 from capssim.eval.maps.spec import check_map, load_map
 from capssim.eval.maps.sweep import run_map
@@ -124,6 +126,17 @@ def test_a_random_pose_cell_equals_the_direct_run_and_resume_runs_only_the_missi
     assert _stable(results) == before and len(again.records) == 4
 
 
+def test_the_registration_error_moves_each_aperture_by_that_many_hr_pixels():
+    gt, _ = synthetic_scene("texture", size=48, seed=0)
+    capture = simulate_capture(gt, CameraSetup(sensor=make_sensor("none")), seed=3)
+    moved = perturbed_warps(capture, 0.5, seed=3)
+    error = registration_error_hr_px(moved.true_lr_homographies(), capture.true_lr_homographies(), capture.hr_shape)
+    assert np.allclose(error[:4], 0.0) and np.allclose(error[4:], 0.5, atol=1e-6)
+    assert np.array_equal(moved.caps_raw, capture.caps_raw)
+    again = perturbed_warps(capture, 0.5, seed=3)  # seeded: the same directions
+    assert np.array_equal(again.aperture_homographies(), moved.aperture_homographies())
+
+
 def test_the_margin_says_who_wins_and_undecided_within_one_standard_error():
     kinds = {"a": "array", "d": "dofp", "d2": "dofp"}
     win = cell_margin({"a": {0: 30, 1: 31, 2: 32}, "d": {0: 28, 1: 28.5, 2: 29}, "d2": {0: 20, 1: 20, 2: 20}},
@@ -150,6 +163,10 @@ def test_the_margin_says_who_wins_and_undecided_within_one_standard_error():
     ({"seeds": [0, 0]}, "seeds", "[0, 0]"),
     ({"scene": {"name": "s", "source": "synthetic", "generator": "star", "crop": 64}}, "scene.crop", "unknown key"),
     ({"colour": 1}, "colour", "an unknown key"),
+    ({"scene": {"name": "m", "source": "render", "scene": "materials", "size": 64}, "axes": {"depth_m": [2, 4]}},
+     "axes.depth_m", "render scene 'materials'"),
+    ({"scene": {"name": "m", "source": "render", "scene": "textured", "size": 64}, "axes": {"shift_max": [0]}},
+     "axes.shift_max", "shift_max with a rendered scene"),
 ])
 def test_spec_validation_names_the_bad_key_and_value(change, key, received):
     spec = {**SHIFT_MAP, **change}
