@@ -43,8 +43,8 @@ def margin_heatmap(path: Path, *, grid: dict[tuple, dict], axes: tuple[str, str]
     for (yv, xv), cell in grid.items():
         m[ys.index(yv), xs.index(xv)] = cell["margin"]
     panels = 2 if theory else 1
-    fig, axs = plt.subplots(1, panels, figsize=(5.2 + 2.6 * (panels - 1), 4.2), squeeze=False,
-                            gridspec_kw={"width_ratios": [3, 1.4][:panels]})
+    fig, axs = plt.subplots(1, panels, figsize=(6.0 + 3.2 * (panels - 1), 4.6), squeeze=False,
+                            gridspec_kw={"width_ratios": [3, 1.4][:panels]}, layout="constrained")
     ax = axs[0][0]
     span = float(np.nanmax(np.abs(m))) if np.isfinite(m).any() else 1.0
     image = ax.imshow(m, cmap="RdBu", vmin=-(span or 1.0), vmax=span or 1.0, origin="lower", aspect="auto")
@@ -86,7 +86,8 @@ def axis_curves(path: Path, *, axis: str, values: list, curves: dict[str, dict],
     """Write the curves of a one-axis map to ``path`` (module docstring): ``curves`` ``{method: {value: (mean,
     se)}}``, ``margin`` ``{value: cell margin}``."""
     plt = _plt()
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(6.0, 6.0), sharex=True, gridspec_kw={"height_ratios": [2, 1]})
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(6.0, 6.0), sharex=True, gridspec_kw={"height_ratios": [2, 1]},
+                                      layout="constrained")
     colours = method_colours(sorted(curves))
     for label in sorted(curves):
         xs = [v for v in values if v in curves[label]]
