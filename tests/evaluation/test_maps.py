@@ -3,6 +3,7 @@ run, resume, serial against Dask, and the spec's validation naming every bad key
 
 from __future__ import annotations
 
+import itertools
 import json
 from pathlib import Path
 
@@ -16,9 +17,11 @@ from capssim.camera.homography import registration_error_hr_px
 from capssim.camera.psf import DEFAULT_PSF
 from capssim.camera.sensor import make_sensor
 from capssim.cli import app
+from capssim.eval.benchmarks.results import results_text
 from capssim.eval.evaluate import CaptureScorer
 from capssim.eval.maps.cells import perturbed_warps
 from capssim.eval.maps.margins import cell_margin
+from capssim.eval.maps.report import write_map_report
 from capssim.eval.maps.spec import MAPS_DIR, check_map, load_map
 from capssim.eval.maps.sweep import run_map
 from capssim.eval.maps.theory import local_poses, regular_offsets, sampling_conditioning
@@ -146,6 +149,32 @@ def test_the_margin_says_who_wins_and_undecided_within_one_standard_error():
     assert close["verdict"] == "undecided"
     lower = cell_margin({"a": {0: 5.0}, "d": {0: 4.0}}, kinds, False)  # AoP error: lower is better
     assert lower["verdict"] == "dofp" and lower["margin"] == pytest.approx(-1.0) and lower["se"] is None
+
+
+def _fake_records(axes: dict) -> list[dict]:
+    """Records of a map with every axis combination, 2 seeds, one array and one DoFP method (no run)."""
+    records = []
+    for combo in itertools.product(*axes.values()):
+        cell = dict(zip(axes, combo))
+        for seed in (0, 1):
+            for method, kind, psnr in (("caps-naive", "array", 30 + sum(combo) + seed), ("dofp-eari", "dofp", 31)):
+                records.append({"case_id": f"{cell}{seed}{method}", "status": "ok", "method": method, "kind": kind,
+                                "seed": seed, "axes": cell, "wall_time_s": 1.0, "metrics": {"psnr_mean": psnr},
+                                "theory": {"resolved_fraction": 0.25 + 0.1 * cell.get("offset_px", 0)}})
+    return records
+
+
+@pytest.mark.parametrize("axes", [{"offset_px": [0.0, 1.0, 2.0]},
+                                  {"offset_px": [0.0, 1.0], "sigma": [0.01, 0.02], "psf_sigma_hr_px": [0.0, 1.0]}])
+def test_the_report_draws_curves_for_one_axis_and_a_set_of_maps_for_three(tmp_path, axes):
+    (tmp_path / "map.jsonl").write_text(results_text(_fake_records(axes)))
+    spec = {"name": "fake", "scene": {"name": "s"}, "axes": axes, "fixed": {}, "seeds": [0, 1],
+            "methods": [{"label": "caps-naive"}, {"label": "dofp-eari"}]}
+    report = write_map_report(tmp_path, spec, command="capssim bench map fake -o out").read_text()
+    pictures = sorted(p.name for p in tmp_path.glob("psnr_mean*.png"))
+    assert pictures == (["psnr_mean.png"] if len(axes) == 1 else
+                        ["psnr_mean_psf_sigma_hr_px=0.png", "psnr_mean_psf_sigma_hr_px=1.png"])
+    assert "capssim bench map fake -o out" in report and "| offset_px |" in report
 
 
 @pytest.mark.parametrize("change, key, received", [
