@@ -227,7 +227,7 @@ def test_the_shipped_maps_load():
                  *small]:
         spec = load_map(name)
         assert spec["axes"] and all(m["label"] for m in spec["methods"])
-    assert len(small) == 3
+    assert len(small) == 1
 
 
 @pytest.mark.slow
