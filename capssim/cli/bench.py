@@ -3,8 +3,9 @@
 Subjects (``capssim.eval.benchmarks``): ``suite`` (scenes x methods x noise levels, resume,
 regression baselines, report and results page), ``reconstruct`` (time and memory per stage of
 ``caps``), ``registration`` (warp error and time per capture), ``dofp`` (the DoFP baselines on
-the published protocol), ``render`` (the rendering choices) and ``dataset`` (generation
-throughput). They follow the command-line grammar (docs: guides/cli.md): inputs positional,
+the published protocol), ``render`` (the rendering choices), ``dataset`` (generation
+throughput) and ``map`` (a design map, a sweep of conditions: :mod:`capssim.cli.bench_map`). They
+follow the command-line grammar (docs: guides/cli.md): inputs positional,
 ``-o/--output`` only for what the subject makes (``suite``: its output folder), ``--json`` prints
 the measurements as JSON to stdout (the tables then go to stderr), lists by repetition
 (``-m/--method``, ``--scene``, ``--size``, ``--device``, ``-w/--workers``), and ``--threads`` and
@@ -36,11 +37,12 @@ from capssim.cli._options import (
 from capssim.cli._setup_options import DofpLayoutOption
 from capssim.cli.bench_budget import add_budget_command
 from capssim.cli.bench_compare import add_compare_command
+from capssim.cli.bench_map import add_map_command
 from capssim.cli.bench_suite import add_suite_command
 
 bench_app = typer.Typer(name="bench", no_args_is_help=True, rich_markup_mode=None,
                         help="Benchmarks: capssim bench SUBJECT [options] with SUBJECT in suite, reconstruct, "
-                             "registration, dofp, render, dataset, budget, compare.")
+                             "registration, dofp, render, dataset, budget, compare, map.")
 
 RepeatsOption = typer.Option(1, "--repeats", help="Runs of each measurement; the tables show the fastest.",
                              callback=number_in("--repeats", 1, 1000, what="runs"))
@@ -315,6 +317,7 @@ def dataset(
 
 add_budget_command(bench_app)
 add_compare_command(bench_app)
+add_map_command(bench_app)
 
 
 def register(app: typer.Typer) -> None:

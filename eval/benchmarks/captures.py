@@ -231,8 +231,18 @@ class CaptureFactory:
         info["cached"] = False
         return CaptureEntry(key, path, scene["name"], info)
 
+    def setup(self, scene: dict, noise: dict) -> CameraSetup:
+        """The camera set-up of a capture of ``scene`` under ``noise`` (a design map's factory adds its axes)."""
+        return _setup(scene, noise)
+
+    def simulate(self, scene: dict, gt, setup: CameraSetup, *, seed: int, source: dict, extra: dict) -> Capture:
+        """The capture of a ground truth (:func:`~capssim.simulate.simulate_capture`; a design map's factory sets
+        the aperture poses)."""
+        return simulate_capture(gt, setup, seed=seed, source=source, extra_meta=extra,
+                                **_rig_options(scene, gt.shape[1:]))
+
     def _build(self, scene: dict, noise: dict, seed: int):
-        setup = _setup(scene, noise)
+        setup = self.setup(scene, noise)
         src = scene["source"]
         info: dict[str, Any] = {"scene": scene["name"], "source": src, "noise": noise, "seed": seed}
         if src == "render":
@@ -249,9 +259,7 @@ class CaptureFactory:
             gt, crop_info = prepare_ground_truth(gt, crop=scene.get("crop"))
             source.update(crop_info)
         extra = {"scene": {"name": scene["name"], **scene_meta}}
-        rig_options = _rig_options(scene, gt.shape[1:])
-        capture = simulate_capture(gt, setup, seed=seed, source=source, extra_meta=extra, **rig_options)
-        return capture, info
+        return self.simulate(scene, gt, setup, seed=seed, source=source, extra=extra), info
 
     def _render(self, scene: dict, seed: int):
         """Noise-free render, cached by content hash (scene spec, seed, render code)."""

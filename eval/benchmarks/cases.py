@@ -36,9 +36,9 @@ def _now() -> str:
 
 
 @functools.lru_cache(maxsize=2)
-def _factory(cache_dir: str, run_id: str) -> CaptureFactory:
+def _factory(cache_dir: str, run_id: str, factory_class: type = CaptureFactory) -> CaptureFactory:
     """One factory per run and process: its fingerprints of the code and the data are the run's."""
-    return CaptureFactory(Path(cache_dir), lambda kind, **info: None)
+    return factory_class(Path(cache_dir), lambda kind, **info: None)
 
 
 @functools.lru_cache(maxsize=2)
@@ -47,9 +47,10 @@ def _environment(device: str) -> dict:
 
 
 def capture_task(cache_dir: str, run_id: str, chain: list[dict], noise: dict, seed: int,
-                 events: Callable[..., None] | None = None) -> dict:
+                 events: Callable[..., None] | None = None, *, factory_class: type = CaptureFactory) -> dict:
     """The capture of the first available scene of ``chain`` (a scene, then its fallback); ``run_id``
-    names the run (a worker serving several runs fingerprints the data of each).
+    names the run (a worker serving several runs fingerprints the data of each); ``factory_class``: the
+    :class:`~capssim.eval.benchmarks.captures.CaptureFactory` (sub)class that builds it.
 
     Returns ``{entry, scene, skip_reason, failure, events}``: ``entry`` the
     :class:`~capssim.eval.benchmarks.captures.CaptureEntry` (None if no scene was available or the
@@ -65,7 +66,7 @@ def capture_task(cache_dir: str, run_id: str, chain: list[dict], noise: dict, se
         else:
             events(kind, **info)
 
-    factory = _factory(str(cache_dir), run_id)
+    factory = _factory(str(cache_dir), run_id, factory_class)
     factory.events = emit
     skip_reason = failure = None
     for candidate in chain:
@@ -100,8 +101,10 @@ def forget_captures() -> None:
 
 
 def method_task(rec: dict, method: dict, capture_path: str, capture_key: str, capture_info: dict, *,
-                device: str, convention: str) -> dict:
-    """Run the case ``rec`` (a record holding its identity): ``method`` on the capture at ``capture_path``.
+                device: str, convention: str, prepare: Callable | None = None) -> dict:
+    """Run the case ``rec`` (a record holding its identity): ``method`` on the capture at ``capture_path``;
+    ``prepare(capture, method, capture_info) -> (capture, method)``, a module-level function, changes both
+    before the run (a design map's perturbed warps, :mod:`capssim.eval.maps.cells`).
 
     Returns the record completed: ``status`` ``ok`` (metrics, ``wall_time_s``, ``stages_s``,
     ``peak_rss_mb``...), ``skipped`` or ``error`` (``reason``, ``traceback``); ``environment``
@@ -113,6 +116,8 @@ def method_task(rec: dict, method: dict, capture_path: str, capture_key: str, ca
         capture, scorer = _scorer(str(capture_path), capture_key, convention)
         if scorer.gt_mtf is None and scorer.mtf_error is not None:  # the scene is scored, only without its MTF
             rec["notes_for_run"] = [f"{rec['scene']}: ground-truth MTF not measured ({scorer.mtf_error})"]
+        if prepare is not None:
+            capture, method = prepare(capture, method, capture_info)
         _run_method(rec, method, capture, scorer, capture_path, capture_info, device=device)
     except Unavailable as exc:
         rec.update(status="skipped", skip_kind="data", reason=str(exc))

@@ -80,6 +80,9 @@ class CaseTask:
         Further keyword arguments of ``fn`` (picklable).
     record : dict
         Fields every record of the run carries after ``seed`` (e.g. the environment).
+    capture_fn : callable
+        The per-group capture task, a module-level function with :func:`~.cases.capture_task`'s signature and
+        outcome (default: that one; a design map builds each cell's capture with its own, :mod:`capssim.eval.maps`).
     """
 
     fn: Callable[..., dict]
@@ -87,6 +90,7 @@ class CaseTask:
     identity: dict = field(default_factory=dict)
     options: dict = field(default_factory=dict)
     record: dict = field(default_factory=dict)
+    capture_fn: Callable[..., dict] = capture_task
 
 
 @dataclass
@@ -143,7 +147,7 @@ class CaseRun:
             after = list({id(writers[w]): writers[w] for w in writes if w in writers}.values())
             tag = ("capture", g)
             self.labels[tag] = f"{scene['name']}/{noise['name']}/seed{seed}: capture"
-            handle = executor.submit(capture_task, str(self.cache), self.run_id, chain, noise, seed, tag=tag,
+            handle = executor.submit(self.task.capture_fn, str(self.cache), self.run_id, chain, noise, seed, tag=tag,
                                      after=after, name=f"capture-{scene['name']}-{noise['name']}-{seed}",
                                      events=self.emit if executor.live_events else None)
             writers.update((w, handle) for w in writes)

@@ -316,6 +316,10 @@ def _check_method_entry_options(method: dict, path: str) -> None:
         raise ConfigError(path, show(options), f"options that method {method['name']!r} takes ({exc})") from None
 
 
+#: the public name of the check (a design map's methods are checked alike, :mod:`capssim.eval.maps.spec`)
+check_method_entry_options = _check_method_entry_options
+
+
 def available_suites() -> list[str]:
     return sorted(p.stem for p in SUITES_DIR.glob("*.yaml"))
 

@@ -46,6 +46,7 @@ AUXILIARY_PATHS = {
     ("bench suite", "--update-baseline"): "a second output: the run's metrics as the new baseline",
     ("bench suite", "--results-page"): "a second output: the Markdown results page",
     ("bench suite", "--cache"): "a cache folder of captures (default: OUTPUT/cache)",
+    ("bench map", "--cache"): "a cache folder of captures (default: OUTPUT/cache)",
     ("bench registration", "--content-alignment"): "a helper record (gt-check --json) of the captures' ground truth",
     ("bench dataset", "--keep"): "a second output: where the generated datasets are kept",
     ("calibrate", "--report"): "a second output: plots and a summary",
