@@ -139,6 +139,7 @@ RECONSTRUCT_ROOMS = (
     ("dofp",),
     ("registration",),
     ("model",),
+    ("kernel_regression",),  # array-kr's merge of raw samples (below the solvers; needs no solver)
     ("solvers",),
     ("networks",),  # the learned networks: below the priors, which may hold one (nlstr-denoiser)
     ("priors",),
