@@ -30,6 +30,8 @@ __all__ = ["CHUNK_PIXELS", "WINDOW", "SampleField", "kernel_sums"]
 
 #: raw pixels on each side of the window an HR pixel reads in every aperture
 WINDOW = 4
+#: the total weight of valid samples at or below which saturated ones stand in (``kernel_sums(fallback=...)``)
+FALLBACK_BELOW = 1e-3
 #: HR pixels per chunk of rows (x 4 apertures x WINDOW^2 entries, about 10 float32 tensors of them alive)
 CHUNK_PIXELS = 1 << 14
 
@@ -91,9 +93,19 @@ def _window(field: SampleField, rows: tuple[int, int], width: int):
     return flat, inside, px.to(torch.float32), py.to(torch.float32)
 
 
+def _moments(weight, v, dx, dy, onehot, linear: bool):
+    """Per aperture and colour: ``sum w v`` and ``sum w`` (``linear``: with their first and second moments)."""
+    wv = weight * v
+    if linear:
+        wv = torch.stack([wv, wv * dx, wv * dy])
+        weight = torch.stack([weight, weight * dx, weight * dy, weight * dx * dx, weight * dx * dy, weight * dy * dy])
+    return (torch.einsum("...npk,npkc->...ncp", wv, onehot), torch.einsum("...npk,npkc->...ncp", weight, onehot))
+
+
 def kernel_sums(field: SampleField, values: torch.Tensor, inv_cov: torch.Tensor, colour_scale, *,
-                fallback: float = 0.0, linear: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-    """One pass of kernel regression (module docstring): ``(num, den)``, each ``(4, 3, 2H', 2W')``.
+                fallback: float = 0.0, linear: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One pass of kernel regression (module docstring): ``(num, den, seen)``, each ``(4, 3, Ho, Wo)``; ``seen``
+    (bool) says where an aperture's valid samples of a colour have a total weight above :data:`FALLBACK_BELOW`.
 
     Parameters
     ----------
@@ -104,8 +116,9 @@ def kernel_sums(field: SampleField, values: torch.Tensor, inv_cov: torch.Tensor,
     colour_scale : sequence of 3 float
         The kernel's scale ``s_k`` per colour (its std multiplies by ``s_k``).
     fallback : float
-        Weight factor of the samples with ``valid = 0`` but inside the frame (saturated ones): 0 leaves
-        them out; a tiny value lets them decide only where no valid sample is within reach.
+        0: the samples with ``valid = 0`` (saturated ones) are left out; above 0: they are used (with their kernel
+        weight) for an aperture and colour only where its valid samples' total weight is at most
+        :data:`FALLBACK_BELOW` (none in reach: the clip level is then the best bound).
     linear : bool
         Also the first moments, for a local linear fit: ``num`` ``(3, 4, 3, Ho, Wo)`` holds ``sum w v (1, dx, dy)``
         and ``den`` ``(6, 4, 3, Ho, Wo)`` ``sum w (1, dx, dy, dx^2, dx dy, dy^2)``.
@@ -117,6 +130,7 @@ def kernel_sums(field: SampleField, values: torch.Tensor, inv_cov: torch.Tensor,
     lead = (3,) if linear else ()
     num = torch.empty(*lead, 4, 3, ho * wo, dtype=torch.float32, device=device)
     den = torch.empty(*((6,) if linear else ()), 4, 3, ho * wo, dtype=torch.float32, device=device)
+    seen = torch.empty(4, 3, ho * wo, dtype=torch.float32, device=device)
     step = max(1, CHUNK_PIXELS // max(wo, 1))
     for r0 in range(0, ho, step):
         r1 = min(ho, r0 + step)
@@ -128,13 +142,15 @@ def kernel_sums(field: SampleField, values: torch.Tensor, inv_cov: torch.Tensor,
         col = field.colour[flat]  # (4, P, K*K)
         weight = torch.exp(-form * inv_s2[col])
         valid = torch.gather(field.valid, 1, flat.reshape(4, -1)).reshape(flat.shape)
-        weight = weight * inside * (valid + fallback * (1.0 - valid))
-        wv = weight * torch.gather(values, 1, flat.reshape(4, -1)).reshape(flat.shape)
+        v = torch.gather(values, 1, flat.reshape(4, -1)).reshape(flat.shape)
         oh = onehot[flat]  # (4, P, K*K, 3)
-        if linear:
-            wv = torch.stack([wv, wv * dx, wv * dy])
-            weight = torch.stack([weight, weight * dx, weight * dy, weight * dx * dx, weight * dx * dy,
-                                  weight * dy * dy])
-        num[..., r0 * wo:r1 * wo] = torch.einsum("...npk,npkc->...ncp", wv, oh)
-        den[..., r0 * wo:r1 * wo] = torch.einsum("...npk,npkc->...ncp", weight, oh)
-    return num.reshape(*num.shape[:-1], ho, wo), den.reshape(*den.shape[:-1], ho, wo)
+        n_v, d_v = _moments(weight * inside * valid, v, dx, dy, oh, linear)
+        if fallback > 0:  # the saturated samples, only where no valid one is in reach
+            n_s, d_s = _moments(weight * inside * (1.0 - valid), v, dx, dy, oh, linear)
+        seen[..., r0 * wo:r1 * wo] = d_v[0] if linear else d_v
+        if fallback > 0:
+            alone = seen[..., r0 * wo:r1 * wo] <= FALLBACK_BELOW
+            n_v, d_v = torch.where(alone, n_v + n_s, n_v), torch.where(alone, d_v + d_s, d_v)
+        num[..., r0 * wo:r1 * wo], den[..., r0 * wo:r1 * wo] = n_v, d_v
+    return (num.reshape(*num.shape[:-1], ho, wo), den.reshape(*den.shape[:-1], ho, wo),
+            seen.reshape(4, 3, ho, wo) > FALLBACK_BELOW)

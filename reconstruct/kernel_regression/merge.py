@@ -22,8 +22,8 @@ of its pixel's colour, so ``2 I_n`` is ``S0`` plus a polarization term that canc
    polarization (a star of angles on a flat intensity) comes from the aperture's own samples, not smeared
    by the others.
 
-Weights: saturated samples have weight 0 (:data:`SATURATED_WEIGHT` times their kernel weight instead, so that
-they decide only where no unsaturated sample is in reach: the clip level is then the best bound); window
+Weights: saturated samples have weight 0, except for an aperture and colour with no unsaturated sample in reach
+(there they decide: the clip level is then the best bound); window
 entries outside an aperture's frame have weight 0; where an aperture sees nothing of a pixel its ratio is 1
 (its difference 0), i.e. ``I_n = S0 / 2``.
 """
@@ -44,8 +44,8 @@ POLARIZATION_MODES = ("ratio", "difference")
 POL_SIGMA = (1.6, 1.2, 1.6)
 #: the kernel scale of the colour differences (x the steered kernel), per colour
 DIFF_SCALE = (1.5, 1.0, 1.5)
-#: the weight factor of a saturated sample (it decides only where no unsaturated sample is in reach)
-SATURATED_WEIGHT = 1e-4
+#: ``kernel_sums``' fallback: saturated samples decide only where no unsaturated sample is in reach
+SATURATED_WEIGHT = 1.0
 #: the isotropic kernel std (HR px) of step 1, per colour
 ISO_SCALE = (1.5, 1.0, 1.5)
 #: the ridge on the slopes of the local linear fit (HR px^2, times the total weight)
@@ -60,11 +60,12 @@ def _divide(num: torch.Tensor, den: torch.Tensor, default: float) -> torch.Tenso
     return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.full_like(num, default))
 
 
-def aperture_mean(estimates: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
-    """``(4, Ho, Wo)`` per-aperture estimates -> their mean over the apertures with weight (``den > 0``) at each
-    pixel, 0 where none has: equal shares, so that the polarization terms of ``2 v`` cancel (``I_0 + I_90 =
+def aperture_mean(estimates: torch.Tensor, den: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+    """``(4, Ho, Wo)`` per-aperture estimates -> their mean over the apertures that see the pixel (kernel weight
+    ``den`` above :data:`SEEN_WEIGHT`; where none does, those with any weight, e.g. only saturated samples), 0
+    where none has any: equal shares, so that the polarization terms of ``2 v`` cancel (``I_0 + I_90 =
     I_45 + I_135``) whatever the local sample density of each aperture."""
-    seen = (den > 1e-8).to(estimates.dtype)
+    seen = torch.where(seen.any(0, keepdim=True), seen, den > 1e-8).to(estimates.dtype)
     return (estimates * seen).sum(0) / seen.sum(0).clamp_min(1.0)
 
 
@@ -104,7 +105,7 @@ def aperture_weights(field: SampleField, hr_shape: tuple[int, int], *, sigma: fl
     kernel of std ``sigma`` HR px, all colours): exactly 0 where all its samples in reach are saturated or
     outside its frame."""
     q = isotropic(hr_shape, sigma, field.values.device)
-    _, den = kernel_sums(field, field.values, q, (1.0, 1.0, 1.0))
+    _, den, _ = kernel_sums(field, field.values, q, (1.0, 1.0, 1.0))
     return den.sum(1)
 
 
@@ -113,15 +114,15 @@ def merge_intensity(field: SampleField, hr_shape: tuple[int, int], sigma_n: floa
     """Steps 1-4: ``S0`` ``(3, Ho, Wo)`` (R, G, B) and the steered inverse covariance ``Q`` ``(3, Ho, Wo)``."""
     two = 2.0 * field.values
     iso = isotropic(hr_shape, scale, field.values.device)
-    num, den = kernel_sums(field, two, iso, ISO_SCALE, fallback=SATURATED_WEIGHT)
-    green0 = aperture_mean(_divide(num[:, 1], den[:, 1], 0.0), den[:, 1])
+    num, den, seen = kernel_sums(field, two, iso, ISO_SCALE, fallback=SATURATED_WEIGHT)
+    green0 = aperture_mean(_divide(num[:, 1], den[:, 1], 0.0), den[:, 1], seen[:, 1])
     q = steered(green0, sigma_n, scale=scale, steer=steer)
-    num, den = kernel_sums(field, two, q, DIFF_SCALE, fallback=SATURATED_WEIGHT, linear=True)
-    green = aperture_mean(local_linear(num[:, :, 1], den[:, :, 1], green0[None]), den[0, :, 1])
+    num, den, seen = kernel_sums(field, two, q, DIFF_SCALE, fallback=SATURATED_WEIGHT, linear=True)
+    green = aperture_mean(local_linear(num[:, :, 1], den[:, :, 1], green0[None]), den[0, :, 1], seen[:, 1])
     diff = two - at_samples(green[None], field.pos)[:, 0]
-    num, den = kernel_sums(field, diff, q, DIFF_SCALE, fallback=SATURATED_WEIGHT)
-    red = green + aperture_mean(_divide(num[:, 0], den[:, 0], 0.0), den[:, 0])
-    blue = green + aperture_mean(_divide(num[:, 2], den[:, 2], 0.0), den[:, 2])
+    num, den, seen = kernel_sums(field, diff, q, DIFF_SCALE, fallback=SATURATED_WEIGHT)
+    red = green + aperture_mean(_divide(num[:, 0], den[:, 0], 0.0), den[:, 0], seen[:, 0])
+    blue = green + aperture_mean(_divide(num[:, 2], den[:, 2], 0.0), den[:, 2], seen[:, 2])
     return torch.stack([red, green, blue]), q
 
 
@@ -137,7 +138,7 @@ def merge_apertures(field: SampleField, hr_shape: tuple[int, int], sigma_n: floa
     else:
         own = field.values - half
     iso = isotropic(hr_shape, scale, field.values.device)
-    num, den = kernel_sums(field, own, iso, POL_SIGMA, fallback=SATURATED_WEIGHT)
+    num, den, _ = kernel_sums(field, own, iso, POL_SIGMA, fallback=SATURATED_WEIGHT)
     if polarization == "ratio":
         image = (0.5 * s0 + RATIO_EPS)[None] * _divide(num, den, 1.0) - RATIO_EPS
     else:

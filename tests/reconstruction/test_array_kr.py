@@ -1,0 +1,113 @@
+"""``array-kr``: accuracy with true warps, zero weight for saturated and unseen samples, odd and tiny frames,
+CUDA, option refusal."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from capssim.camera.array_geometry import raw_matrix
+from capssim.camera.sensor import make_sensor
+from capssim.errors import InputError
+from capssim.reconstruct.kernel_regression.gather import SampleField
+from capssim.reconstruct.kernel_regression.merge import aperture_weights
+from capssim.reconstruct.methods.array_kr import parse_options, reconstruct_raw
+from capssim.reconstruct.registry import available_methods, reconstruct
+from capssim.simulate import simulate_capture
+
+
+def _psnr(a, b):
+    return float(10 * np.log10(1.0 / max(np.mean((np.asarray(a, np.float64) - b) ** 2), 1e-30)))
+
+
+@pytest.fixture(scope="module")
+def smooth_capture(smooth_random_scene):
+    """A noise-free capture (rig's default sub-pixel warps) of a smooth 64 px scene whose colours share one
+    texture, with its ground truth."""
+    scene = smooth_random_scene(64, seed=3).reshape(4, 3, 64, 64)
+    gt = (scene.mean(axis=1, keepdims=True) * np.array([0.9, 1.0, 0.8], np.float32)[None, :, None, None])
+    gt = gt.reshape(12, 64, 64)
+    return simulate_capture(gt, make_sensor("none"), seed=0, psf={"type": "none"}), gt
+
+
+def _raw_h(shifts_hr):
+    """HR -> raw maps of four apertures translated by ``shifts_hr`` ``(4, 2)`` HR px."""
+    out = []
+    for dx, dy in shifts_hr:
+        h = np.eye(3)
+        h[0, 2], h[1, 2] = dx, dy
+        out.append(raw_matrix() @ h)
+    return np.stack(out)
+
+
+def test_registered_with_options_and_reference():
+    spec = available_methods()["array-kr"]
+    assert spec.input_kind == "caps" and "Wronski" in spec.reference and spec.tuned_on
+    assert [o.name for o in spec.options()] == ["scale", "steer", "polarization", "clip"]
+
+
+def test_noise_free_smooth_scene_with_true_warps_is_reproduced(smooth_capture):
+    capture, gt = smooth_capture
+    out, record = reconstruct(capture, "array-kr", true_warps=True, physical_projection=False)
+    assert out.image.shape == gt.shape
+    assert _psnr(out.image[:, 4:-4, 4:-4], gt[:, 4:-4, 4:-4]) >= 40.0
+    # the polarization parts too: each analyzer minus the mean of the four
+    own = out.image.reshape(4, 3, 64, 64) - out.image.reshape(4, 3, 64, 64).mean(0)
+    truth = gt.reshape(4, 3, 64, 64) - gt.reshape(4, 3, 64, 64).mean(0)
+    assert _psnr(own[..., 4:-4, 4:-4], truth[..., 4:-4, 4:-4]) >= 40.0
+    assert record["params"]["polarization"] == "ratio"
+
+
+def test_weights_vanish_on_saturated_and_unseen_samples():
+    raw = np.full((4, 16, 16), 0.4, np.float32)
+    saturated = np.zeros_like(raw, bool)
+    saturated[1, 4:12, 4:12] = True  # aperture 1: a saturated block
+    raw[1][saturated[1]] = 1.0
+    shifts = [(0, 0), (0.5, 0.5), (-0.5, 0.25), (24.0, 0.0)]  # aperture 3 sees only the left part of the grid
+    field = SampleField.build(torch.from_numpy(raw), torch.from_numpy(~saturated), _raw_h(shifts), (0, 1, 1, 2))
+    weights = aperture_weights(field, (32, 32)).numpy()
+    assert np.all(weights[1, 12:20, 12:20] == 0.0)  # inside the saturated block (HR 8..24), beyond the kernel's reach
+    assert np.all(weights[0, 12:20, 12:20] > 0.1) and np.all(weights[2, 12:20, 12:20] > 0.1)
+    # aperture 3 reads raw x = (X + 24) / 2 - 0.25: HR columns X > 7.5 are out of its 16-px frame
+    assert np.all(weights[3, :, 12:] == 0.0) and np.all(weights[3, :, :6] > 0.1)
+    # the saturated aperture does not leak into the others' images; its own stays at its clip level
+    image, _ = reconstruct_raw(raw, saturated, _raw_h(shifts), (32, 32), sigma_n=0.0)
+    np.testing.assert_allclose(image[[0, 2], :, 12:20, 4:10].numpy(), 0.4, atol=1e-4)
+    np.testing.assert_allclose(image[1, :, 12:20, 12:20].numpy(), 1.0, atol=1e-4)
+
+
+@pytest.mark.parametrize("raw_hw", [(9, 13), (2, 2), (2, 3)])
+def test_odd_and_tiny_frames(raw_hw):
+    h, w = raw_hw
+    value = np.array([0.2, 0.3, 0.5, 0.4], np.float32)[:, None, None]  # one polarized constant per aperture
+    raw = np.broadcast_to(value, (4, h, w)).copy()
+    hr = (2 * h, 2 * w)
+    image, record = reconstruct_raw(raw, np.zeros_like(raw, bool), _raw_h([(0, 0)] * 4), hr, sigma_n=0.0)
+    assert image.shape == (4, 3, *hr) and torch.isfinite(image).all()
+    np.testing.assert_allclose(image.numpy(), np.broadcast_to(value[:, None], image.shape), atol=1e-4)
+
+
+def test_bad_input_is_refused_in_one_line():
+    with pytest.raises(InputError, match="raw"):
+        reconstruct_raw(np.zeros((3, 4, 4)), np.zeros((3, 4, 4), bool), _raw_h([(0, 0)] * 4), (8, 8))
+    with pytest.raises(InputError, match="hr_shape"):
+        reconstruct_raw(np.zeros((4, 1, 1)), np.zeros((4, 1, 1), bool), _raw_h([(0, 0)] * 4), (1, 1))
+
+
+def test_options_are_checked():
+    assert parse_options({"scale": "1.5", "polarization": "Difference"})["polarization"] == "difference"
+    with pytest.raises(InputError, match="Did you mean 'scale'"):
+        parse_options({"scal": 1})
+    with pytest.raises(InputError, match="scale"):
+        parse_options({"scale": 10})
+    with pytest.raises(InputError, match="polarization"):
+        parse_options({"polarization": "stokes"})
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_cuda_matches_cpu(smooth_capture):
+    capture, _ = smooth_capture
+    cpu, _ = reconstruct(capture, "array-kr", true_warps=True, device="cpu")
+    gpu, _ = reconstruct(capture, "array-kr", true_warps=True, device="cuda")
+    np.testing.assert_allclose(gpu.image, cpu.image, atol=2e-4)
