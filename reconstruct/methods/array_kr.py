@@ -30,6 +30,8 @@ Options (``-p KEY=VALUE``, ``capssim reconstruct --options array-kr``): ``scale`
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import torch
 
@@ -41,12 +43,14 @@ from ..kernel_regression.merge import POLARIZATION_MODES, merge_apertures
 from ..kernel_regression.steering import noise_sigma
 from ..model.aperture_demosaic import flat_corrected_raw
 from ..model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
-from ..pipeline import coerce_option, mean_psnr
+from ..pipeline import caps_option_names, coerce_option, mean_psnr
 from ..pipeline.option_table import MethodOption, check_option_names
 from ..registry import MethodOutput, RunContext, register_method
 from .caps_naive import unobserved_pixels
 
 __all__ = ["ARRAY_KR_OPTIONS", "TUNED_ON", "array_kr", "array_kr_options", "parse_options", "reconstruct_raw"]
+
+log = logging.getLogger(__name__)
 
 REFERENCE = ("Wronski et al., 'Handheld multi-frame super-resolution', ACM TOG 38(4) (SIGGRAPH 2019): kernel "
              "regression of raw Bayer samples with structure-tensor steered kernels; capssim's polarization step")
@@ -68,10 +72,18 @@ def array_kr_options() -> list[MethodOption]:
 
 
 def parse_options(options: dict) -> dict:
-    """The options as values (defaults filled in); an unknown name or a value out of range is refused."""
+    """The options as values (defaults filled in); an unknown name or a value out of range is refused. An option
+    of ``caps`` (e.g. ``iterations`` from ``capssim reconstruct -m all --iterations N``) is ignored with a warning,
+    as ``caps-naive`` does."""
+    own = {o.name for o in array_kr_options()}
+    options = dict(options or {})
+    for key in [k for k in options if str(k).replace("-", "_") not in own
+                and str(k).replace("-", "_") in caps_option_names()]:
+        log.warning("option %s is a caps option; ignored by array-kr", key)
+        options.pop(key)
     check_option_names("array-kr", options, array_kr_options())
     values = {name: spec[0] for name, spec in ARRAY_KR_OPTIONS.items()}
-    for key, raw in dict(options or {}).items():
+    for key, raw in options.items():
         name = str(key).replace("-", "_")
         values[name] = coerce_option(name, raw, type(ARRAY_KR_OPTIONS[name][0]))
     if not 0.25 <= values["scale"] <= 4.0:

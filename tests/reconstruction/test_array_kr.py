@@ -97,6 +97,7 @@ def test_bad_input_is_refused_in_one_line():
 
 def test_options_are_checked():
     assert parse_options({"scale": "1.5", "polarization": "Difference"})["polarization"] == "difference"
+    assert "iterations" not in parse_options({"iterations": 3})  # a caps option (-m all --iterations N): ignored
     with pytest.raises(InputError, match="Did you mean 'scale'"):
         parse_options({"scal": 1})
     with pytest.raises(InputError, match="scale"):
