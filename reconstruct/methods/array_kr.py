@@ -38,17 +38,19 @@ import torch
 from capssim.conventions import CFA_PATTERNS, cfa_pattern
 from capssim.errors import InputError
 
+from ..kernel_regression.fusion import fuse_apertures, robust_noise_sigma
 from ..kernel_regression.gather import SampleField
 from ..kernel_regression.merge import POLARIZATION_MODES, merge_apertures
 from ..kernel_regression.steering import noise_sigma
-from ..model.aperture_demosaic import flat_corrected_raw
+from ..model.aperture_demosaic import demosaicked_frames, flat_corrected_raw
 from ..model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
 from ..pipeline import caps_option_names, coerce_option, mean_psnr
 from ..pipeline.option_table import MethodOption, check_option_names
 from ..registry import MethodOutput, RunContext, register_method
 from .caps_naive import unobserved_pixels
 
-__all__ = ["ARRAY_KR_OPTIONS", "TUNED_ON", "array_kr", "array_kr_options", "parse_options", "reconstruct_raw"]
+__all__ = ["ARRAY_KR_OPTIONS", "TUNED_ON", "array_kr", "array_kr_options", "parse_options", "raw_noise_sigma",
+           "reconstruct_raw"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +60,12 @@ REFERENCE = ("Wronski et al., 'Handheld multi-frame super-resolution', ACM TOG 3
 TUNED_ON = ("dev",)
 #: name -> (default, valid, meaning)
 ARRAY_KR_OPTIONS = {
+    "samples": ("demosaicked", "demosaicked or raw", "demosaicked: each aperture demosaicked and registered, the four "
+                "fused (intensity) with each analyzer's own detail; raw: the raw Bayer samples merged by steered kernel "
+                "regression"),
+    "detail": (True, "true or false", "demosaicked: keep each analyzer's detail where the intensity does not explain "
+               "it (false: smooth polarization only)"),
+    "sharpen": (0.5, "number in [0, 2]", "demosaicked: unsharp-mask gain of the fused intensity"),
     "scale": (1.0, "number in [0.25, 4]", "multiplies every kernel std (larger: smoother, less noise)"),
     "steer": (True, "true or false", "steer the kernels by the structure tensor (false: isotropic)"),
     "polarization": ("ratio", "ratio or difference", "each analyzer's own samples against the merged intensity: "
@@ -86,6 +94,11 @@ def parse_options(options: dict) -> dict:
     for key, raw in options.items():
         name = str(key).replace("-", "_")
         values[name] = coerce_option(name, raw, type(ARRAY_KR_OPTIONS[name][0]))
+    if not 0.0 <= values["sharpen"] <= 2.0:
+        raise InputError("option sharpen", values["sharpen"], ARRAY_KR_OPTIONS["sharpen"][1], "e.g. -p sharpen=0.5")
+    if str(values["samples"]).strip().lower() not in ("demosaicked", "raw"):
+        raise InputError("option samples", repr(values["samples"]), "demosaicked or raw", "e.g. -p samples=raw")
+    values["samples"] = str(values["samples"]).strip().lower()
     if not 0.25 <= values["scale"] <= 4.0:
         raise InputError("option scale", values["scale"], ARRAY_KR_OPTIONS["scale"][1], "e.g. -p scale=1.0")
     mode = str(values["polarization"]).strip().lower()
@@ -94,6 +107,25 @@ def parse_options(options: dict) -> dict:
                          "e.g. -p polarization=ratio")
     values["polarization"] = mode
     return values
+
+
+def raw_noise_sigma(raw: torch.Tensor) -> float:
+    """Immerkaer's noise estimate of the frames' ``(4, H, W)`` Bayer sub-images (0 for frames under 2x2)."""
+    h2, w2 = raw.shape[1] // 2 * 2, raw.shape[2] // 2 * 2
+    if min(h2, w2) < 2:
+        return 0.0
+    subs = raw[:, :h2, :w2].reshape(4, h2 // 2, 2, w2 // 2, 2).permute(0, 2, 4, 1, 3)
+    return noise_sigma(subs.reshape(16, h2 // 2, w2 // 2))
+
+
+def known_noise_sigma(capture) -> float | None:
+    """The Gaussian noise std of the capture's sensor model when its set-up states one (a calibrated camera knows
+    its noise; a single small frame of dense texture, e.g. a Siemens star, cannot tell noise from texture)."""
+    try:
+        sigma = getattr(capture.setup.sensor, "sigma", None)
+    except (AttributeError, ValueError, KeyError):
+        return None
+    return float(sigma) if sigma is not None and capture.setup.noise == "gaussian" else None
 
 
 def reconstruct_raw(raw, saturated, raw_homographies, hr_shape, *, cfa: str = "RGGB", device="cpu",
@@ -114,9 +146,7 @@ def reconstruct_raw(raw, saturated, raw_homographies, hr_shape, *, cfa: str = "R
     field = SampleField.build(raw_t, torch.as_tensor(~sat, device=device), raw_homographies,
                               CFA_PATTERNS[cfa_pattern(cfa)])
     if sigma_n is None:
-        h2, w2 = raw_t.shape[1] // 2 * 2, raw_t.shape[2] // 2 * 2
-        subs = raw_t[:, :h2, :w2].reshape(4, h2 // 2, 2, w2 // 2, 2).permute(0, 2, 4, 1, 3)
-        sigma_n = noise_sigma(subs.reshape(16, h2 // 2, w2 // 2))
+        sigma_n = raw_noise_sigma(raw_t)
     image, record = merge_apertures(field, hr_shape, sigma_n, scale=scale, steer=steer, polarization=polarization)
     record["noise_sigma"] = float(sigma_n)
     return image, record
@@ -135,10 +165,22 @@ def array_kr(capture, *, context: RunContext) -> MethodOutput:
     with timer.stage("registration"):
         lr_images, lr_saturated = capture.lr_images()
         geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)
-    with timer.stage("merge"):
-        image, record = reconstruct_raw(raw, saturated, geometry.raw_homographies, geometry.hr_shape,
-                                        cfa=capture.cfa, device=context.device, scale=opts["scale"],
-                                        steer=opts["steer"], polarization=opts["polarization"])
+    if opts["samples"] == "raw":
+        with timer.stage("merge"):
+            image, record = reconstruct_raw(raw, saturated, geometry.raw_homographies, geometry.hr_shape,
+                                            cfa=capture.cfa, device=context.device, scale=opts["scale"],
+                                            steer=opts["steer"], polarization=opts["polarization"])
+    else:
+        with timer.stage("demosaic"):
+            rgb = demosaicked_frames(capture, context, "menon2007")
+        with timer.stage("merge"):
+            sigma_n = known_noise_sigma(capture)
+            if sigma_n is None:
+                sigma_n = robust_noise_sigma(torch.as_tensor(np.asarray(raw, dtype=np.float32)))
+            image = fuse_apertures(rgb, torch.as_tensor(~np.asarray(saturated, bool), device=context.device),
+                                   geometry.raw_homographies, geometry.hr_shape, sigma_n, detail=opts["detail"],
+                                   sharpen=opts["sharpen"])
+            record = {"noise_sigma": float(sigma_n)}
     with timer.stage("to_host"):
         image = image.reshape(12, *image.shape[-2:])
         analyzer = calibrated_analyzer(context)

@@ -10,6 +10,7 @@ import torch
 from capssim.camera.array_geometry import raw_matrix
 from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
+from capssim.reconstruct.kernel_regression.fusion import fuse_apertures, visibility
 from capssim.reconstruct.kernel_regression.gather import SampleField
 from capssim.reconstruct.kernel_regression.merge import aperture_weights
 from capssim.reconstruct.methods.array_kr import parse_options, reconstruct_raw
@@ -44,12 +45,14 @@ def _raw_h(shifts_hr):
 def test_registered_with_options_and_reference():
     spec = available_methods()["array-kr"]
     assert spec.input_kind == "caps" and "Wronski" in spec.reference and spec.tuned_on
-    assert [o.name for o in spec.options()] == ["scale", "steer", "polarization", "clip"]
+    assert [o.name for o in spec.options()] == ["samples", "detail", "sharpen", "scale", "steer", "polarization",
+                                                "clip"]
 
 
-def test_noise_free_smooth_scene_with_true_warps_is_reproduced(smooth_capture):
+@pytest.mark.parametrize("samples", ["demosaicked", "raw"])
+def test_noise_free_smooth_scene_with_true_warps_is_reproduced(smooth_capture, samples):
     capture, gt = smooth_capture
-    out, record = reconstruct(capture, "array-kr", true_warps=True, physical_projection=False)
+    out, record = reconstruct(capture, "array-kr", true_warps=True, physical_projection=False, samples=samples)
     assert out.image.shape == gt.shape
     assert _psnr(out.image[:, 4:-4, 4:-4], gt[:, 4:-4, 4:-4]) >= 40.0
     # the polarization parts too: each analyzer minus the mean of the four
@@ -104,6 +107,35 @@ def test_options_are_checked():
         parse_options({"scale": 10})
     with pytest.raises(InputError, match="polarization"):
         parse_options({"polarization": "stokes"})
+    assert parse_options({"samples": "RAW"})["samples"] == "raw"
+    with pytest.raises(InputError, match="samples"):
+        parse_options({"samples": "bayer"})
+    with pytest.raises(InputError, match="sharpen"):
+        parse_options({"sharpen": 3})
+
+
+def test_fusion_replaces_an_aperture_where_it_is_saturated_or_out_of_view():
+    """Aperture 0 saturated in a block and all apertures shifted: where aperture 0 does not see a pixel its image
+    is I_45 + I_135 - I_90 of the others, exact on a constant polarized scene."""
+    levels = torch.tensor([0.7, 0.4, 0.1, 0.4])  # I_0 + I_90 = I_45 + I_135
+    rgb = levels.view(4, 1, 1, 1).expand(4, 3, 16, 16).clone()
+    usable = torch.ones(4, 16, 16, dtype=torch.bool)
+    rgb[0, :, 4:9, 4:9] = 1.0  # saturated, masked
+    usable[0, 4:9, 4:9] = False
+    raw_h = _raw_h([(0, 0), (3, 0), (0, 3), (3, 3)])
+    vis = visibility(usable, raw_h, (32, 32))
+    assert vis[0, 12:14, 12:14].sum() == 0 and vis[0, :4, :4].min() == 1 and vis[1, :, -3:].max() == 0
+    out = fuse_apertures(rgb, usable, raw_h, (32, 32), 0.0)
+    np.testing.assert_allclose(out[0, :, 8:16, 8:16].numpy(), 0.7, atol=1e-5)
+    np.testing.assert_allclose(out.numpy(), levels.view(4, 1, 1, 1).expand(4, 3, 32, 32).numpy(), atol=1e-4)
+
+
+@pytest.mark.parametrize("raw_hw", [(1, 1), (3, 5), (7, 2)])
+def test_fusion_on_odd_and_tiny_frames(raw_hw):
+    rgb = torch.rand(4, 3, *raw_hw)
+    hr = (2 * raw_hw[0], 2 * raw_hw[1])
+    out = fuse_apertures(rgb, torch.ones(4, *raw_hw, dtype=torch.bool), _raw_h([(0, 0)] * 4), hr, 0.01)
+    assert out.shape == (4, 3, *hr) and torch.isfinite(out).all()
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
