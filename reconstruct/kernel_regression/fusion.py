@@ -15,8 +15,8 @@ Each analyzer's image is ``out_n = m' + L(D_n) + w (D_n - L(D_n))`` with ``D_n =
 
 Where an aperture does not see a pixel (out of its view, or within two raw pixels (the bicubic support) of a saturated sample) its weight
 is zero: its image there is ``B_{n+1} + B_{n+3} - B_{n+2}`` (``I_0 + I_90 = I_45 + I_135``) from the others.
-Rows of the HR grid are resampled in chunks and the colours one at a time, so a 2560x2048 frame stays well
-under 8 GB. Constants chosen on the ``dev`` suite (docs/guides/methods.md).
+The HR grid is fused in chunks of rows with a halo of :data:`HALO` rows (the same result as one piece)
+and the colours one at a time, so the working memory is bounded on any frame. Constants chosen on the ``dev`` suite (docs/guides/methods.md).
 """
 
 from __future__ import annotations
@@ -30,13 +30,15 @@ from ..model.aperture_demosaic import sampling_grid
 __all__ = ["ALPHA", "BETA", "ENERGY_SIGMA", "POL_SIGMA", "SHARPEN", "fuse_apertures", "gaussian", "robust_noise_sigma",
            "visibility"]
 
-POL_SIGMA = 1.5
+POL_SIGMA = 2.0
 ENERGY_SIGMA = 1.5
-ALPHA = 2.0
+ALPHA = 1.0
 BETA = 8.0
 SHARPEN = 0.5
-#: HR pixels resampled per chunk of rows
+#: HR pixels fused per chunk of rows (about 400 bytes each while it is processed)
 CHUNK_PIXELS = 1 << 20
+#: HR rows read on each side of a chunk: deeper than the filters' chain (3 POL_SIGMA + 3 ENERGY_SIGMA = 10.5)
+HALO = 16
 
 
 def gaussian(image: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -54,30 +56,22 @@ def gaussian(image: torch.Tensor, sigma: float) -> torch.Tensor:
     return x.reshape(shape)
 
 
-def _row_chunks(hr_shape: tuple[int, int]):
-    step = max(1, CHUNK_PIXELS // max(hr_shape[1], 1))
-    for r0 in range(0, hr_shape[0], step):
-        yield r0, min(hr_shape[0], r0 + step)
-
-
-def _warp(images: torch.Tensor, raw_h: np.ndarray, hr_shape: tuple[int, int], mode: str, padding: str):
-    """``(4, C, H, W)`` resampled onto the HR grid ``(4, C, Ho, Wo)``, in chunks of rows (aperture n reads
+def _warp(images: torch.Tensor, raw_h: np.ndarray, rows: tuple[int, int], width: int, mode: str, padding: str):
+    """``(4, C, H, W)`` resampled onto the HR rows ``[r0, r1)`` (``(4, C, r1 - r0, width)``; aperture n reads
     ``raw_h[n] (x, y, 1)``)."""
-    out = images.new_empty((images.shape[0], images.shape[1], *hr_shape))
-    for r0, r1 in _row_chunks(hr_shape):
-        shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, float(r0)], [0.0, 0.0, 1.0]])
-        grid = sampling_grid(np.asarray(raw_h, dtype=np.float64) @ shift, (r1 - r0, hr_shape[1]),
-                             tuple(images.shape[-2:]), images.device)
-        out[:, :, r0:r1] = F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=True)
-    return out
+    shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, float(rows[0])], [0.0, 0.0, 1.0]])
+    grid = sampling_grid(np.asarray(raw_h, dtype=np.float64) @ shift, (rows[1] - rows[0], width),
+                         tuple(images.shape[-2:]), images.device)
+    return F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=True)
 
 
-def visibility(usable: torch.Tensor, raw_h: np.ndarray, hr_shape: tuple[int, int]) -> torch.Tensor:
-    """``(4, Ho, Wo)`` float 1/0: HR pixels whose source in aperture n is in view and more than two raw pixels away
-    from any unusable (saturated) sample; ``usable`` ``(4, H, W)`` bool."""
+def visibility(usable: torch.Tensor, raw_h: np.ndarray, hr_shape: tuple[int, int],
+               rows: tuple[int, int] | None = None) -> torch.Tensor:
+    """``(4, r1 - r0, Wo)`` float 1/0 (all rows by default): HR pixels whose source in aperture n is in view and
+    more than two raw pixels away from any unusable (saturated) sample; ``usable`` ``(4, H, W)`` bool."""
     bad = (~usable.bool()).to(torch.float32)[:, None]
     near_bad = F.max_pool2d(bad, 5, stride=1, padding=2)  # the bicubic support: two raw pixels
-    seen = _warp(1.0 - near_bad, raw_h, hr_shape, "bilinear", "zeros")[:, 0]
+    seen = _warp(1.0 - near_bad, raw_h, rows or (0, hr_shape[0]), hr_shape[1], "bilinear", "zeros")[:, 0]
     return (seen >= 0.5).to(torch.float32)
 
 
@@ -124,10 +118,14 @@ def fuse_apertures(rgb: torch.Tensor, usable: torch.Tensor, raw_h: np.ndarray, h
     """``rgb`` ``(4, 3, H, W)`` demosaicked frames, ``usable`` ``(4, H, W)`` bool (false: saturated or masked),
     ``raw_h`` ``(4, 3, 3)`` HR -> raw maps, ``sigma_n`` the raw noise std: ``(4, 3, Ho, Wo)`` float32.
     ``detail=False`` keeps only the smooth polarization; ``sharpen=0`` leaves the intensity unsharpened."""
-    hr_shape = (int(hr_shape[0]), int(hr_shape[1]))
-    vis = visibility(usable, raw_h, hr_shape)
-    out = rgb.new_empty((4, 3, *hr_shape))
-    for k in range(3):
-        b = _warp(rgb[:, k:k + 1], raw_h, hr_shape, "bicubic", "border")[:, 0]
-        out[:, k] = _fuse_colour(b, vis, float(sigma_n), detail, float(sharpen))
+    ho, wo = int(hr_shape[0]), int(hr_shape[1])
+    out = rgb.new_empty((4, 3, ho, wo))
+    step = max(1, CHUNK_PIXELS // max(wo, 1))
+    for r0 in range(0, ho, step):  # chunks of rows with a halo: the same result as one piece
+        r1 = min(ho, r0 + step)
+        a, b = max(0, r0 - HALO), min(ho, r1 + HALO)
+        vis = visibility(usable, raw_h, (ho, wo), (a, b))
+        for k in range(3):
+            warped = _warp(rgb[:, k:k + 1], raw_h, (a, b), wo, "bicubic", "border")[:, 0]
+            out[:, k, r0:r1] = _fuse_colour(warped, vis, float(sigma_n), detail, float(sharpen))[:, r0 - a:r1 - a]
     return out

@@ -10,6 +10,7 @@ import torch
 from capssim.camera.array_geometry import raw_matrix
 from capssim.camera.sensor import make_sensor
 from capssim.errors import InputError
+from capssim.reconstruct.kernel_regression import fusion
 from capssim.reconstruct.kernel_regression.fusion import fuse_apertures, visibility
 from capssim.reconstruct.kernel_regression.gather import SampleField
 from capssim.reconstruct.kernel_regression.merge import aperture_weights
@@ -128,6 +129,15 @@ def test_fusion_replaces_an_aperture_where_it_is_saturated_or_out_of_view():
     out = fuse_apertures(rgb, usable, raw_h, (32, 32), 0.0)
     np.testing.assert_allclose(out[0, :, 8:16, 8:16].numpy(), 0.7, atol=1e-5)
     np.testing.assert_allclose(out.numpy(), levels.view(4, 1, 1, 1).expand(4, 3, 32, 32).numpy(), atol=1e-4)
+
+
+def test_fusion_in_chunks_of_rows_equals_one_piece(monkeypatch):
+    rgb = torch.rand(4, 3, 40, 12)
+    usable = torch.rand(4, 40, 12) > 0.05
+    raw_h = _raw_h([(0, 0), (1, 0.5), (0.5, 1), (1, 1)])
+    whole = fuse_apertures(rgb, usable, raw_h, (80, 24), 0.01)
+    monkeypatch.setattr(fusion, "CHUNK_PIXELS", 24 * 7)  # 7 rows a chunk
+    np.testing.assert_allclose(fuse_apertures(rgb, usable, raw_h, (80, 24), 0.01).numpy(), whole.numpy(), atol=1e-6)
 
 
 @pytest.mark.parametrize("raw_hw", [(1, 1), (3, 5), (7, 2)])
