@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from ..model.aperture_demosaic import sampling_grid
 
 __all__ = ["ALPHA", "BETA", "ENERGY_SIGMA", "POL_SIGMA", "SHARPEN", "fuse_apertures", "gaussian", "robust_noise_sigma",
-           "visibility"]
+           "unseen_pixels", "visibility"]
 
 POL_SIGMA = 2.0
 ENERGY_SIGMA = 1.5
@@ -87,6 +87,18 @@ def robust_noise_sigma(raw: torch.Tensor) -> float:
     if response.numel() > 1 << 24:  # quantile's limit: a strided subset
         response = response[:: response.numel() // (1 << 24) + 1]
     return float(torch.quantile(response, 0.1)) / (0.1257 * 6.0)
+
+
+def unseen_pixels(usable: torch.Tensor, raw_h: np.ndarray, hr_shape: tuple[int, int]) -> np.ndarray:
+    """``(12, Ho, Wo)`` bool, channel ``3 n + k``: the HR pixels aperture n does not see (:func:`visibility` false),
+    computed in chunks of rows (the record's ``unobserved``, without a full-frame sampling grid)."""
+    ho, wo = int(hr_shape[0]), int(hr_shape[1])
+    out = np.empty((4, ho, wo), dtype=bool)
+    step = max(1, CHUNK_PIXELS // max(wo, 1))
+    for r0 in range(0, ho, step):
+        r1 = min(ho, r0 + step)
+        out[:, r0:r1] = (visibility(usable, raw_h, (ho, wo), (r0, r1)) < 0.5).cpu().numpy()
+    return np.repeat(out, 3, axis=0)
 
 
 def _fuse_colour(b: torch.Tensor, vis: torch.Tensor, sigma_n: float, detail: bool, sharpen: float) -> torch.Tensor:

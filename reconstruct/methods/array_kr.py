@@ -38,7 +38,7 @@ import torch
 from capssim.conventions import CFA_PATTERNS, cfa_pattern
 from capssim.errors import InputError
 
-from ..kernel_regression.fusion import fuse_apertures, robust_noise_sigma
+from ..kernel_regression.fusion import fuse_apertures, robust_noise_sigma, unseen_pixels
 from ..kernel_regression.gather import SampleField
 from ..kernel_regression.merge import POLARIZATION_MODES, merge_apertures
 from ..kernel_regression.steering import noise_sigma
@@ -165,6 +165,7 @@ def array_kr(capture, *, context: RunContext) -> MethodOutput:
     with timer.stage("registration"):
         lr_images, lr_saturated = capture.lr_images()
         geometry, reg_record = method_geometry(capture, context, images=lr_images, saturated=lr_saturated)
+    usable = torch.as_tensor(~np.asarray(saturated, bool), device=context.device)
     if opts["samples"] == "raw":
         with timer.stage("merge"):
             image, record = reconstruct_raw(raw, saturated, geometry.raw_homographies, geometry.hr_shape,
@@ -177,9 +178,8 @@ def array_kr(capture, *, context: RunContext) -> MethodOutput:
             sigma_n = known_noise_sigma(capture)
             if sigma_n is None:
                 sigma_n = robust_noise_sigma(torch.as_tensor(np.asarray(raw, dtype=np.float32)))
-            image = fuse_apertures(rgb, torch.as_tensor(~np.asarray(saturated, bool), device=context.device),
-                                   geometry.raw_homographies, geometry.hr_shape, sigma_n, detail=opts["detail"],
-                                   sharpen=opts["sharpen"])
+            image = fuse_apertures(rgb, usable, geometry.raw_homographies, geometry.hr_shape, sigma_n,
+                                   detail=opts["detail"], sharpen=opts["sharpen"])
             record = {"noise_sigma": float(sigma_n)}
     with timer.stage("to_host"):
         image = image.reshape(12, *image.shape[-2:])
@@ -195,4 +195,5 @@ def array_kr(capture, *, context: RunContext) -> MethodOutput:
         host = image.to("cpu", torch.float32).numpy()
     params = {**opts, "aperture_warps": geometry.aperture_homographies.tolist()}
     return MethodOutput(image=host, params=params, extra=extra,
-                        unobserved=lambda: unobserved_pixels(saturated, geometry, context.device))
+                        unobserved=lambda: unobserved_pixels(saturated, geometry, context.device)
+                        if opts["samples"] == "raw" else unseen_pixels(usable, geometry.raw_homographies, geometry.hr_shape))
