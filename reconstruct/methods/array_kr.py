@@ -4,7 +4,14 @@ Reference: B. Wronski et al., "Handheld multi-frame super-resolution", ACM TOG 3
 Bayer samples of a burst merged straight onto the output grid by anisotropic kernel regression steered by the
 local structure tensor. Here the burst is the array's four apertures, with known polarizers.
 
-**The model.** Every raw sample ``v`` of aperture ``n`` (polarizer ``45 n`` deg) measures
+**The default (``samples=demosaicked``).** Each aperture demosaicked (Menon 2007) and registered by one bicubic
+warp, as in ``caps-naive``; the mean of the four is the intensity (sharpened where its detail leads) and each
+analyzer keeps its smooth polarization and, where the intensity does not explain it, its own detail
+(:mod:`capssim.reconstruct.kernel_regression.fusion`). Its noise std is the capture's Gaussian sensor sigma when
+the set-up states one, else a robust estimate. On the ``dev`` suite it beats ``samples=raw``, described next, by
+2 dB (docs/guides/methods.md).
+
+**The raw model (``samples=raw``).** Every raw sample ``v`` of aperture ``n`` (polarizer ``45 n`` deg) measures
 ``I_n = (S0 + S1 cos 2a_n + S2 sin 2a_n) / 2`` of its colour at a known sub-pixel position of the HR grid (the
 project's registration, reused when stored: :func:`~capssim.reconstruct.model.observation_model.method_geometry`,
 or the true warps under ``--true-warps``; each sample's HR position is the inverse of the map
@@ -24,8 +31,8 @@ registration residual (the array's warps are global; a residual test would also 
 samples, which differ from ``S0 / 2`` by design). With a calibration (``--calibration``) the raw frames are
 divided by the flat field first and the result is unmixed by the calibrated analyzer, as in ``caps-naive``.
 
-Options (``-p KEY=VALUE``, ``capssim reconstruct --options array-kr``): ``scale`` (kernel size), ``steer``,
-``polarization`` (``ratio`` or ``difference``), ``clip``. Output ``(12, 2H, 2W)`` float32, channel ``c = 3 p + k``.
+Options (``-p KEY=VALUE``, ``capssim reconstruct --options array-kr``): ``samples``, ``detail``, ``sharpen``;
+for ``samples=raw`` ``scale`` (kernel size), ``steer``, ``polarization`` (``ratio`` or ``difference``); ``clip``. Output ``(12, 2H, 2W)`` float32, channel ``c = 3 p + k``.
 """
 
 from __future__ import annotations
@@ -153,9 +160,9 @@ def reconstruct_raw(raw, saturated, raw_homographies, hr_shape, *, cfa: str = "R
 
 
 @register_method("array-kr", input_kind="caps", reference=REFERENCE, tuned_on=TUNED_ON, options=array_kr_options,
-                 description="Fast camera-array method, no iterations: the raw Bayer samples of all apertures merged "
-                             "onto the 2x grid by steered kernel regression (intensity), each analyzer's own "
-                             "samples against it (polarization)")
+                 description="Fast camera-array method, no iterations: the apertures demosaicked and registered as "
+                             "caps-naive, their mean as the intensity, each analyzer's own detail where the intensity "
+                             "does not explain it (samples=raw: steered kernel regression of the raw samples)")
 def array_kr(capture, *, context: RunContext) -> MethodOutput:
     timer = context.timer
     with timer.stage("setup"):
