@@ -140,6 +140,7 @@ RECONSTRUCT_ROOMS = (
     ("registration",),
     ("calibration",),  # the rig estimated from calibration captures (flat field, geometry, Malus, PSF)
     ("model",),
+    ("kernel_regression",),  # array-kr's merge of raw samples (below the solvers; needs no solver)
     ("solvers",),
     ("networks",),  # the learned networks: below the priors, which may hold one (nlstr-denoiser)
     ("priors",),

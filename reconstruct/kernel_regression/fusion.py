@@ -1,0 +1,143 @@
+"""The four apertures' demosaicked, registered images fused: a shared intensity and each analyzer's own detail.
+
+Each aperture's frame is demosaicked on its own and warped onto the HR grid by bicubic resampling, as in
+``caps-naive`` (``B_n``, ``(4, Ho, Wo)`` per colour). Since ``I_0 + I_90 = I_45 + I_135 = S0``, their mean
+``m = S0 / 2`` samples the intensity at the apertures' four sub-pixel phases and the polarization cancels in it.
+Each analyzer's image is ``out_n = m' + L(D_n) + w (D_n - L(D_n))`` with ``D_n = B_n - m``:
+
+- ``L`` a Gaussian of std :data:`POL_SIGMA` HR px: the smooth part of the polarization is kept everywhere;
+- the detail ``D_n - L(D_n)`` is kept with the weight ``w = e_d / (e_d + ALPHA e_s + BETA sigma^2)``, where ``e_d``
+  is the local energy (Gaussian :data:`ENERGY_SIGMA`) of the four analyzers' detail and ``e_s`` that of the
+  intensity's detail: detail of the analyzers that the intensity does not explain (structure only in the
+  polarization, e.g. the polarization star) is kept; detail that comes with intensity edges (each aperture's own
+  interpolation error, aliasing) or with the noise is dropped;
+- ``m' = m + SHARPEN (1 - w) (m - G_1 m)``: the intensity sharpened by an unsharp mask where its detail leads.
+
+Where an aperture does not see a pixel (out of its view, or within two raw pixels (the bicubic support) of a saturated sample) its weight
+is zero: its image there is ``B_{n+1} + B_{n+3} - B_{n+2}`` (``I_0 + I_90 = I_45 + I_135``) from the others.
+The HR grid is fused in chunks of rows with a halo of :data:`HALO` rows (the same result as one piece)
+and the colours one at a time, so the working memory is bounded on any frame. Constants chosen on the ``dev`` suite (docs/guides/methods.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..model.aperture_demosaic import sampling_grid
+
+__all__ = ["ALPHA", "BETA", "ENERGY_SIGMA", "POL_SIGMA", "SHARPEN", "fuse_apertures", "gaussian", "robust_noise_sigma",
+           "unseen_pixels", "visibility"]
+
+POL_SIGMA = 2.0
+ENERGY_SIGMA = 1.5
+ALPHA = 1.0
+BETA = 8.0
+SHARPEN = 0.5
+#: HR pixels fused per chunk of rows (about 400 bytes each while it is processed)
+CHUNK_PIXELS = 1 << 20
+#: HR rows read on each side of a chunk: deeper than the filters' chain (3 POL_SIGMA + 3 ENERGY_SIGMA = 10.5)
+HALO = 16
+
+
+def gaussian(image: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur (replicate border) of ``(..., H, W)``."""
+    if sigma <= 0:
+        return image
+    r = int(np.ceil(3 * sigma))
+    t = torch.arange(-r, r + 1, dtype=image.dtype, device=image.device)
+    k = torch.exp(-t ** 2 / (2 * sigma * sigma))
+    k = k / k.sum()
+    shape = image.shape
+    x = image.reshape(-1, 1, *shape[-2:])
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1))
+    x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1))
+    return x.reshape(shape)
+
+
+def _warp(images: torch.Tensor, raw_h: np.ndarray, rows: tuple[int, int], width: int, mode: str, padding: str):
+    """``(4, C, H, W)`` resampled onto the HR rows ``[r0, r1)`` (``(4, C, r1 - r0, width)``; aperture n reads
+    ``raw_h[n] (x, y, 1)``)."""
+    shift = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, float(rows[0])], [0.0, 0.0, 1.0]])
+    grid = sampling_grid(np.asarray(raw_h, dtype=np.float64) @ shift, (rows[1] - rows[0], width),
+                         tuple(images.shape[-2:]), images.device)
+    return F.grid_sample(images, grid, mode=mode, padding_mode=padding, align_corners=True)
+
+
+def visibility(usable: torch.Tensor, raw_h: np.ndarray, hr_shape: tuple[int, int],
+               rows: tuple[int, int] | None = None) -> torch.Tensor:
+    """``(4, r1 - r0, Wo)`` float 1/0 (all rows by default): HR pixels whose source in aperture n is in view and
+    more than two raw pixels away from any unusable (saturated) sample; ``usable`` ``(4, H, W)`` bool."""
+    bad = (~usable.bool()).to(torch.float32)[:, None]
+    near_bad = F.max_pool2d(bad, 5, stride=1, padding=2)  # the bicubic support: two raw pixels
+    seen = _warp(1.0 - near_bad, raw_h, rows or (0, hr_shape[0]), hr_shape[1], "bilinear", "zeros")[:, 0]
+    return (seen >= 0.5).to(torch.float32)
+
+
+def robust_noise_sigma(raw: torch.Tensor) -> float:
+    """The raw noise std from the 10 % quantile of the absolute Laplacian of the frames' ``(4, H, W)`` Bayer
+    sub-images (robust to texture, unlike the mean: ``q10 |I * L| / (0.1257 * 6)``); 0 for sub-images under 3x3."""
+    h2, w2 = raw.shape[1] // 2 * 2, raw.shape[2] // 2 * 2
+    if min(h2, w2) < 6:
+        return 0.0
+    subs = raw[:, :h2, :w2].reshape(4, h2 // 2, 2, w2 // 2, 2).permute(0, 2, 4, 1, 3).reshape(16, 1, h2 // 2, w2 // 2)
+    lap = torch.tensor([[1.0, -2.0, 1.0], [-2.0, 4.0, -2.0], [1.0, -2.0, 1.0]], device=raw.device)
+    response = F.conv2d(subs.to(torch.float32), lap.view(1, 1, 3, 3)).abs().reshape(-1)
+    if response.numel() > 1 << 24:  # quantile's limit: a strided subset
+        response = response[:: response.numel() // (1 << 24) + 1]
+    return float(torch.quantile(response, 0.1)) / (0.1257 * 6.0)
+
+
+def unseen_pixels(usable: torch.Tensor, raw_h: np.ndarray, hr_shape: tuple[int, int]) -> np.ndarray:
+    """``(12, Ho, Wo)`` bool, channel ``3 n + k``: the HR pixels aperture n does not see (:func:`visibility` false),
+    computed in chunks of rows (the record's ``unobserved``, without a full-frame sampling grid)."""
+    ho, wo = int(hr_shape[0]), int(hr_shape[1])
+    out = np.empty((4, ho, wo), dtype=bool)
+    step = max(1, CHUNK_PIXELS // max(wo, 1))
+    for r0 in range(0, ho, step):
+        r1 = min(ho, r0 + step)
+        out[:, r0:r1] = (visibility(usable, raw_h, (ho, wo), (r0, r1)) < 0.5).cpu().numpy()
+    return np.repeat(out, 3, axis=0)
+
+
+def _fuse_colour(b: torch.Tensor, vis: torch.Tensor, sigma_n: float, detail: bool, sharpen: float) -> torch.Tensor:
+    """One colour: ``b`` ``(4, Ho, Wo)`` registered aperture images -> the four analyzers' images."""
+    other = b.roll(-1, 0) + b.roll(1, 0) - b.roll(2, 0)  # I_n = I_{n+1} + I_{n+3} - I_{n+2}
+    b = vis * b + (1.0 - vis) * other
+    m = b.mean(0)
+    d = b - m
+    del b, other
+    d_low = gaussian(d, POL_SIGMA)
+    d -= d_low  # the analyzers' detail
+    e_s = gaussian((m - gaussian(m, POL_SIGMA)) ** 2, ENERGY_SIGMA)
+    if detail:
+        e_d = gaussian((d * d).sum(0), ENERGY_SIGMA)
+        w = e_d / (e_d + ALPHA * e_s + BETA * sigma_n ** 2 + 1e-12)
+        del e_d
+    else:
+        w = torch.zeros_like(m)
+    del e_s
+    m = m + sharpen * (1.0 - w) * (m - gaussian(m, 1.0))
+    d *= w
+    d += d_low
+    d += m
+    return d
+
+
+def fuse_apertures(rgb: torch.Tensor, usable: torch.Tensor, raw_h: np.ndarray, hr_shape: tuple[int, int],
+                   sigma_n: float, *, detail: bool = True, sharpen: float = SHARPEN) -> torch.Tensor:
+    """``rgb`` ``(4, 3, H, W)`` demosaicked frames, ``usable`` ``(4, H, W)`` bool (false: saturated or masked),
+    ``raw_h`` ``(4, 3, 3)`` HR -> raw maps, ``sigma_n`` the raw noise std: ``(4, 3, Ho, Wo)`` float32.
+    ``detail=False`` keeps only the smooth polarization; ``sharpen=0`` leaves the intensity unsharpened."""
+    ho, wo = int(hr_shape[0]), int(hr_shape[1])
+    out = rgb.new_empty((4, 3, ho, wo))
+    step = max(1, CHUNK_PIXELS // max(wo, 1))
+    for r0 in range(0, ho, step):  # chunks of rows with a halo: the same result as one piece
+        r1 = min(ho, r0 + step)
+        a, b = max(0, r0 - HALO), min(ho, r1 + HALO)
+        vis = visibility(usable, raw_h, (ho, wo), (a, b))
+        for k in range(3):
+            warped = _warp(rgb[:, k:k + 1], raw_h, (a, b), wo, "bicubic", "border")[:, 0]
+            out[:, k, r0:r1] = _fuse_colour(warped, vis, float(sigma_n), detail, float(sharpen))[:, r0 - a:r1 - a]
+    return out
