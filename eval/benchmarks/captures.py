@@ -269,6 +269,8 @@ class CaptureFactory:
             raise Unavailable(f"scene {name!r} is not one of the renderer's scenes ({', '.join(map(str, known))})")
         params = {"scene": name, "size": int(scene.get("size", 256)), "spp": scene.get("spp"), "seed": seed,
                   "variant": scene.get("variant", "auto"), "scene_params": scene.get("scene_params")}
+        if scene.get("geometry_params"):  # the array's geometry (render --geometry), e.g. a map's baseline_m
+            params["geometry_params"] = scene["geometry_params"]
         if scene.get("rig"):
             params["rig"] = scene["rig"]
         key = content_hash({"render": params, "code": code_fingerprint(*RENDER_CODE)})[:20]
@@ -283,7 +285,7 @@ class CaptureFactory:
                     log.warning("cached render %s is corrupt; re-rendering", where)
         self.events("note", message=f"rendering {name} at {params['size']} px (cached afterwards)")
         t0 = time.perf_counter()
-        extra = {"scene_params": scene["scene_params"]} if scene.get("scene_params") else {}
+        extra = {k: scene[k] for k in ("scene_params", "geometry_params") if scene.get(k)}
         extra.update(_rig_options(scene, (params["size"], params["size"])))
         setup = _setup(scene, {"name": "clean", "noise": "none"})
         try:

@@ -95,7 +95,8 @@ _GT_KEYS = {"path": String(kind="path"), "crop": _SIZE}
 #: the keys of a scene by its ``source`` (besides :data:`COMMON_SCENE_KEYS`)
 SOURCE_KEYS = {
     "render": {"scene": String(), "size": _SIZE, "spp": Nullable(Integer(minimum=1, maximum=1 << 16)),
-               "variant": String(), "scene_params": AnyMapping("scene parameters (name: value)"), "prefix": String()},
+               "variant": String(), "scene_params": AnyMapping("scene parameters (name: value)"),
+               "geometry_params": AnyMapping("array geometry (e.g. baseline_m: 0.04)"), "prefix": String()},
     "synthetic": {"generator": String(choices=list(GENERATORS)), "size": _SIZE, "cycles": Integer(minimum=1),
                   "scene_seed": Integer(minimum=0, maximum=MAX_SEED)},
     "shared-gt": _GT_KEYS,

@@ -7,7 +7,8 @@ A cell is a suite scene entry with the cell's conditions (:func:`cell_scene`); t
   cached by content hash under ``CACHE/captures``, renders shared), with the cell's sensor, PSF, extinction ratio
   and aperture poses (``shift_max``/``rotation_max``/``scale_max``: random poses of that range, drawn from the
   seed's pose stream as ``capssim simulate`` does; ``offset_px``: the regular pattern of
-  :func:`~.theory.regular_offsets`), and a rendered scene's ``depth_m`` (its ``scene_params``). It records
+  :func:`~.theory.regular_offsets`), and a rendered scene's ``depth_m`` (its ``scene_params``) and the array's
+  ``baseline_m`` (its ``geometry_params``, as ``capssim render --geometry baseline_m=...``). It records
   the theory of the cell's poses (:func:`~.theory.sampling_conditioning`) and, with a ``registration_error_px``
   axis, the error the project's registration reaches on the capture (median over the 16 sub-images, HR px);
 * :func:`map_task` runs one method on it (:func:`~capssim.eval.benchmarks.cases.method_task`: reconstruct, score
@@ -32,7 +33,7 @@ from capssim.simulate import PoseRanges, simulate_capture
 from ..benchmarks.captures import CaptureFactory
 from ..benchmarks.cases import capture_task, method_task
 from ..benchmarks.registration import run_registration_bench
-from .spec import POSE_AXES, cell_noise
+from .spec import POSE_AXES, cell_noise, depth_params
 from .theory import local_poses, regular_offsets, sampling_conditioning
 
 #: the second word of the seed of the registration error's directions
@@ -45,15 +46,17 @@ def cell_label(axes: dict) -> str:
 
 
 def cell_scene(scene: dict, cell: dict) -> dict:
-    """The suite scene entry of a cell: ``scene`` named by the cell, its PSF (``psf_sigma_hr_px``) and a render's
-    ``depth_m`` (``scene_params``) set, and ``map`` holding every condition (part of the capture's cache key)."""
+    """The suite scene entry of a cell: ``scene`` named by the cell, its PSF (``psf_sigma_hr_px``), a render's
+    ``depth_m`` (``scene_params``) and ``baseline_m`` (``geometry_params``) set, and ``map`` holding every condition (part of the capture's cache key)."""
     values = {**cell["fixed"], **cell["axes"]}
     out = dict(scene, name=cell_label(cell["axes"]))
     out.pop("fallback", None)
     if "psf_sigma_hr_px" in values:
         out["psf_sigma_hr_px"] = values["psf_sigma_hr_px"]
     if "depth_m" in values:
-        out["scene_params"] = dict(scene.get("scene_params") or {}, depth_m=values["depth_m"])
+        out["scene_params"] = {**(scene.get("scene_params") or {}), **depth_params(scene["scene"], values["depth_m"])}
+    if "baseline_m" in values:
+        out["geometry_params"] = dict(scene.get("geometry_params") or {}, baseline_m=values["baseline_m"])
     out["map"] = {"axes": dict(cell["axes"]), "fixed": dict(cell["fixed"]), "noise": cell_noise(values)}
     return out
 
@@ -104,7 +107,7 @@ class MapCaptureFactory(CaptureFactory):
         capture, info = super()._build(scene, noise, seed)
         info["map"] = {"axes": scene["map"]["axes"], "fixed": scene["map"]["fixed"]}
         names = {*scene["map"]["axes"], *scene["map"]["fixed"]}
-        if names & set(POSE_AXES) or not names & {"registration_error_px", "depth_m"}:
+        if names & set(POSE_AXES) or not names & {"registration_error_px", "depth_m", "baseline_m"}:
             info["theory"] = pose_theory(capture)
         if "registration_error_px" in names:
             row = run_registration_bench([capture])["rows"][0]

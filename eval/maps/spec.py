@@ -13,7 +13,8 @@ A map (``eval/maps/NAME.yaml`` or any YAML path) sweeps a grid of camera and sce
 Every key of ``axes`` (a list of values) or ``fixed`` (one value) is one of :data:`AXES`: the options of
 ``capssim simulate`` without dashes (poses, noise model and sensor fields, PSF blur, extinction ratio), plus
 ``offset_px`` (the apertures at a regular sub-pixel pattern instead of random poses), ``registration_error_px``
-(the true warps perturbed, :mod:`.cells`) and, for rendered scenes, ``depth_m`` (the scene's target depth).
+(the true warps perturbed, :mod:`.cells`) and, for rendered scenes, ``depth_m`` (the scene's target depth, the
+planar library scenes only) and ``baseline_m`` (the array's baseline, 0-1 m, any rendered scene).
 A mistake is one :class:`~capssim.files.schema.ConfigError` line naming the file, the key path (e.g.
 ``axes.sigma[2]``), what it got, what is valid and the fix, as for a suite file
 (:mod:`capssim.eval.benchmarks.suite_schema`).
@@ -77,7 +78,11 @@ AXES: dict[str, tuple[Spec, str]] = {
     "registration_error_px": (Number(minimum=0, maximum=16), "HR px by which each of apertures 1-3's true warp is "
                                                             "shifted, in a seeded random direction"),
     "depth_m": (Number(minimum=0.1, maximum=1000), "a rendered scene's target depth, metres (parallax)"),
+    "baseline_m": (Number(minimum=0, maximum=1), "a rendered scene's array baseline, metres (parallax; render "
+                                                 "--geometry baseline_m, default 0.04)"),
 }
+#: the axes only a rendered scene takes (they change the render, not the simulation)
+RENDER_AXES = ("depth_m", "baseline_m")
 
 MAP_SPEC = Mapping({
     "name": String(),
@@ -135,29 +140,53 @@ def _check_against_scene(axes: dict, fixed: dict, scene: dict) -> None:
     for name, where in names.items():
         if render and (name in POSE_AXES or name == "extinction_ratio"):
             raise ConfigError(join(where, name), f"{name} with a rendered scene", "the axes of a rendered scene: "
-                              "noise, sensor fields, psf_sigma_hr_px, registration_error_px, depth_m",
+                              "noise, sensor fields, psf_sigma_hr_px, registration_error_px, depth_m, baseline_m",
                               "A render's poses are its array's; sweep them on a synthetic or ground-truth scene.")
-        if name == "depth_m" and not render:
-            raise ConfigError(join(where, name), "depth_m with a " + scene["source"] + " scene",
-                              "depth_m only with a rendered scene (source: render)",
-                              "Use a render scene whose parameters take depth_m, or drop the axis.")
+        if name in RENDER_AXES and not render:
+            raise ConfigError(join(where, name), f"{name} with a {scene['source']} scene",
+                              f"{name} only with a rendered scene (source: render)",
+                              "Use a render scene (e.g. scene: {source: render, scene: textured}), or drop the axis.")
     if "depth_m" in names and render:
-        _check_render_depth(scene, names["depth_m"])
+        values = axes.get("depth_m") or [fixed["depth_m"]]
+        _check_render_depth(scene, names["depth_m"], values)
     if "offset_px" in names and "shift_max" in names:
         raise ConfigError(join(names["offset_px"], "offset_px"), "offset_px with shift_max",
                           "one of offset_px (a regular pattern) or shift_max (random offsets)", "Drop one of them.")
 
 
-def _check_render_depth(scene: dict, where: str) -> None:
-    """A rendered scene swept in ``depth_m`` must take that parameter (the planar library scenes do)."""
+def depth_params(scene_name: str, depth_m: float) -> dict | None:
+    """The scene parameters that put render scene ``scene_name``'s target at ``depth_m``: its own ``depth_m``
+    (the planar scenes), or, for a 3-D scene scaled about the array by ``scale`` (materials, window-reflection),
+    the scale that moves its reference depth (``capssim scenes``' depth, at the default scale) to ``depth_m``
+    (:func:`~capssim.render.scene_base.scale_scene`: the whole scene, so only the parallax changes); None when
+    the scene takes neither."""
+    info = get_scene(scene_name).info
+    defaults = info.defaults or {}
+    if "depth_m" in defaults:
+        return {"depth_m": float(depth_m)}
+    if "scale" in defaults and info.depth_m:
+        return {"scale": float(defaults["scale"]) * float(depth_m) / float(info.depth_m)}
+    return None
+
+
+def _check_render_depth(scene: dict, where: str, values: list) -> None:
+    """A rendered scene swept in ``depth_m`` must take it (:func:`depth_params`), at every value."""
     try:
-        takes = "depth_m" in (get_scene(scene["scene"]).info.defaults or {})
+        sc = get_scene(scene["scene"])
+        params = [depth_params(scene["scene"], v) for v in values]
     except Exception:  # noqa: BLE001 - a renderer that cannot load the scene: the case is skipped at run time
         return
-    if not takes:
+    if params[0] is None:
         raise ConfigError(join(where, "depth_m"), f"depth_m with the render scene {scene['scene']!r}",
-                          "a render scene whose parameters take depth_m (the planar ones: capssim scenes)",
-                          "Use e.g. scene: textured or siemens-star, or drop the axis.")
+                          "a render scene that takes depth_m or scale (the planar ones, materials, "
+                          "window-reflection: capssim scenes)",
+                          "Use e.g. scene: textured or window-reflection, or drop the axis.")
+    for value, p in zip(values, params):
+        try:
+            sc.check_params({**(sc.info.defaults or {}), **(scene.get("scene_params") or {}), **p})
+        except InputError as exc:
+            raise ConfigError(join(where, "depth_m"), f"{value:g} ({exc.argument} {exc.received})", exc.valid,
+                              f"Use depths the scene {scene['scene']!r} can take.") from None
 
 
 def cell_noise(values: dict) -> dict:
