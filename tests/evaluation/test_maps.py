@@ -19,10 +19,10 @@ from capssim.camera.sensor import make_sensor
 from capssim.cli import app
 from capssim.eval.benchmarks.results import results_text
 from capssim.eval.evaluate import CaptureScorer
-from capssim.eval.maps.cells import perturbed_warps
+from capssim.eval.maps.cells import MapCaptureFactory, cell_scene, perturbed_warps
 from capssim.eval.maps.margins import cell_margin
 from capssim.eval.maps.report import write_map_report
-from capssim.eval.maps.spec import check_map, load_map
+from capssim.eval.maps.spec import check_map, depth_params, load_map
 from capssim.eval.maps.sweep import run_map
 from capssim.eval.maps.theory import local_poses, regular_offsets, sampling_conditioning
 from capssim.eval.synthetic import synthetic_scene
@@ -192,8 +192,15 @@ def test_the_report_draws_curves_for_one_axis_and_a_set_of_maps_for_three(tmp_pa
     ({"seeds": [0, 0]}, "seeds", "[0, 0]"),
     ({"scene": {"name": "s", "source": "synthetic", "generator": "star", "crop": 64}}, "scene.crop", "unknown key"),
     ({"colour": 1}, "colour", "an unknown key"),
-    ({"scene": {"name": "m", "source": "render", "scene": "materials", "size": 64}, "axes": {"depth_m": [2, 4]}},
-     "axes.depth_m", "render scene 'materials'"),
+    ({"scene": {"name": "m", "source": "render", "scene": "water-glare", "size": 64}, "axes": {"depth_m": [2, 4]}},
+     "axes.depth_m", "render scene 'water-glare'"),
+    ({"scene": {"name": "m", "source": "render", "scene": "window-reflection", "size": 64},
+      "axes": {"depth_m": [0.1, 6]}}, "axes.depth_m", "0.1 (scene_params.scale"),
+    ({"axes": {"baseline_m": [0.02, 0.04]}}, "axes.baseline_m", "baseline_m with a synthetic scene"),
+    ({"scene": {"name": "m", "source": "render", "scene": "textured", "size": 64},
+      "axes": {"baseline_m": [0.04, 1.5]}}, "axes.baseline_m[1]", "1.5"),
+    ({"scene": {"name": "m", "source": "render", "scene": "textured", "size": 64},
+      "axes": {"baseline_m": [-0.01]}}, "axes.baseline_m[0]", "-0.01"),
     ({"scene": {"name": "m", "source": "render", "scene": "textured", "size": 64}, "axes": {"shift_max": [0]}},
      "axes.shift_max", "shift_max with a rendered scene"),
 ])
@@ -204,6 +211,40 @@ def test_spec_validation_names_the_bad_key_and_value(change, key, received):
     message = str(info.value)
     assert key in message and received in message, message
     assert "\n" not in message
+
+
+def test_the_baseline_axis_reaches_the_render(tmp_path):
+    """A cell's baseline_m is the renderer's array baseline: recorded in the capture's meta, and the apertures'
+    homographies move with it (an ideal parallel array, no convergence: a plane's disparity is B f / Z, so four
+    times the baseline gives four times the offset)."""
+    pytest.importorskip("mitsuba")
+    ideal = {"tilt_max_deg": 0, "roll_max_deg": 0, "focal_scale_max": 0, "converge": False}
+    spec = check_map({"scene": {"name": "star", "source": "render", "scene": "siemens-star", "size": 32, "spp": 1,
+                                "geometry_params": ideal},
+                      "methods": ["caps-naive"], "axes": {"baseline_m": [0.02, 0.08]}, "fixed": {"depth_m": 0.5}})
+    factory = MapCaptureFactory(tmp_path, lambda *a, **k: None)
+    offsets = {}
+    for value in spec["axes"]["baseline_m"]:
+        cell = {"axes": {"baseline_m": value}, "fixed": spec["fixed"]}
+        scene = cell_scene(spec["scene"], cell)
+        assert scene["geometry_params"] == {**ideal, "baseline_m": value}
+        assert scene["scene_params"] == {"depth_m": 0.5}
+        entry = factory.get(scene, {}, 0)
+        meta = json.loads((entry.path / "meta.json").read_text())
+        assert meta["render"]["array"]["parameters"]["baseline_m"] == pytest.approx(value)
+        assert entry.info["render"]["geometry_params"]["baseline_m"] == value
+        offsets[value] = np.array([np.hypot(*np.asarray(h)[:2, 2]) for h in meta["aperture_homographies"]])
+    assert offsets[0.02][0] == offsets[0.08][0] == 0
+    assert offsets[0.02][1] > 0.1
+    np.testing.assert_allclose(offsets[0.08], 4 * offsets[0.02], rtol=1e-6)
+
+
+def test_depth_of_a_3d_scene_scales_it_so_its_reference_depth_is_that_depth():
+    pytest.importorskip("mitsuba")
+    assert depth_params("window-reflection", 6.0) == {"scale": pytest.approx(4.0)}
+    assert depth_params("window-reflection", 3.0) == {"scale": pytest.approx(2.0)}
+    assert depth_params("textured", 3.0) == {"depth_m": 3.0}
+    assert depth_params("water-glare", 3.0) is None
 
 
 def test_the_cli_runs_a_map_writes_the_report_and_heatmaps_and_refuses_a_bad_spec(tmp_path, monkeypatch):
@@ -222,7 +263,8 @@ def test_the_cli_runs_a_map_writes_the_report_and_heatmaps_and_refuses_a_bad_spe
 
 
 def test_the_shipped_maps_load():
-    for name in ("phase-noise", "phase-noise-real", "phase-offsets", "registration-noise", "psf-noise", "depth-noise"):
+    for name in ("phase-noise", "phase-noise-real", "phase-offsets", "registration-noise", "psf-noise", "depth-noise",
+                 "depth-baseline"):
         spec = load_map(name)
         assert spec["axes"] and all(m["label"] for m in spec["methods"])
 
