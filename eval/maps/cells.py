@@ -10,7 +10,9 @@ A cell is a suite scene entry with the cell's conditions (:func:`cell_scene`); t
   :func:`~.theory.regular_offsets`), and a rendered scene's ``depth_m`` (its ``scene_params``) and the array's
   ``baseline_m`` (its ``geometry_params``, as ``capssim render --geometry baseline_m=...``). It records
   the theory of the cell's poses (:func:`~.theory.sampling_conditioning`) and, with a ``registration_error_px``
-  axis, the error the project's registration reaches on the capture (median over the 16 sub-images, HR px);
+  axis, the error the project's registration reaches on the capture (median over the 16 sub-images, HR px), and
+  with a ``depth_m`` or ``baseline_m`` axis the render's parallax that no homography registers
+  (``parallax_p95_hr_px``: the 95th percentile over the view, worst aperture, HR px);
 * :func:`map_task` runs one method on it (:func:`~capssim.eval.benchmarks.cases.method_task`: reconstruct, score
   with the suites' metrics), after :func:`perturbed_warps` when the cell has a ``registration_error_px``: a
   camera-array method then runs with the true warps, apertures 1-3 each shifted by that many HR px in a direction
@@ -109,6 +111,9 @@ class MapCaptureFactory(CaptureFactory):
         names = {*scene["map"]["axes"], *scene["map"]["fixed"]}
         if names & set(POSE_AXES) or not names & {"registration_error_px", "depth_m", "baseline_m"}:
             info["theory"] = pose_theory(capture)
+        depth = (capture.meta.get("render") or {}).get("depth") or {}
+        if names & {"depth_m", "baseline_m"} and "parallax_residual_p95_hr_px" in depth:
+            info["parallax_p95_hr_px"] = depth["parallax_residual_p95_hr_px"]
         if "registration_error_px" in names:
             row = run_registration_bench([capture])["rows"][0]
             info["registration_reached_hr_px"] = row["median_hr_px"]
@@ -151,11 +156,11 @@ def map_task(rec: dict, method: dict, capture_path: str, capture_key: str, captu
              convention: str) -> dict:
     """One case of a map: :func:`~capssim.eval.benchmarks.cases.method_task` with :func:`prepare_cell`; the
     record carries the cell's ``axes``, ``fixed`` conditions, the method's ``kind`` (``array`` or ``dofp``)
-    and the cell's ``theory``."""
+    and the cell's ``theory`` (and ``registration_reached_hr_px``, ``parallax_p95_hr_px`` when measured)."""
     spec = available_methods().get(method["name"])
     rec = dict(rec, axes=capture_info["map"]["axes"], fixed=capture_info["map"]["fixed"],
                kind=None if spec is None else ("array" if spec.input_kind == "caps" else "dofp"))
-    for key in ("theory", "registration_reached_hr_px"):
+    for key in ("theory", "registration_reached_hr_px", "parallax_p95_hr_px"):
         if key in capture_info:
             rec[key] = capture_info[key]
     return method_task(rec, method, capture_path, capture_key, capture_info, device=device, convention=convention,

@@ -16,6 +16,7 @@ from pathlib import Path
 from capssim.files.imageio import atomic_write_text
 
 from ..benchmarks.results import read_results
+from .cells import cell_label
 from .margins import METRICS, cell_field, margins, method_curves
 from .plots import axis_curves, margin_heatmap
 from .spec import POSE_AXES
@@ -118,7 +119,11 @@ def _head(spec: dict, records: list[dict], command: str | None) -> list[str]:
     if reached is not None:
         lines.append(f"- the project's registration (local-correlation) reaches a median {reached:.3g} HR px on these "
                      "captures (dashed line).")
-    if "depth_m" in spec["axes"]:
+    parallax = {cell_label(r["axes"]): r["parallax_p95_hr_px"] for r in records if "parallax_p95_hr_px" in r}
+    if parallax:
+        lines.append("- the render's parallax that the apertures' homographies miss (95th percentile over the view, "
+                     "worst aperture, HR px): " + "; ".join(f"{k}: {v:.2g}" for k, v in parallax.items()) + ".")
+    if "depth_m" in spec["axes"] and "baseline_m" not in spec["axes"]:
         parts = [f"{d:g} m: overlap {design_numbers(depth_m=d)['overlap_width_m']:.3g} m" for d in spec["axes"]["depth_m"]]
         lines.append("- eq. 6 at the prototype's 40 mm baseline: " + "; ".join(parts) + ".")
     if command:

@@ -233,6 +233,7 @@ def test_the_baseline_axis_reaches_the_render(tmp_path):
         meta = json.loads((entry.path / "meta.json").read_text())
         assert meta["render"]["array"]["parameters"]["baseline_m"] == pytest.approx(value)
         assert entry.info["render"]["geometry_params"]["baseline_m"] == value
+        assert entry.info["parallax_p95_hr_px"] < 0.05  # a plane: the homographies are exact
         offsets[value] = np.array([np.hypot(*np.asarray(h)[:2, 2]) for h in meta["aperture_homographies"]])
     assert offsets[0.02][0] == offsets[0.08][0] == 0
     assert offsets[0.02][1] > 0.1
