@@ -13,8 +13,8 @@ A map (``eval/maps/NAME.yaml`` or any YAML path) sweeps a grid of camera and sce
 Every key of ``axes`` (a list of values) or ``fixed`` (one value) is one of :data:`AXES`: the options of
 ``capssim simulate`` without dashes (poses, noise model and sensor fields, PSF blur, extinction ratio), plus
 ``offset_px`` (the apertures at a regular sub-pixel pattern instead of random poses), ``registration_error_px``
-(the true warps perturbed, :mod:`.cells`) and, for rendered scenes, ``depth_m`` (the scene's target depth, the
-planar library scenes only) and ``baseline_m`` (the array's baseline, 0-1 m, any rendered scene).
+(the true warps perturbed, :mod:`.cells`) and, for rendered scenes, ``depth_m`` (the scene's target depth: a planar
+scene's own, a 3-D scene's through its ``scale``, :func:`depth_params`) and ``baseline_m`` (the array's baseline, 0-1 m, any rendered scene).
 A mistake is one :class:`~capssim.files.schema.ConfigError` line naming the file, the key path (e.g.
 ``axes.sigma[2]``), what it got, what is valid and the fix, as for a suite file
 (:mod:`capssim.eval.benchmarks.suite_schema`).
@@ -77,7 +77,8 @@ AXES: dict[str, tuple[Spec, str]] = {
     "extinction_ratio": (Number(minimum=1, exclusive_minimum=True), "polarizer extinction ratio T_max/T_min"),
     "registration_error_px": (Number(minimum=0, maximum=16), "HR px by which each of apertures 1-3's true warp is "
                                                             "shifted, in a seeded random direction"),
-    "depth_m": (Number(minimum=0.1, maximum=1000), "a rendered scene's target depth, metres (parallax)"),
+    "depth_m": (Number(minimum=0.1, maximum=1000), "a rendered scene's target (or 3-D scene's reference) depth, "
+                                                "metres (parallax)"),
     "baseline_m": (Number(minimum=0, maximum=1), "a rendered scene's array baseline, metres (parallax; render "
                                                  "--geometry baseline_m, default 0.04)"),
 }
