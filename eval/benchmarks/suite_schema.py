@@ -17,7 +17,6 @@ The keys, their values and their defaults are listed in docs/guides/benchmarks.m
 from __future__ import annotations
 
 import difflib
-import hashlib
 from dataclasses import fields
 from pathlib import Path
 
@@ -25,7 +24,7 @@ from capssim.camera.camera_setup import sensor_from_mapping
 from capssim.camera.rig import RigModel
 from capssim.camera.sensor import GaussianSensor, NoNoiseSensor, PoissonGaussianSensor
 from capssim.dataset.calibration_captures import MIN_POLARIZER_ANGLES
-from capssim.errors import CapssimError, InputError, UnknownNameError
+from capssim.errors import CapssimError, InputError
 from capssim.files.schema import (
     AnyMapping,
     Boolean,
@@ -38,9 +37,7 @@ from capssim.files.schema import (
     Spec,
     String,
     join,
-    load_yaml_file,
     show,
-    validate,
 )
 from capssim.reconstruct.registration.parameters import REGISTRATION_MODES
 from capssim.reconstruct.registry import available_methods, check_method_options
@@ -52,6 +49,7 @@ from ..synthetic import GENERATORS
 from . import captures
 from .provenance import REPO_ROOT, shared_data_dir
 from .rigs import METHOD_CALIBRATIONS
+from .spec_files import available_specs, load_spec_file, spec_path
 
 SUITES_DIR = Path(__file__).resolve().parents[1] / "suites"
 SCENE_SOURCES = ("render", "shared-gt", "gt", "synthetic")
@@ -322,17 +320,12 @@ check_method_entry_options = _check_method_entry_options
 
 
 def available_suites() -> list[str]:
-    return sorted(p.stem for p in SUITES_DIR.glob("*.yaml"))
+    return available_specs(SUITES_DIR)
 
 
 def suite_path(name_or_path: str | Path) -> Path:
     """The file of a suite name (``eval/suites/NAME.yaml``) or YAML path; :class:`UnknownNameError` otherwise."""
-    path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") and path.is_file():
-        return path
-    if str(name_or_path) not in available_suites():
-        raise UnknownNameError("suite", str(name_or_path), available_suites())
-    return SUITES_DIR / f"{name_or_path}.yaml"
+    return spec_path(name_or_path, folder=SUITES_DIR, noun="suite")
 
 
 def load_suite(name_or_path: str | Path) -> dict:
@@ -349,20 +342,8 @@ def load_suite(name_or_path: str | Path) -> dict:
         The suite with its defaults (``name``: the file's stem, ``convention`` capssim, ``seeds`` [0],
         ``noise`` clean), every method a mapping, and ``path`` and ``sha256`` of the file.
     """
-    path = suite_path(name_or_path)
-    raw = load_yaml_file(path, kind=KIND, example="eval/suites/quick.yaml")
-    spec = validate(_Checked(), raw, config_file=path, kind=KIND)
-    spec.setdefault("name", path.stem)
-    spec["path"] = str(path)
-    spec["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
-    return spec
-
-
-class _Checked(Spec):
-    description = SUITE_SPEC.description
-
-    def check(self, value, path):
-        return check_suite(value)
+    return load_spec_file(name_or_path, folder=SUITES_DIR, noun="suite", kind=KIND, example="eval/suites/quick.yaml",
+                          check=check_suite, description=SUITE_SPEC.description)
 
 
 def _scene_size(scene: dict) -> int | None:

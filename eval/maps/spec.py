@@ -23,12 +23,11 @@ A mistake is one :class:`~capssim.files.schema.ConfigError` line naming the file
 from __future__ import annotations
 
 import difflib
-import hashlib
 import itertools
 from pathlib import Path
 
 from capssim.camera.camera_setup import sensor_from_mapping
-from capssim.errors import InputError, UnknownNameError
+from capssim.errors import InputError
 from capssim.files.schema import (
     AnyMapping,
     ConfigError,
@@ -39,12 +38,11 @@ from capssim.files.schema import (
     Spec,
     String,
     join,
-    load_yaml_file,
     show,
-    validate,
 )
 from capssim.render import get_scene
 
+from ..benchmarks.spec_files import available_specs, load_spec_file, spec_path
 from ..benchmarks.suite_schema import (
     _SENSOR_FIELDS,
     MAX_SEED,
@@ -250,24 +248,12 @@ def check_map(spec: dict) -> dict:
 
 def available_maps() -> list[str]:
     """The map specs shipped in ``eval/maps``."""
-    return sorted(p.stem for p in MAPS_DIR.glob("*.yaml"))
+    return available_specs(MAPS_DIR)
 
 
 def map_path(name_or_path: str | Path) -> Path:
     """The file of a map name (``eval/maps/NAME.yaml``) or YAML path; :class:`UnknownNameError` otherwise."""
-    path = Path(name_or_path)
-    if path.suffix in (".yaml", ".yml") and path.is_file():
-        return path
-    if str(name_or_path) not in available_maps():
-        raise UnknownNameError("map", str(name_or_path), available_maps())
-    return MAPS_DIR / f"{name_or_path}.yaml"
-
-
-class _Checked(Spec):
-    description = MAP_SPEC.description
-
-    def check(self, value, path):
-        return check_map(value)
+    return spec_path(name_or_path, folder=MAPS_DIR, noun="map")
 
 
 def load_map(name_or_path: str | Path) -> dict:
@@ -276,10 +262,5 @@ def load_map(name_or_path: str | Path) -> dict:
     Returns the spec with its defaults, every method a mapping, ``name`` (default: the file's stem), and
     ``path`` and ``sha256`` of the file.
     """
-    path = map_path(name_or_path)
-    raw = load_yaml_file(path, kind=KIND, example="eval/maps/phase-noise.yaml")
-    spec = validate(_Checked(), raw, config_file=path, kind=KIND)
-    spec.setdefault("name", path.stem)
-    spec["path"] = str(path)
-    spec["sha256"] = hashlib.sha256(path.read_bytes()).hexdigest()
-    return spec
+    return load_spec_file(name_or_path, folder=MAPS_DIR, noun="map", kind=KIND, example="eval/maps/phase-noise.yaml",
+                          check=check_map, description=MAP_SPEC.description)

@@ -17,7 +17,6 @@ The case runner (:func:`capssim.eval.benchmarks.runner.run_cases`) gives the res
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
@@ -27,7 +26,7 @@ from capssim.runtime.resources import check_scene_size
 from ..benchmarks.output_claim import OutputKind
 from ..benchmarks.provenance import code_fingerprint, environment
 from ..benchmarks.runner import CaseTask, run_cases
-from ..benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE
+from ..benchmarks.suite import RECONSTRUCTION_CODE, SCORING_CODE, BenchRun
 from ..benchmarks.suite_schema import _scene_size
 from .cells import cell_scene, map_capture_task, map_task
 from .spec import expand_cells
@@ -37,23 +36,6 @@ MAP_OUTPUT = OutputKind("bench map", "map.jsonl", "bench-map.json")
 MAP_CODE = ("eval/maps/cells.py", "eval/maps/theory.py", "eval/maps/sweep.py")
 #: the runner's noise level of every cell (each cell carries its own sensor: ``scene["map"]["noise"]``)
 CELL_NOISE = {"name": "map", "noise": "none"}
-
-
-@dataclass
-class MapRun:
-    """A finished map: ``records`` in plan order, the folder, ``map.jsonl``, notes, wall time, where it ran."""
-
-    spec: dict
-    output: Path
-    results_path: Path
-    records: list[dict]
-    notes: list[str] = field(default_factory=list)
-    wall_time_s: float = 0.0
-    execution: dict = field(default_factory=dict)
-
-    @property
-    def n_errors(self) -> int:
-        return sum(r["status"] == "error" for r in self.records)
 
 
 def plan_map(spec: dict) -> list[dict]:
@@ -68,7 +50,7 @@ def plan_map(spec: dict) -> list[dict]:
 
 def run_map(spec: dict, output: str | Path, *, device: str = "cpu", cache_dir: str | Path | None = None,
             fresh: bool = False, workers: int | None = None, scheduler: str | None = None,
-            threads: int | None = None, events: Callable[..., None] | None = None) -> MapRun:
+            threads: int | None = None, events: Callable[..., None] | None = None) -> BenchRun:
     """Run (or resume) a design map into ``output`` (module docstring).
 
     Parameters
@@ -85,7 +67,9 @@ def run_map(spec: dict, output: str | Path, *, device: str = "cpu", cache_dir: s
 
     Returns
     -------
-    MapRun
+    capssim.eval.benchmarks.suite.BenchRun
+        The finished map, as a suite's run: ``records`` in plan order, the folder, ``map.jsonl``, notes, wall
+        time, the environment and where it ran.
     """
     t0 = time.perf_counter()
     scenes = plan_map(spec)
@@ -97,5 +81,6 @@ def run_map(spec: dict, output: str | Path, *, device: str = "cpu", cache_dir: s
     outcome = run_cases(runner_spec, output, task, plan_scenes=scenes, plan_methods=spec["methods"],
                         scene_by_name={s["name"]: s for s in scenes}, device=device, cache_dir=cache_dir, fresh=fresh,
                         workers=workers, scheduler=scheduler, threads=threads, events=events)
-    return MapRun(spec=spec, output=Path(output), results_path=outcome.results_path, records=outcome.records,
-                  notes=outcome.notes, wall_time_s=time.perf_counter() - t0, execution=outcome.execution)
+    return BenchRun(spec=spec, output=Path(output), results_path=outcome.results_path, records=outcome.records,
+                    environment=env, notes=outcome.notes, wall_time_s=time.perf_counter() - t0,
+                    execution=outcome.execution)
