@@ -15,16 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 import pytest
-from support.fuzz import invoke
+from support.fuzz import edited_capture, invoke, set_key, small_gaussian_capture
 
 from capssim.camera.array_geometry import ArrayGeometry
 from capssim.camera.rig import RigModel, read_rig_json, write_rig_json
-from capssim.camera.sensor import make_sensor
-from capssim.captures.capture import read_capture, write_capture
+from capssim.captures.capture import read_capture
 from capssim.errors import CaptureFormatError, InputError
-from capssim.simulate import simulate_capture
 
 
 @dataclass(frozen=True)
@@ -38,66 +35,46 @@ class Row:
         return f"class{self.cls}-{self.name.replace(' ', '-')}"
 
 
-def _set(*keys, value):
-    def edit(data):
-        for key in keys[:-1]:
-            data = data[key]
-        data[keys[-1]] = value
-    return edit
-
-
 def _nested(data):
     return "[" * 200_000 + "]" * 200_000
 
 
 @pytest.fixture(scope="module")
 def capture_dir(tmp_path_factory) -> Path:
-    rng = np.random.default_rng(0)
-    gt = (0.2 + 0.5 * rng.random((12, 32, 32))).astype(np.float32)
-    path = tmp_path_factory.mktemp("h2") / "capture"
-    write_capture(path, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=1))
-    return path
-
-
-def _edited(src: Path, dst: Path, edit) -> Path:
-    shutil.copytree(src, dst)
-    meta = json.loads((dst / "meta.json").read_text())
-    text = edit(meta)
-    (dst / "meta.json").write_text(text if isinstance(text, str) else json.dumps(meta))
-    return dst
+    return small_gaussian_capture(tmp_path_factory.mktemp("h2") / "capture")
 
 
 # -- meta.json (classes 6 and 7) ------------------------------------------------------------------------
 META_ROWS = [
     Row(6, "nesting 200000 deep", _nested, ("meta.json", "nested more than")),
-    Row(6, "calibration file a number", _set("calibration_file", value=12345), ("'calibration_file'", "12345")),
-    Row(6, "star cycles a word", _set("scene", value={"star": {"cycles": "abc"}}), ("'scene.star.cycles'", "abc")),
-    Row(6, "star cycles zero", _set("scene", value={"star": {"cycles": 0}}), ("'scene.star.cycles'", ">= 1")),
-    Row(6, "source star cycles negative", _set("source", value={"star": {"cycles": -3}}), ("'source.star.cycles'",)),
-    Row(6, "geometry a list", _set("geometry", value=[1, 2]), ("'geometry'",)),
-    Row(6, "seed a word", _set("seed", value="seven"), ("'seed'",)),
-    Row(6, "misspelt cfa key", _set("cfaa", value="RGGB"), ("'cfaa'", "Did you mean 'cfa'")),
-    Row(7, "unknown cfa", _set("cfa", value="RGBW"), ("'cfa'", "BGGR")),
-    Row(7, "cfa BGGR with RGGB lr_images", _set("cfa", value="BGGR"), ("'lr_images[0].colour'", "cfa BGGR")),
-    Row(7, "polarizer angles 0 30 60 90", _set("polarizer_angles_deg", value=[0, 30, 60, 90]),
+    Row(6, "calibration file a number", set_key("calibration_file", value=12345), ("'calibration_file'", "12345")),
+    Row(6, "star cycles a word", set_key("scene", value={"star": {"cycles": "abc"}}), ("'scene.star.cycles'", "abc")),
+    Row(6, "star cycles zero", set_key("scene", value={"star": {"cycles": 0}}), ("'scene.star.cycles'", ">= 1")),
+    Row(6, "source star cycles negative", set_key("source", value={"star": {"cycles": -3}}), ("'source.star.cycles'",)),
+    Row(6, "geometry a list", set_key("geometry", value=[1, 2]), ("'geometry'",)),
+    Row(6, "seed a word", set_key("seed", value="seven"), ("'seed'",)),
+    Row(6, "misspelt cfa key", set_key("cfaa", value="RGGB"), ("'cfaa'", "Did you mean 'cfa'")),
+    Row(7, "unknown cfa", set_key("cfa", value="RGBW"), ("'cfa'", "BGGR")),
+    Row(7, "cfa BGGR with RGGB lr_images", set_key("cfa", value="BGGR"), ("'lr_images[0].colour'", "cfa BGGR")),
+    Row(7, "polarizer angles 0 30 60 90", set_key("polarizer_angles_deg", value=[0, 30, 60, 90]),
         ("'polarizer_angles_deg'", "[0, 45, 90, 135]")),
-    Row(7, "layout name contradicts layout", _set("dofp_layout_name", value="0-45-135-90"),
+    Row(7, "layout name contradicts layout", set_key("dofp_layout_name", value="0-45-135-90"),
         ("'dofp_layout_name'", "contradict")),
-    Row(7, "lr_images angle", _set("lr_images", 5, "polarizer_deg", value=90), ("'lr_images[5].polarizer_deg'",)),
-    Row(7, "lr_images aperture", _set("lr_images", 5, "aperture", value=3), ("'lr_images[5].aperture'",)),
-    Row(7, "lr_images site", _set("lr_images", 5, "bayer_offset_rowcol", value=[1, 1]),
+    Row(7, "lr_images angle", set_key("lr_images", 5, "polarizer_deg", value=90), ("'lr_images[5].polarizer_deg'",)),
+    Row(7, "lr_images aperture", set_key("lr_images", 5, "aperture", value=3), ("'lr_images[5].aperture'",)),
+    Row(7, "lr_images site", set_key("lr_images", 5, "bayer_offset_rowcol", value=[1, 1]),
         ("'lr_images[5].bayer_offset_rowcol'",)),
-    Row(7, "sr factor 3", _set("geometry", "sr_factor", value=3), ("'geometry.sr_factor'", "2")),
-    Row(7, "kind bogus", _set("kind", value="bogus"), ("'kind'", "simulated")),
-    Row(2, "extinction ratio 1", _set("extinction_ratio", value=1.0), ("'extinction_ratio'",)),
-    Row(2, "singular aperture homography", _set("aperture_homographies", 1, value=[[0, 0, 0], [0, 0, 0], [0, 0, 1]]),
+    Row(7, "sr factor 3", set_key("geometry", "sr_factor", value=3), ("'geometry.sr_factor'", "2")),
+    Row(7, "kind bogus", set_key("kind", value="bogus"), ("'kind'", "simulated")),
+    Row(2, "extinction ratio 1", set_key("extinction_ratio", value=1.0), ("'extinction_ratio'",)),
+    Row(2, "singular aperture homography", set_key("aperture_homographies", 1, value=[[0, 0, 0], [0, 0, 0], [0, 0, 1]]),
         ("'aperture_homographies[1]'", "singular")),
 ]
 
 
 @pytest.mark.parametrize("row", META_ROWS, ids=str)
 def test_meta_json_edit_is_refused_with_one_line(row, capture_dir, tmp_path):
-    path = _edited(capture_dir, tmp_path / "c", row.edit)
+    path = edited_capture(capture_dir, tmp_path / "c", row.edit)
     with pytest.raises(CaptureFormatError) as info:  # also a ConfigError: exit 2, one line
         read_capture(path)
     message = str(info.value)
@@ -110,11 +87,11 @@ def test_meta_json_edit_is_refused_with_one_line(row, capture_dir, tmp_path):
 
 
 def test_valid_meta_still_loads_and_old_files_without_new_keys(capture_dir, tmp_path):
-    path = _edited(capture_dir, tmp_path / "c", lambda m: [m.pop(k) for k in ("cfa", "dofp_layout_name", "kind",
+    path = edited_capture(capture_dir, tmp_path / "c", lambda m: [m.pop(k) for k in ("cfa", "dofp_layout_name", "kind",
                                                                                "polarizer_angles_deg")])
     capture = read_capture(path)
     assert capture.cfa == "RGGB"
-    path = _edited(capture_dir, tmp_path / "d", _set("render", value={"any": ["provenance", 1]}))
+    path = edited_capture(capture_dir, tmp_path / "d", set_key("render", value={"any": ["provenance", 1]}))
     assert read_capture(path).meta["render"] == {"any": ["provenance", 1]}
 
 
@@ -136,23 +113,23 @@ def _vignetting(value):
 
 
 def _homography(matrix):
-    return _set("geometry", "aperture_homographies", 2, value=matrix)
+    return set_key("geometry", "aperture_homographies", 2, value=matrix)
 
 
 RIG_ROWS = [
     Row(2, "vignetting coefficient -1", _vignetting(-1.0), ("rig vignetting", "flat field")),
     Row(2, "all-zero vignetting", _vignetting(0), ("rig vignetting", "flat field")),
-    Row(2, "extinction ratio below 1", _set("rig", "extinction_ratio", value=[[0.5] * 3] * 4),
+    Row(2, "extinction ratio below 1", set_key("rig", "extinction_ratio", value=[[0.5] * 3] * 4),
         ("extinction_ratio",)),
-    Row(2, "gain zero", _set("rig", "gain", value=[1, 0, 1, 1]), ("gain",)),
+    Row(2, "gain zero", set_key("rig", "gain", value=[1, 0, 1, 1]), ("gain",)),
     Row(2, "singular homography", _homography([[0, 0, 0], [0, 0, 0], [0, 0, 1]]),
         ("geometry.aperture_homographies[2]", "singular")),
     Row(2, "horizon across the image", _homography([[1, 0, 0], [0, 1, 0], [-0.1, 0, 1]]),
         ("geometry.aperture_homographies[2]", "horizon")),
     Row(2, "non-finite homography", _homography([[1, 0, 0], [0, 1, 0], [0, 0, "inf"]]), ("geometry",)),
     Row(6, "nesting 200000 deep", _nested, ("nested more than",)),
-    Row(6, "misspelt key", _set("geometri", value=None), ("'geometri'", "Did you mean 'geometry'")),
-    Row(6, "geometry size a word", _set("geometry", "hr_height", value="big"), ("'geometry.hr_height'",)),
+    Row(6, "misspelt key", set_key("geometri", value=None), ("'geometri'", "Did you mean 'geometry'")),
+    Row(6, "geometry size a word", set_key("geometry", "hr_height", value="big"), ("'geometry.hr_height'",)),
 ]
 
 
@@ -173,7 +150,7 @@ def test_impossible_rig_file_is_refused_by_simulate(row, tmp_path, write_gt_fold
 
 @pytest.mark.parametrize("row", [r for r in RIG_ROWS if r.cls == 2][:2] + [RIG_ROWS[4]], ids=str)
 def test_impossible_calibration_file_is_refused_by_reconstruct(row, capture_dir, tmp_path):
-    path = _edited(capture_dir, tmp_path / "c", _set("calibration_file", value="calibration.json"))
+    path = edited_capture(capture_dir, tmp_path / "c", set_key("calibration_file", value="calibration.json"))
     _rig_file(path / "calibration.json", row.edit)
     outcome, text = invoke(["reconstruct", path, "-m", "caps-naive", "--no-progress"])
     assert outcome == "error" and "calibration.json" in text, text

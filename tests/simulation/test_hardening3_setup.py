@@ -9,7 +9,6 @@ reconstruction's view of the camera and the model-exact rung's are the same.
 
 from __future__ import annotations
 
-import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,14 +16,12 @@ from typing import Callable
 
 import numpy as np
 import pytest
-from support.fuzz import invoke, one_line_error
+from support.fuzz import edited_capture, invoke, one_line_error, set_key, small_gaussian_capture
 
 from capssim.camera.rig import RigModel
-from capssim.camera.sensor import make_sensor
-from capssim.captures.capture import read_capture, write_capture
+from capssim.captures.capture import read_capture
 from capssim.conventions import dofp_layout
 from capssim.eval.error_budget.oracles import _measurement
-from capssim.simulate import simulate_capture
 
 
 @dataclass(frozen=True)
@@ -35,14 +32,6 @@ class Edit:
 
     def __str__(self):
         return self.name.replace(" ", "-")
-
-
-def _set(*keys, value):
-    def edit(meta):
-        for key in keys[:-1]:
-            meta = meta[key]
-        meta[keys[-1]] = value
-    return edit
 
 
 def _drop(*keys):
@@ -64,26 +53,26 @@ RIG = RigModel.from_spec({"preset": "realistic", "seed": 3}).to_dict()
 
 EDITS = [
     # contradictions: refused, naming the key and both values
-    Edit("psf sigma 3 against 0.5", _set("setup", "psf", "sigma_hr_px", value=3.0),
+    Edit("psf sigma 3 against 0.5", set_key("setup", "psf", "sigma_hr_px", value=3.0),
          ("'setup.psf.sigma_hr_px'", "got 3.0", "expected 0.5", "top-level psf.sigma_hr_px")),
-    Edit("psf type none", _set("setup", "psf", value={"type": "none"}), ("'setup.psf.type'", "got \"none\"")),
-    Edit("psf_sigma_hr_px instead of psf", _both(_drop("setup", "psf"), _set("setup", "psf_sigma_hr_px", value=2.0)),
+    Edit("psf type none", set_key("setup", "psf", value={"type": "none"}), ("'setup.psf.type'", "got \"none\"")),
+    Edit("psf_sigma_hr_px instead of psf", _both(_drop("setup", "psf"), set_key("setup", "psf_sigma_hr_px", value=2.0)),
          ("'setup.psf_sigma_hr_px'", "got 2.0", "expected 0.5")),
-    Edit("extinction ratio 5 against ideal", _set("setup", "extinction_ratio", value=5),
+    Edit("extinction ratio 5 against ideal", set_key("setup", "extinction_ratio", value=5),
          ("'setup.extinction_ratio'", "got 5.0", "expected null")),
-    Edit("sensor sigma", _set("setup", "sensor", "sigma", value=0.2),
+    Edit("sensor sigma", set_key("setup", "sensor", "sigma", value=0.2),
          ("'setup.sensor.sigma'", "got 0.2", "expected 0.01")),
-    Edit("sensor bit depth", _both(_set("setup", "sensor", "bit_depth", value=12),
-                                   _set("setup", "sensor", "white_level", value=4095.0)),
+    Edit("sensor bit depth", _both(set_key("setup", "sensor", "bit_depth", value=12),
+                                   set_key("setup", "sensor", "white_level", value=4095.0)),
          ("'setup.sensor.bit_depth'", "got 12", "expected 16")),
-    Edit("sensor of another model", _set("setup", "sensor", value={"noise": "none"}),
+    Edit("sensor of another model", set_key("setup", "sensor", value={"noise": "none"}),
          ("'setup.sensor.noise'", "got \"none\"", "expected \"gaussian\"", "top-level sensor.model")),
-    Edit("dofp layout", _set("setup", "dofp_layout", value="0-45-135-90"),
+    Edit("dofp layout", set_key("setup", "dofp_layout", value="0-45-135-90"),
          ("'setup.dofp_layout'", "got \"0-45-135-90\"", "expected \"sony\"")),
-    Edit("rig where the top level has none", _set("setup", "rig", value=RIG), ("'setup.rig", "expected")),
-    Edit("seed rule", _set("setup", "seed_rule", value="mine"), ("'setup.seed_rule'", "got 'mine'")),
-    Edit("unknown key", _set("setup", "extinction", value=5), ("'setup.extinction'", "unknown key")),
-    Edit("setup that is a list", _set("setup", value=[1]), ("setup",)),
+    Edit("rig where the top level has none", set_key("setup", "rig", value=RIG), ("'setup.rig", "expected")),
+    Edit("seed rule", set_key("setup", "seed_rule", value="mine"), ("'setup.seed_rule'", "got 'mine'")),
+    Edit("unknown key", set_key("setup", "extinction", value=5), ("'setup.extinction'", "unknown key")),
+    Edit("setup that is a list", set_key("setup", value=[1]), ("setup",)),
     # accepted: the key is derived from the top level, or both say the same
     Edit("psf removed", _drop("setup", "psf")),
     Edit("sensor removed", _drop("setup", "sensor")),
@@ -91,40 +80,28 @@ EDITS = [
     Edit("dofp layout removed", _drop("setup", "dofp_layout")),
     Edit("rig removed", _drop("setup", "rig")),
     Edit("setup removed", _drop("setup")),
-    Edit("setup null", _set("setup", value=None)),
-    Edit("extinction ratio 5 in both", _both(_set("setup", "extinction_ratio", value=5),
-                                             _set("extinction_ratio", value=5.0))),
-    Edit("psf sigma 1.5 in both", _both(_set("setup", "psf", "sigma_hr_px", value=1.5),
-                                        _set("psf", "sigma_hr_px", value=1.5))),
-    Edit("psf as psf_sigma_hr_px", _both(_drop("setup", "psf"), _set("setup", "psf_sigma_hr_px", value=0.5))),
-    Edit("the same rig in both", _both(_set("setup", "rig", value=RIG), _set("rig", value=RIG))),
+    Edit("setup null", set_key("setup", value=None)),
+    Edit("extinction ratio 5 in both", _both(set_key("setup", "extinction_ratio", value=5),
+                                             set_key("extinction_ratio", value=5.0))),
+    Edit("psf sigma 1.5 in both", _both(set_key("setup", "psf", "sigma_hr_px", value=1.5),
+                                        set_key("psf", "sigma_hr_px", value=1.5))),
+    Edit("psf as psf_sigma_hr_px", _both(_drop("setup", "psf"), set_key("setup", "psf_sigma_hr_px", value=0.5))),
+    Edit("the same rig in both", _both(set_key("setup", "rig", value=RIG), set_key("rig", value=RIG))),
     Edit("layout changed at the top level only", _both(_drop("setup", "dofp_layout"), _drop("dofp_layout_name"),
-                                                      _set("dofp_layout", value=[[0, 45], [135, 90]]))),
+                                                      set_key("dofp_layout", value=[[0, 45], [135, 90]]))),
     Edit("extinction ratio 20 at the top level only", _both(_drop("setup", "extinction_ratio"),
-                                                            _set("extinction_ratio", value=20.0))),
+                                                            set_key("extinction_ratio", value=20.0))),
 ]
 
 
 @pytest.fixture(scope="module")
 def capture_dir(tmp_path_factory) -> Path:
-    rng = np.random.default_rng(0)
-    gt = (0.2 + 0.5 * rng.random((12, 32, 32))).astype(np.float32)
-    path = tmp_path_factory.mktemp("h3") / "capture"
-    write_capture(path, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=1))
-    return path
-
-
-def _edited(capture_dir: Path, folder: Path, edit) -> Path:
-    shutil.copytree(capture_dir, folder)
-    meta = json.loads((folder / "meta.json").read_text())
-    edit(meta)
-    (folder / "meta.json").write_text(json.dumps(meta))
-    return folder
+    return small_gaussian_capture(tmp_path_factory.mktemp("h3") / "capture")
 
 
 @pytest.mark.parametrize("row", EDITS, ids=str)
 def test_each_setup_edit_is_refused_or_agrees_with_the_reconstruction(row, capture_dir, tmp_path):
-    folder = _edited(capture_dir, tmp_path / "cap", row.edit)
+    folder = edited_capture(capture_dir, tmp_path / "cap", row.edit)
     if row.fragments:
         with pytest.raises(Exception) as info:
             read_capture(folder)
@@ -145,7 +122,7 @@ def test_each_setup_edit_is_refused_or_agrees_with_the_reconstruction(row, captu
 
 def test_the_rung_follows_an_edit_of_the_top_level(capture_dir, tmp_path):
     """Not vacuous: an edit the table accepts reaches both readers."""
-    folder = _edited(capture_dir, tmp_path / "cap", EDITS[[e.name for e in EDITS].index(
+    folder = edited_capture(capture_dir, tmp_path / "cap", EDITS[[e.name for e in EDITS].index(
         "extinction ratio 20 at the top level only")].edit)
     capture = read_capture(folder)
     assert capture.extinction_ratio == 20.0 and _measurement(capture, noise=True).extinction_ratio == 20.0
@@ -153,7 +130,7 @@ def test_the_rung_follows_an_edit_of_the_top_level(capture_dir, tmp_path):
 
 def test_a_folder_of_captures_names_the_capture_with_the_bad_setup(capture_dir, tmp_path):
     shutil.copytree(capture_dir, tmp_path / "many" / "a")
-    _edited(capture_dir, tmp_path / "many" / "b", _set("setup", "psf", "sigma_hr_px", value=3.0))
+    edited_capture(capture_dir, tmp_path / "many" / "b", set_key("setup", "psf", "sigma_hr_px", value=3.0))
     outcome, message = invoke(["reconstruct", tmp_path / "many", "-m", "dofp-bilinear"])
     assert outcome == "error", message
     assert str(tmp_path / "many" / "b" / "meta.json") in message and "setup.psf.sigma_hr_px" in message, message

@@ -7,19 +7,26 @@ deadline (a machine shared with other jobs varies in speed) and keeps no example
 from __future__ import annotations
 
 import importlib
+import json
 import logging
 import os
 import resource
+import shutil
 import traceback
 from contextlib import contextmanager
+from pathlib import Path
 
+import numpy as np
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
+from capssim.camera.sensor import make_sensor
+from capssim.captures.capture import write_capture
 from capssim.cli import app
 from capssim.errors import CapssimError
 from capssim.runtime.resources import MEMORY_LIMIT_ENV
+from capssim.simulate import simulate_capture
 
 #: ``CAPSSIM_FUZZ_SCALE=N`` runs N times the examples (a longer search, locally; CI runs the default 1)
 FUZZ_SCALE = float(os.environ.get("CAPSSIM_FUZZ_SCALE", "1"))
@@ -179,3 +186,31 @@ def refused_before_work(args: list, root, capsys, monkeypatch, *, fragments: tup
     for path in absent:
         assert not (root / path).exists(), f"{path} was created before the refusal"
     return line
+
+
+# -- meta.json edits (the hardening rounds' capture refusals) -------------------------------------------
+def set_key(*keys, value):
+    """An edit of a mapping that sets ``value`` at the nested ``keys``."""
+    def edit(data):
+        for key in keys[:-1]:
+            data = data[key]
+        data[keys[-1]] = value
+    return edit
+
+
+def small_gaussian_capture(folder: Path) -> Path:
+    """A 32x32 HR capture folder (a seeded random scene, sigma 0.01, seed 1) written to ``folder``."""
+    rng = np.random.default_rng(0)
+    gt = (0.2 + 0.5 * rng.random((12, 32, 32))).astype(np.float32)
+    write_capture(folder, simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=1))
+    return folder
+
+
+def edited_capture(src: Path, dst: Path, edit) -> Path:
+    """A copy of the capture folder ``src`` at ``dst`` whose ``meta.json`` went through ``edit(meta)``; an edit
+    that returns a string writes that text instead."""
+    shutil.copytree(src, dst)
+    meta = json.loads((dst / "meta.json").read_text())
+    text = edit(meta)
+    (dst / "meta.json").write_text(text if isinstance(text, str) else json.dumps(meta))
+    return dst
