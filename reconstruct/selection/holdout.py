@@ -110,14 +110,11 @@ class HoldoutValidation:
         residual = self.images - self.forward(image)
         return self.weights * residual.square()
 
-    def _measure(self, image: torch.Tensor) -> float:
-        return self.error(image)
-
     def begin(self, init: torch.Tensor) -> dict:
         """Start a run from ``init`` (iteration 0, a candidate itself); its error, which the first
         :meth:`update` reports too."""
         self._filter_choice = None
-        self.best_error, self.best_iteration, self.last_iteration = self._measure(init), 0, 0
+        self.best_error, self.best_iteration, self.last_iteration = self.error(init), 0, 0
         self.best_image = init.detach().clone()
         self.init_error = self.best_error
         return {"holdout_error_init": self.init_error}
@@ -125,7 +122,7 @@ class HoldoutValidation:
     def update(self, iteration: int, image: torch.Tensor) -> dict:
         """After iteration ``iteration`` (1-based) produced ``image``: its error, kept if the best so far (the
         first iteration's fields also hold the start's error)."""
-        e = self._measure(image)
+        e = self.error(image)
         first = self.last_iteration == 0
         self.last_iteration = int(iteration)
         if e < self.best_error:
