@@ -147,6 +147,7 @@ RECONSTRUCT_ROOMS = (
     ("pipeline",),
     ("selection",),  # a method's data-driven choices, made once per frame before its solve
     ("registry",),
+    ("uncertainty",),  # error bars: a bootstrap that runs any registered method again (above the registry)
     ("methods", "plugins"),  # plug-in methods and priors from other packages, registered beside the built-ins
     ("training",),
     ("tiles",),  # full frames in tiles: runs any registered method per tile

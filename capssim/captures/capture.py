@@ -8,6 +8,8 @@ Layout (README "Capture folder format")::
       dofp_raw.tiff    (2H, 2W)    DoFP colour-polarization mosaic (optional)
       gt.tiff          (12, 2H, 2W) float32 ground truth (optional)
       recon/NAME.tiff  (12, 2H, 2W) float32, one per method, and recon/NAME.json
+      recon/NAME.std.tiff, NAME.interval90.tiff, NAME.stokes-uncertainty.tiff
+                       its error bars, with --uncertainty (capssim.reconstruct.uncertainty.maps)
 
 Raw frames are float32 on [0, 1] for ``sensor.model == "none"``, else uint16 DN with
 ``sensor.black_level`` and ``sensor.white_level``.
@@ -326,7 +328,12 @@ def read_capture(path, *, load_gt: bool = True, require_gt: bool = False) -> Cap
 
 
 # -- reconstruction outputs -------------------------------------------------------------------
-def write_reconstruction(capture_path, method: str, image: np.ndarray, record: dict) -> tuple[Path, Path]:
+#: ``recon/NAME{suffix}.tiff`` files that belong to the reconstruction ``NAME`` (its error bars), by name
+COMPANION_SUFFIXES = {"std": ".std", "interval90": ".interval90", "stokes": ".stokes-uncertainty"}
+
+
+def write_reconstruction(capture_path, method: str, image: np.ndarray, record: dict, *,
+                         companions: dict[str, np.ndarray] | None = None) -> tuple[Path, Path]:
     """Write ``recon/METHOD.tiff`` and ``recon/METHOD.json`` into a capture folder, atomically.
 
     Parameters
@@ -339,6 +346,9 @@ def write_reconstruction(capture_path, method: str, image: np.ndarray, record: d
         ``(12, 2H, 2W)`` finite reconstruction (written as float32).
     record : dict
         The record of :func:`capssim.reconstruct.reconstruct` (JSON-serializable).
+    companions : dict, optional
+        ``{name: array}`` written as ``recon/METHOD{COMPANION_SUFFIXES[name]}.tiff`` (float32) before the record,
+        which is written last: a folder with the record has every file it names.
 
     Returns
     -------
@@ -356,10 +366,20 @@ def write_reconstruction(capture_path, method: str, image: np.ndarray, record: d
     out_dir = capture_path / "recon"
     tiff, js = out_dir / f"{method}.tiff", out_dir / f"{method}.json"
     write_tiff(tiff, image.astype(np.float32))
+    for name, array in (companions or {}).items():
+        if name not in COMPANION_SUFFIXES:
+            raise InputError("companions", repr(name), "one of " + ", ".join(COMPANION_SUFFIXES))
+        write_tiff(out_dir / f"{method}{COMPANION_SUFFIXES[name]}.tiff", np.asarray(array, dtype=np.float32))
     atomic_write_json(js, record)
     return tiff, js
 
 
 def list_reconstructions(capture_path) -> list[str]:
+    """The reconstructions ``recon/NAME.tiff`` of a capture folder, by name (not their companion files)."""
     d = Path(capture_path) / "recon"
-    return sorted(p.stem for p in d.glob("*.tiff")) if d.is_dir() else []
+    if not d.is_dir():
+        return []
+    stems = {p.stem for p in d.glob("*.tiff")}
+    companions = {s for s in stems for suffix in COMPANION_SUFFIXES.values()
+                  if s.endswith(suffix) and s[: -len(suffix)] in stems}
+    return sorted(stems - companions)
