@@ -39,6 +39,8 @@ log = logging.getLogger(__name__)
 
 #: the package whose modules are the registered methods, one method (or a family) per file
 METHODS_PACKAGE = "capssim.reconstruct.methods"
+#: the module that runs ``uncertainty=N`` (found by name: it runs the methods again through this dispatcher)
+UNCERTAINTY_MODULE = "capssim.reconstruct.uncertainty.estimate"
 
 
 @dataclass(frozen=True)
@@ -214,6 +216,7 @@ def run_on_rggb(spec: MethodSpec, capture: Capture, context: RunContext) -> Meth
 def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
                 registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None,
                 physical_projection: bool = True, reuse_registration: bool = True, calibration=None,
+                start: np.ndarray | None = None, uncertainty: int = 0, uncertainty_options: dict | None = None,
                 **options) -> tuple[MethodOutput, dict]:
     """Run ``method`` (a name of :func:`available_methods`) on ``capture``, in memory.
 
@@ -227,6 +230,13 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         Project onto ``I >= 0``, ``I0 + I90 = I45 + I135``, DoLP <= 1 where all four angles are observed;
         the CAPS array model (None: the capture's calibration file if it names one, ``"ideal"``, ``"truth"``
         or a ``capssim-rig`` file); the method's options (e.g. ``iterations``).
+    start : numpy.ndarray, optional
+        A warm start ``(12, 2H, 2W)`` for an iterative method's solver (:attr:`RunContext.start`).
+    uncertainty, uncertainty_options : int, dict, optional
+        With ``uncertainty = N >= 2``, the error bars of the reconstruction by an ``N``-replicate bootstrap
+        (:mod:`capssim.reconstruct.uncertainty`): ``output.uncertainty`` and the record's ``uncertainty``;
+        ``uncertainty_options``: ``seed``, ``equivariant``, ``warm_iterations``, ``registration_jitter_hr_px``,
+        ``calibration`` (None: the shipped one; ``"none"``; a file).
 
     Returns
     -------
@@ -235,6 +245,10 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     """
     spec = get_method(method)
     dev = resolve_device(device)
+    estimate_uncertainty = None
+    if uncertainty:  # found by name, like the methods: the uncertainty room sits above this registry
+        estimate_uncertainty = importlib.import_module(UNCERTAINTY_MODULE)
+        estimate_uncertainty.check_uncertainty_options(uncertainty, uncertainty_options)
     if spec.input_kind == "caps" and not true_warps:
         registration_parameters(registration)  # UnknownNameError lists the modes
     if spec.input_kind == "caps" and true_warps:
@@ -245,7 +259,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     timer = StageTimer(dev)
     ctx = RunContext(device=dev, timer=timer, options=dict(options), true_warps=true_warps,
                      registration=registration, reuse_registration=reuse_registration, progress=progress,
-                     calibration=model)
+                     calibration=model, start=start)
     t0 = time.perf_counter()
     with torch.no_grad():
         out = run_on_rggb(spec, capture, ctx)
@@ -287,6 +301,12 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     if unobserved is not None:
         record["unobserved"] = unobserved
     non_finite: list[str] = []
+    if estimate_uncertainty is not None:
+        run_options = {"device": dev, "physical_projection": physical_projection, "calibration": calibration}
+        out.uncertainty = estimate_uncertainty.reconstruction_uncertainty(
+            capture, method, image, record, replicates=uncertainty, run=reconstruct, run_options=run_options,
+            **(uncertainty_options or {}))
+        record["uncertainty"] = out.uncertainty.record
     record = finite_or_null(record, found=non_finite)
     if non_finite:
         log.warning("%s: non-finite values recorded as null: %s", method, ", ".join(non_finite[:8]))
@@ -312,7 +332,8 @@ def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:
     """
     capture = read_capture(capture_path, load_gt=wants_ground_truth(kwargs))  # track_psnr: PSNR per iteration
     out, record = reconstruct(capture, method, **kwargs)
-    write_reconstruction(capture_path, method, out.image, record)
+    companions = out.uncertainty.arrays() if out.uncertainty is not None else None
+    write_reconstruction(capture_path, method, out.image, record, companions=companions)
     return record
 
 

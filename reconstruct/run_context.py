@@ -57,6 +57,9 @@ class RunContext:
     reuse_registration: bool = True  # reconstruct.registration.store: False registers again (and re-stores)
     progress: Callable[[int, int, str], None] | None = None
     calibration: CalibrationModel | None = None  # reconstruct.calibration_model: the array's model (None: ideal)
+    #: a warm start ``(12, 2H, 2W)`` float32: the solver of an iterative method starts here instead of at its own start
+    #: (the bootstrap's replicates, :mod:`capssim.reconstruct.uncertainty`); methods without a solver ignore it
+    start: np.ndarray | None = None
 
     def report(self, done: int, total: int, message: str = "") -> None:
         if self.progress is not None:
@@ -77,3 +80,5 @@ class MethodOutput:
     history: list[dict] = field(default_factory=list)
     extra: dict = field(default_factory=dict)
     unobserved: np.ndarray | Callable[[], np.ndarray] | None = None
+    #: the error bars of ``--uncertainty`` (:class:`capssim.reconstruct.uncertainty.maps.UncertaintyMaps`), or None
+    uncertainty: object | None = None

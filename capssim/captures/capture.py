@@ -17,6 +17,7 @@ Raw frames are float32 on [0, 1] for ``sensor.model == "none"``, else uint16 DN 
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -125,6 +126,16 @@ class Capture:
     def aperture_homographies(self) -> np.ndarray:
         """``(4, 3, 3)`` stored HR reference -> aperture-HR homographies."""
         return self.geometry.aperture_homographies.copy()
+
+    def with_aperture_homographies(self, homographies) -> "Capture":
+        """The same capture with other stored warps ``(4, 3, 3)`` (HR reference -> aperture-HR) and the sub-image
+        homographies derived from them; the frames are shared, not copied."""
+        geometry = ArrayGeometry(np.asarray(homographies, dtype=np.float64), self.hr_shape)
+        meta = copy.deepcopy(self.meta)
+        meta["aperture_homographies"] = geometry.aperture_homographies.tolist()
+        for entry, hom in zip(meta.get("lr_images") or [], geometry.lr_homographies):
+            entry["homography"] = hom.tolist()
+        return Capture(meta=meta, caps_raw=self.caps_raw, dofp_raw=self.dofp_raw, gt=self.gt, path=self.path)
 
     def true_lr_homographies(self) -> np.ndarray:
         """``(16, 3, 3)`` HR reference -> sub-image homographies, derived from the stored aperture ones."""

@@ -39,10 +39,11 @@ from capssim.cli.bench_budget import add_budget_command
 from capssim.cli.bench_compare import add_compare_command
 from capssim.cli.bench_map import add_map_command
 from capssim.cli.bench_suite import add_suite_command
+from capssim.cli.bench_uncertainty import add_uncertainty_command
 
 bench_app = typer.Typer(name="bench", no_args_is_help=True, rich_markup_mode=None,
                         help="Benchmarks: capssim bench SUBJECT [options] with SUBJECT in suite, reconstruct, "
-                             "registration, dofp, render, dataset, budget, compare, map.")
+                             "registration, dofp, render, dataset, budget, compare, map, uncertainty.")
 
 RepeatsOption = typer.Option(1, "--repeats", help="Runs of each measurement; the tables show the fastest.",
                              callback=number_in("--repeats", 1, 1000, what="runs"))
@@ -318,6 +319,7 @@ def dataset(
 add_budget_command(bench_app)
 add_compare_command(bench_app)
 add_map_command(bench_app)
+add_uncertainty_command(bench_app)
 
 
 def register(app: typer.Typer) -> None:

@@ -27,7 +27,8 @@ COMMAND_FLAGS = {"device": "--device", "true_warps": "--true-warps", "registrati
                  "progress": "--progress/--no-progress",
                  "physical_projection": "--physical-projection/--no-physical-projection",
                  "reuse_registration": "--reuse-registration/--no-reuse-registration",
-                 "calibration": "--calibration"}
+                 "calibration": "--calibration", "uncertainty": "--uncertainty",
+                 "uncertainty_options": "--uncertainty-calibration"}
 
 
 def parse_options(pairs: List[str]) -> dict:
@@ -106,6 +107,15 @@ def reconstruct(
         True, "--physical-projection/--no-physical-projection",
         help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1) "
              "where all four angles are observed."),
+    uncertainty: Optional[int] = typer.Option(
+        None, "--uncertainty", metavar="N",
+        help="Also write error bars from an N-replicate bootstrap (e.g. 8): recon/METHOD.std.tiff, "
+             ".interval90.tiff and .stokes-uncertainty.tiff, calibrated 90 %% intervals (guides/reconstruction.md, "
+             "'Error bars')."),
+    uncertainty_calibration: Optional[str] = typer.Option(
+        None, "--uncertainty-calibration", metavar="FILE|none",
+        help="With --uncertainty: the calibration of the intervals (default: the shipped one; 'none': the raw "
+             "bootstrap's 1.645 std)."),
     tile: Optional[int] = TileOption,
     memory_gb: Optional[float] = MemoryOption,
     workers: Optional[int] = WorkersOption,
@@ -125,6 +135,9 @@ def reconstruct(
     check_iterations_agree(options, iterations)
     flags = dict(device=device, true_warps=true_warps, registration=registration,
                  physical_projection=physical_projection, reuse_registration=reuse_registration, calibration=calibration)
+    if uncertainty is not None or uncertainty_calibration is not None:
+        flags.update(check_uncertainty_flags(capture, uncertainty, uncertainty_calibration, tiled=tile is not None
+                                             or uses_full_frames(capture, workers, scheduler)))
     if uses_full_frames(capture, workers, scheduler):  # a folder of captures, or tiles/frames on Dask
         names = expand_methods(method, first_capture(capture))
         check_recon_outputs(capture, names)
@@ -146,6 +159,27 @@ def reconstruct(
         typer.echo("method                    wall time (s)")
         for name, wall in rows:
             typer.echo(f"{name:24s}  {wall:10.2f}")
+
+
+def check_uncertainty_flags(capture: Path, uncertainty: Optional[int], calibration: Optional[str], *,
+                            tiled: bool) -> dict:
+    """``--uncertainty N`` and ``--uncertainty-calibration``, checked before any work: the count, the calibration
+    file, a capture with a noise model, one capture run untiled; the keywords of ``run_method`` they give."""
+    from capssim.captures.capture import Capture, read_meta
+    from capssim.reconstruct.uncertainty.bootstrap import check_noise, check_replicates  # start-up time
+    from capssim.reconstruct.uncertainty.conformal import load_calibration
+
+    if uncertainty is None:
+        raise InputError("--uncertainty-calibration", repr(calibration), "a calibration for --uncertainty N",
+                         "Add --uncertainty 8, or drop --uncertainty-calibration.")
+    count = check_replicates(uncertainty)
+    if tiled:
+        raise InputError("--uncertainty", count, "a run of one capture, untiled",
+                         "Drop --tile/--workers/--scheduler, or reconstruct one capture folder at a time.")
+    if calibration not in (None, "none"):
+        load_calibration(calibration)
+    check_noise(Capture(meta=read_meta(capture), caps_raw=None, path=capture))
+    return {"uncertainty": count, "uncertainty_options": {"calibration": calibration}}
 
 
 def method_list_lines() -> str:
@@ -284,6 +318,11 @@ def _echo_record(capture: Path, name: str, record: dict) -> None:
                    f"iteration {len(psnr)}")
     if record.get("calibration"):
         typer.echo(f"  array model: calibration {record['calibration'].get('source')}")
+    if record.get("uncertainty"):
+        unc = record["uncertainty"]
+        typer.echo(f"  error bars: {unc['replicates']} replicates in {unc['time_s']:.2f} s, calibration "
+                   f"{unc['calibration'].get('name')} -> recon/{name}.std.tiff, .interval90.tiff, "
+                   ".stokes-uncertainty.tiff")
 
 
 def register(app: typer.Typer) -> None:

@@ -153,8 +153,9 @@ def _run_method(rec: dict, method: dict, capture, scorer: CaptureScorer, capture
     with PeakMemory(device=device) as mem:
         out, record = reconstruct(capture, method["name"], device=device, true_warps=bool(method["true_warps"]),
                                   registration=method["registration"], calibration=method_calibration(method),
-                                  **method["options"])
-    write_reconstruction(capture_path, method["label"], out.image, record)
+                                  uncertainty=method.get("uncertainty") or 0, **method["options"])
+    companions = out.uncertainty.arrays() if out.uncertainty is not None else None
+    write_reconstruction(capture_path, method["label"], out.image, record, companions=companions)
     scored = scorer.score(out.image)
     rec.update(status="ok", metrics=scored.flat(), notes=scored.metrics["notes"],
                metric_settings=scored.metrics["settings"],

@@ -112,7 +112,9 @@ METHOD_SPEC = Mapping({
     "true_warps": Boolean(),
     "registration": String(choices=lambda: list(REGISTRATION_MODES)),
     "calibration": String(choices=list(METHOD_CALIBRATIONS)),
-}, required=("name",), what="a method (a name, or {name, label, options, true_warps, registration, calibration})")
+    "uncertainty": Integer(minimum=2, maximum=64),
+}, required=("name",), what="a method (a name, or {name, label, options, true_warps, registration, calibration, "
+                            "uncertainty})")
 
 #: the sensor fields each noise model takes (besides ``name`` and ``noise``)
 _SENSOR_FIELDS = {model: [f.name for f in fields(kind) if f.name != "model"] for model, kind in
@@ -252,8 +254,9 @@ SUITE_SPEC = Mapping({
     "methods": Sequence(MethodEntrySpec(), min_length=1, what="methods"),
     "scenes": Sequence(SceneSpec(), min_length=1, what="scenes"),
     "paired": String(),
+    "uncertainty": Integer(minimum=2, maximum=64),
 }, required=("methods", "scenes"),
-   what="a suite (name, role, description, convention, seeds, noise, methods, scenes, paired)")
+   what="a suite (name, role, description, convention, seeds, noise, methods, scenes, paired, uncertainty)")
 
 
 def _unique(values: list, path: str, key: str | None, what: str, fix: str) -> None:
@@ -281,6 +284,8 @@ def check_suite(spec: dict) -> dict:
             "Give each variant of a method its own label: {name: caps, label: caps-10it, options: {...}}.")
     for i, method in enumerate(spec["methods"]):
         _check_method_entry_options(method, join(join("methods", i), "options"))
+        if spec.get("uncertainty") is not None:  # the suite's replicate count, unless the method names its own
+            method.setdefault("uncertainty", spec["uncertainty"])
     labels = [m["label"] for m in spec["methods"]]
     if spec.get("paired") is not None and spec["paired"] not in labels:
         close = difflib.get_close_matches(str(spec["paired"]), labels, n=1)

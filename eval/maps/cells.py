@@ -21,12 +21,10 @@ A cell is a suite scene entry with the cell's conditions (:func:`cell_scene`); t
 
 from __future__ import annotations
 
-import copy
 import functools
 
 import numpy as np
 
-from capssim.camera.array_geometry import ArrayGeometry
 from capssim.captures.capture import Capture
 from capssim.conventions import N_APERTURES
 from capssim.reconstruct.registry import available_methods
@@ -134,12 +132,7 @@ def perturbed_warps(capture: Capture, error_px: float, seed: int) -> Capture:
         shift = np.eye(3)
         shift[:2, 2] = float(error_px) * np.cos(angle), float(error_px) * np.sin(angle)
         homographies[n] = shift @ homographies[n]
-    geometry = ArrayGeometry(homographies, capture.hr_shape)
-    meta = copy.deepcopy(capture.meta)
-    meta["aperture_homographies"] = geometry.aperture_homographies.tolist()
-    for entry, hom in zip(meta.get("lr_images") or [], geometry.lr_homographies):
-        entry["homography"] = hom.tolist()
-    return Capture(meta=meta, caps_raw=capture.caps_raw, dofp_raw=capture.dofp_raw, gt=capture.gt, path=capture.path)
+    return capture.with_aperture_homographies(homographies)
 
 
 def prepare_cell(capture: Capture, method: dict, capture_info: dict):

@@ -109,7 +109,8 @@ def run_caps_plus(capture, context: RunContext, config: PipelineConfig = CAPS_PL
     if choices.denoiser_blend is not None:
         opts = replace(opts, prior_parameters=replace(opts.prior_parameters, denoiser_blend=choices.denoiser_blend))
     problem = front.problems[0]
-    problem.init = start_image(capture, context, front.geometry, problem, opts, own["init"])
+    if context.start is None:  # a warm start replaces the start
+        problem.init = start_image(capture, context, front.geometry, problem, opts, own["init"])
     chosen = choices.polarization_filter
     finish = (lambda image, params: apply_chosen_filter(image, {"radius": chosen[0], "eps": chosen[1]})) \
         if chosen else None

@@ -148,6 +148,7 @@ def method_geometry(capture: Capture, context: RunContext, *, images: np.ndarray
             images=images, saturated=saturated, hr_shape=hr_shape, mode=mode,
             parameters=registration_parameters(mode), reuse=context.reuse_registration)
         geometry = ArrayGeometry(aperture, hr_shape)
+    record["aperture_homographies"] = np.asarray(geometry.aperture_homographies, dtype=float).tolist()
     if truth_known(capture):
         err = registration_error_hr_px(geometry.lr_homographies, capture.true_lr_homographies(), hr_shape)
         record.update({"error_hr_px_median": float(np.median(err)), "error_hr_px_max": float(np.max(err)),

@@ -6,7 +6,8 @@ Three files, float32, on the HR grid ``(2H, 2W)`` (docs: guides/reconstruction.m
     the calibrated standard deviation of each of the 12 channels (the bootstrap's spread times the
     calibration's scale, so that ``estimate +- z90 * std`` is the 90 % interval);
 ``recon/METHOD.interval90.tiff`` ``(2, 12, 2H, 2W)``
-    the lower (``[0]``) and upper (``[1]``) bounds of the 90 % interval of each channel;
+    the lower (``[0]``) and upper (``[1]``) bounds of the 90 % interval of each channel (the TIFF holds them as
+    24 pages, the 12 lower bounds first; :func:`read_uncertainty` gives them back as ``(2, 12, 2H, 2W)``);
 ``recon/METHOD.stokes-uncertainty.tiff`` ``(27, 2H, 2W)``
     S0, DoLP and AoP per colour: plane ``9 q + 3 s + k`` holds quantity ``q`` of :data:`STOKES_QUANTITIES`
     (S0 on [0, 2], DoLP on [0, 1], AoP in degrees), statistic ``s`` of :data:`STOKES_STATISTICS` (``std``,
@@ -102,4 +103,7 @@ def read_uncertainty(capture_path, method: str) -> UncertaintyMaps | None:
                          "all three of .std, .interval90 and .stokes-uncertainty",
                          f"Run 'capssim reconstruct CAPTURE -m {method} --uncertainty 8' again.")
     arrays = {name: read_tiff(path, argument=f"recon/{path.name}") for name, path in paths.items()}
+    interval = arrays["interval90"]
+    if interval.ndim == 3 and interval.shape[0] == 2 * N_CHANNELS:  # a TIFF keeps (2, 12, H, W) as 24 pages
+        arrays["interval90"] = interval.reshape(2, N_CHANNELS, *interval.shape[1:])
     return UncertaintyMaps(**arrays)
