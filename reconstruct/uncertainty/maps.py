@@ -102,4 +102,7 @@ def read_uncertainty(capture_path, method: str) -> UncertaintyMaps | None:
                          "all three of .std, .interval90 and .stokes-uncertainty",
                          f"Run 'capssim reconstruct CAPTURE -m {method} --uncertainty 8' again.")
     arrays = {name: read_tiff(path, argument=f"recon/{path.name}") for name, path in paths.items()}
+    interval = arrays["interval90"]
+    if interval.ndim == 3 and interval.shape[0] == 2 * N_CHANNELS:  # a TIFF keeps pages: (2, 12) comes back as 24
+        arrays["interval90"] = interval.reshape(2, N_CHANNELS, *interval.shape[1:])
     return UncertaintyMaps(**arrays)
