@@ -4,7 +4,8 @@ An estimate is scored by the metrics of :func:`capssim.eval.metrics.score` again
 capture's ground truth and, for Siemens-star scenes, by the MTF / SR magnification of
 :mod:`capssim.eval.mtf` (paper section 5.3). :func:`evaluate_capture` scores every
 ``recon/NAME.tiff`` of a capture folder, adds the wall time and stage times from
-``recon/NAME.json`` and writes ``CAPTURE/metrics.json`` (atomic write).
+``recon/NAME.json``, scores its error bars when it has them (:mod:`capssim.eval.uncertainty_scores`) and
+writes ``CAPTURE/metrics.json`` (atomic write).
 
 Star scenes: the geometry comes from ``meta["scene"]["star"]`` (``cycles``, optional
 ``center_rowcol`` and ``radius_px``, in HR = ground-truth pixels) when the renderer records
@@ -29,11 +30,14 @@ from capssim.captures.capture import list_reconstructions, read_capture
 from capssim.conventions import CHANNEL_NAMES, N_CHANNELS
 from capssim.errors import CapssimError, CaptureFormatError, InputError
 from capssim.files.imageio import atomic_write_json, read_tiff
+from capssim.reconstruct.uncertainty.maps import read_uncertainty
 from capssim.runtime.data_range import warn_out_of_range
 
 from . import metrics as M
 from .metric_records import flatten, json_safe
 from .mtf import StarMTF, measure_star
+from .uncertainty_plots import write_uncertainty_plots
+from .uncertainty_scores import UncertaintyScores, score_uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -156,9 +160,11 @@ def read_estimate(path: Path, hr_shape: tuple[int, int]) -> np.ndarray:
     return img
 
 
-def _record_entry(record_path: Path) -> dict[str, Any]:
-    """Wall time, stage times and registration of a reconstruction's ``recon/NAME.json``."""
+def _record_entry(record_path: Path) -> tuple[dict[str, Any], dict]:
+    """Wall time, stage times and registration of a reconstruction's ``recon/NAME.json``, and the record itself
+    (``{}`` when absent or corrupt)."""
     entry: dict[str, Any] = {}
+    record: dict = {}
     if record_path.is_file():
         try:
             record = json.loads(record_path.read_text())
@@ -168,6 +174,64 @@ def _record_entry(record_path: Path) -> dict[str, Any]:
                 entry["registration"] = record["registration"]
         except json.JSONDecodeError as exc:
             entry["record_error"] = f"corrupt {record_path.name}: {exc}"
+    return entry, record if isinstance(record, dict) else {}
+
+
+def uncertainty_entry(scores: UncertaintyScores, record: dict) -> dict[str, Any]:
+    """The ``"uncertainty"`` block of a method in ``metrics.json``: :meth:`UncertaintyScores.to_dict` with the
+    ``calibration`` name and ``replicates`` of the record's ``"uncertainty"`` block (None when absent), and a
+    note when the record has no such block (the files may be left from an earlier run)."""
+    made = record.get("uncertainty") if isinstance(record.get("uncertainty"), dict) else None
+    calibration = (made or {}).get("calibration")
+    if isinstance(calibration, dict):
+        calibration = calibration.get("name")
+    block = {**scores.to_dict(), "calibration": calibration, "replicates": (made or {}).get("replicates"),
+             "notes": []}
+    if made is None:
+        block["notes"].append("the record (recon/METHOD.json) has no 'uncertainty' block: the error-bar files "
+                              "may be left from an earlier reconstruction")
+    return block
+
+
+def _score_uncertainty(path: Path, name: str, estimate: np.ndarray, gt: np.ndarray, scorer: CaptureScorer,
+                       record: dict, plot_dir: Path | None) -> dict[str, Any] | None:
+    """The ``"uncertainty"`` block of ``recon/NAME`` (None without error-bar files; ``{"error": ...}`` when they
+    cannot be read or scored), with the paths of its plots when ``plot_dir`` is given."""
+    try:
+        maps = read_uncertainty(path, name)
+        if maps is None:
+            return None
+        options = {k: v for k, v in scorer.score_options.items() if k != "lpips"}
+        scores = score_uncertainty(estimate, gt, maps, convention=scorer.convention, **options)
+    except CapssimError as exc:
+        return {"error": str(exc)}
+    block = uncertainty_entry(scores, record)
+    if plot_dir is not None:
+        try:
+            block["plots"] = [str(p) for p in write_uncertainty_plots(estimate, gt, maps, scores, plot_dir,
+                                                                      method=name)]
+        except Exception as exc:  # a plot must never lose the scores
+            log.warning("uncertainty plots of %s failed: %s", name, exc)
+            block["plots_error"] = f"{type(exc).__name__}: {exc}"
+    return block
+
+
+def _score_reconstruction(path: Path, name: str, capture, scorer: CaptureScorer,
+                          plot_dir: Path | None) -> dict[str, Any]:
+    """The ``metrics.json`` entry of ``recon/NAME``: record times, metrics, MTF, error bars, or ``error``."""
+    entry, record = _record_entry(path / "recon" / f"{name}.json")
+    try:
+        estimate = read_estimate(path / "recon" / f"{name}.tiff", capture.hr_shape)
+        scored = scorer.score(estimate)
+        entry["metrics"] = scored.metrics
+        if scored.mtf is not None or scored.mtf_error is not None:
+            entry["mtf"] = scored.mtf if scored.mtf is not None else {"error": scored.mtf_error}
+    except CapssimError as exc:
+        entry["error"] = str(exc)
+        return entry
+    block = _score_uncertainty(path, name, estimate, capture.gt, scorer, record, plot_dir)
+    if block is not None:
+        entry["uncertainty"] = block
     return entry
 
 
@@ -177,7 +241,7 @@ GT_WARN_ABOVE = 2.0
 
 def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list[str] | None = None,
                      min_s0: float | None = None, min_dolp: float | None = None, border: int | None = None,
-                     lpips=None, with_mtf: bool = True, write: bool = True) -> dict:
+                     lpips=None, with_mtf: bool = True, write: bool = True, plot_dir=None) -> dict:
     """Score ``recon/*.tiff`` of a capture folder against its ``gt.tiff``; write ``metrics.json`` when ``write``.
 
     A reconstruction that cannot be scored (NaN, wrong shape, unreadable) gets ``{"error": ...}`` and
@@ -201,11 +265,15 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
         Also measure the MTF on a star scene (``meta.json["scene"]["star"]``).
     write : bool
         Write ``metrics.json`` into the folder.
+    plot_dir : str or pathlib.Path, optional
+        Draw the error-bar plots (:func:`~capssim.eval.uncertainty_plots.write_uncertainty_plots`) of each
+        reconstruction with error bars into this folder.
 
     Returns
     -------
     dict
-        ``methods``: per method, ``metrics`` (the :func:`~capssim.eval.metrics.score` result) or ``error``.
+        ``methods``: per method, ``metrics`` (the :func:`~capssim.eval.metrics.score` result) or ``error``,
+        and ``uncertainty`` (:func:`uncertainty_entry`) when ``recon/NAME.std.tiff`` and its companions exist.
 
     Raises
     ------
@@ -234,15 +302,8 @@ def evaluate_capture(capture_path, *, convention: str = "capssim", methods: list
     result: dict[str, Any] = {"capture": str(path), "convention": conv.name, "convention_description": conv.description,
                               "methods": {}}
     for name in names:
-        entry = _record_entry(path / "recon" / f"{name}.json")
-        try:
-            scored = scorer.score(read_estimate(path / "recon" / f"{name}.tiff", capture.hr_shape))
-            entry["metrics"] = scored.metrics
-            if scored.mtf is not None or scored.mtf_error is not None:
-                entry["mtf"] = scored.mtf if scored.mtf is not None else {"error": scored.mtf_error}
-        except CapssimError as exc:
-            entry["error"] = str(exc)
-        result["methods"][name] = entry
+        result["methods"][name] = _score_reconstruction(path, name, capture, scorer,
+                                                        None if plot_dir is None else Path(plot_dir))
     first_ok = next((e for e in result["methods"].values() if "metrics" in e), None)
     if first_ok is not None:
         result["settings"] = first_ok["metrics"]["settings"]

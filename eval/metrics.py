@@ -230,6 +230,31 @@ def check_thresholds(*, min_s0: float | None = None, min_dolp: float | None = No
             raise InputError(name, value, f"a finite number in [0, {high:g}], or nothing for the convention's default")
 
 
+def resolve_settings(convention: str | Convention, *, min_s0: float | None = None, min_dolp: float | None = None,
+                     border: int | None = None) -> tuple[Convention, int, float | None, float | None]:
+    """``(convention, border, min_s0, min_dolp)`` of :func:`score`: the options given, else the convention's
+    (border in pixels per side; thresholds on the S0 scale [0, 2] and DoLP [0, 1], None = no mask)."""
+    conv = get_convention(convention)
+    b = conv.border if border is None else int(border)
+    if b < 0:
+        raise InputError("border", b, "a non-negative number of pixels")
+    check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
+    return (conv, b, conv.min_s0 if min_s0 is None else float(min_s0),
+            conv.min_dolp if min_dolp is None else float(min_dolp))
+
+
+def ground_truth_mask(stokes_gt: np.ndarray, *, min_s0: float | None, dolp_gt: np.ndarray | None = None,
+                      min_dolp: float | None = None) -> np.ndarray:
+    """``(3, H, W)`` bool: where the ground truth's S0 (``stokes_gt`` ``(3, 3, H, W)``) is above ``min_s0`` and,
+    with ``dolp_gt`` ``(3, H, W)``, its DoLP above ``min_dolp`` (a None threshold is no condition): the AoP mask."""
+    mask = np.ones(np.shape(stokes_gt)[1:], dtype=bool)
+    if min_s0 is not None:
+        mask &= stokes_gt[0] > min_s0
+    if dolp_gt is not None and min_dolp is not None:
+        mask &= dolp_gt > min_dolp
+    return mask
+
+
 def _intensity_scores(est_c: np.ndarray, gt_c: np.ndarray, *, with_ssim: bool) -> dict[str, Any]:
     """PSNR (and SSIM) of each of the 12 cropped channels on [0, 1], their means, and CPSNR per angle."""
     out: dict[str, Any] = {"psnr": {CHANNEL_NAMES[c]: psnr(est_c[c], gt_c[c], data_range=1.0) for c in range(N_CHANNELS)}}
@@ -259,11 +284,7 @@ def _polarization_scores(st_e: np.ndarray, st_g: np.ndarray, *, s0_guard: float 
     # AoP per colour, wrap-aware, pooled; mask from the ground truth only
     a_e, a_g = aop_deg(st_e), aop_deg(st_g)
     diff = angle_difference_deg(a_e, a_g)
-    mask = np.ones_like(d_g, dtype=bool)
-    if s0_guard is not None:
-        mask &= st_g[0] > s0_guard
-    if dolp_min is not None:
-        mask &= d_g > dolp_min
+    mask = ground_truth_mask(st_g, min_s0=s0_guard, dolp_gt=d_g, min_dolp=dolp_min)
     if not np.any(np.hypot(st_g[1], st_g[2]) > 0):
         mask[:] = False
         notes.append("AoP undefined: the ground truth has S1 = S2 = 0 (DoLP = 0) at every pixel.")
@@ -323,13 +344,8 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
     """
     conv = get_convention(convention)
     est, gt = check_pair(estimate12, gt12)
-    b = conv.border if border is None else int(border)
-    if b < 0:
-        raise InputError("border", b, "a non-negative number of pixels")
+    conv, b, s0_guard, dolp_min = resolve_settings(conv, min_s0=min_s0, min_dolp=min_dolp, border=border)
     _check_size(gt, conv, b)
-    check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
-    s0_guard = conv.min_s0 if min_s0 is None else float(min_s0)
-    dolp_min = conv.min_dolp if min_dolp is None else float(min_dolp)
     notes: list[str] = []
 
     est_c = crop_border(est, b, matlab=conv.matlab_crop)

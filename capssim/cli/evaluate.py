@@ -25,11 +25,14 @@ MTF_BYTES_PER_VALUE = 32
 
 
 def check_capture_memory(capture: Path, methods: Optional[List[str]]) -> None:
-    """Refuse a capture whose images (``*.tiff``, ``recon/*.tiff`` of ``methods``), read from their headers,
-    would pass the memory limit while scored, before any is decoded."""
+    """Refuse a capture whose images (``*.tiff``, ``recon/*.tiff`` of ``methods`` and their error bars), read
+    from their headers, would pass the memory limit while scored, before any is decoded."""
+    from capssim.captures.capture import COMPANION_SUFFIXES
+
     capture = Path(capture)
     recon = sorted((capture / "recon").glob("*.tiff")) if (capture / "recon").is_dir() else []
-    files = sorted(capture.glob("*.tiff")) + [f for f in recon if not methods or f.stem in methods]
+    stems = None if not methods else {m + suffix for m in methods for suffix in ("", *COMPANION_SUFFIXES.values())}
+    files = sorted(capture.glob("*.tiff")) + [f for f in recon if stems is None or f.stem in stems]
     for path in files:
         check_image_memory("CAPTURE", path, EVALUATE_BYTES_PER_VALUE, what="scoring",
                            fix=f"Score a crop of the capture, or raise {MEMORY_LIMIT_ENV} if the machine has the memory.")
@@ -73,13 +76,17 @@ def evaluate(
     lpips_weights: Optional[Path] = typer.Option(None, "--lpips-weights",
                                                  help="Local LPIPS-Alex weights (file or folder); never downloaded."),
     no_mtf: bool = typer.Option(False, "--no-mtf", help="Skip the Siemens-star MTF of star scenes."),
+    plots: Optional[Path] = typer.Option(None, "--plots", metavar="DIR",
+                                         help="Also draw the error-bar plots (PNG) of each reconstruction with "
+                                              "uncertainty files (reconstruct --uncertainty) into this folder."),
     as_json: bool = JsonOption,
     threads: Optional[int] = ThreadsOption,
     device: str = DeviceOption,
 ) -> None:
     """Score every reconstruction of a capture against its ground truth; write CAPTURE/metrics.json.
 
-    The metrics compute on the CPU; --device is the LPIPS network's.
+    A reconstruction with error bars (recon/METHOD.std.tiff and companions) also gets the coverage of its
+    90 % intervals and its AUSE. The metrics compute on the CPU; --device is the LPIPS network's.
     """
     dev = apply_compute(threads, device)
     # start-up time: the scoring pulls torch and skimage
@@ -89,23 +96,67 @@ def evaluate(
 
     check_thresholds(min_s0=min_s0, min_dolp=min_dolp)
     check_capture_memory(capture, methods)
-    from capssim.files.output_paths import check_files_in
+    from capssim.files.output_paths import check_files_in, resolve_output
 
     check_files_in(capture, ["metrics.json"], argument="CAPTURE")  # before scoring: a folder in the way refused
+    if plots is not None:
+        plots = resolve_output(plots, kind="folder", overwrite=True, argument="--plots")
     lpips = None
     if lpips_weights is not None:
         from capssim.eval.lpips import LPIPS
 
         lpips = LPIPS.from_path(lpips_weights, device=dev)
     result = evaluate_capture(capture, convention=convention, methods=methods or None, min_s0=min_s0, min_dolp=min_dolp,
-                              border=border, lpips=lpips, with_mtf=not no_mtf)
+                              border=border, lpips=lpips, with_mtf=not no_mtf, plot_dir=plots)
     if as_json:
         typer.echo(json.dumps(json_safe(result), indent=2, allow_nan=False))
     else:
         typer.echo(render_evaluation(result, lpips_used=lpips is not None))
         typer.echo(f"wrote {Path(capture) / 'metrics.json'}")
-    if any("error" in e for e in result["methods"].values()):
+        for line in plot_lines(result, plots):
+            typer.echo(line)
+    if any("error" in e or "error" in e.get("uncertainty", {}) for e in result["methods"].values()):
         raise typer.Exit(1)
+
+
+def uncertainty_lines(result: dict) -> list[str]:
+    """One line per method with error bars: coverage of its 90 % intervals per group and its 12-channel AUSE."""
+    lines = []
+    for name, entry in result["methods"].items():
+        block = entry.get("uncertainty")
+        if not block:
+            continue
+        if "error" in block:
+            lines.append(f"{name}: error bars not scored: {block['error']}")
+            continue
+        groups = block["groups"]
+        cover = ", ".join(f"{g} {format_value(v['coverage'])}" for g, v in groups.items())
+        calibration = f" (calibration {block['calibration']})" if block.get("calibration") else ""
+        lines.append(f"{name}: {100 * block['nominal_coverage']:.0f} % intervals cover {cover}; "
+                     f"AUSE 12ch {format_value(groups['12ch']['ause'])}{calibration}")
+        lines += [f"{name}: note: {note}" for note in block.get("notes", [])]
+    if lines:
+        lines = ["", "error bars: fraction of ground-truth values inside the 90 % intervals (12 channels pooled; "
+                     "S0, DoLP, AoP pooled over R, G, B; the metrics' crop and masks);",
+                 "AUSE: area between the sparsification curve and its oracle's (0 = the std ranks the errors "
+                 "perfectly)."] + lines
+    return lines
+
+
+def plot_lines(result: dict, plot_dir: Optional[Path]) -> list[str]:
+    """What ``--plots`` wrote (or why not) for each method with error bars; ``[]`` without ``--plots``."""
+    if plot_dir is None:
+        return []
+    blocks = {name: entry["uncertainty"] for name, entry in result["methods"].items()
+              if "uncertainty" in entry and "error" not in entry["uncertainty"]}
+    if not blocks:
+        return [f"--plots: no reconstruction has error bars (recon/METHOD.std.tiff): nothing drawn in {plot_dir}"]
+    lines = []
+    for name, block in blocks.items():
+        lines += [f"wrote {p}" for p in block.get("plots", [])]
+        if "plots_error" in block:
+            lines.append(f"{name}: plots failed: {block['plots_error']}")
+    return lines
 
 
 def render_evaluation(result: dict, *, lpips_used: bool) -> str:
@@ -172,7 +223,7 @@ def render_evaluation(result: dict, *, lpips_used: bool) -> str:
                 format_table(["method", "limit-hv", "mag-hv", "limit-diag", "mag-diag", "limited-by"], rows)]
     if "mtf_error" in result:
         out.append(f"MTF not measured: {result['mtf_error']}")
-    return "\n".join(out)
+    return "\n".join(out + uncertainty_lines(result))
 
 
 # -- mtf -----------------------------------------------------------------------------------------

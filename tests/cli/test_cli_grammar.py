@@ -51,6 +51,7 @@ AUXILIARY_PATHS = {
     ("bench dataset", "--keep"): "a second output: where the generated datasets are kept",
     ("calibrate", "--report"): "a second output: plots and a summary",
     ("evaluate", "--lpips-weights"): "network weights for one metric (never downloaded)",
+    ("evaluate", "--plots"): "a second output: the error-bar plots (PNG) of reconstructions with uncertainty files",
     ("gt-check", "--write-aligned"): "a second output: the aligned ground truth",
     ("render", "--preview"): "a second output: a preview PNG of the ground truth",
 }
