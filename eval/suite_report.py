@@ -22,6 +22,7 @@ from capssim.reconstruct.registry import available_methods
 
 from . import plots as P
 from .benchmarks.compare import DEFAULT_METRICS, comparison_markdown, paired_rows, summarize
+from .uncertainty_scores import NOMINAL_COVERAGE, uncertainty_table
 
 log = logging.getLogger(__name__)
 
@@ -292,6 +293,11 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
                   "One point per method (mean over seeds); the dashed step line is the Pareto front "
                   "(no other method is both faster and better).", ""]
         lines += [f"![{label}](plots/{p.name})" for label, p in speed_plots] + [""]
+    errors = uncertainty_table(ok, methods)
+    if errors:
+        lines += ["## Error bars", "", f"Coverage of the calibrated {NOMINAL_COVERAGE:.0%} intervals (mean over the "
+                  "cases; capssim evaluate's groups and scored pixels), width and AUSE of the 12 channels.", "",
+                  errors, ""]
     lines += _report_tail(recs, ok)
     path = output / "report.md"
     atomic_write_text(path, "\n".join(lines) + "\n")

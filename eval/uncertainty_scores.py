@@ -43,7 +43,7 @@ from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp, sto
 from . import metrics as M
 
 __all__ = ["GROUPS", "NOMINAL_COVERAGE", "SPARSIFICATION_FRACTIONS", "WIDTH_UNITS", "GroupScore", "Sparsification",
-           "UncertaintyScores", "score_uncertainty", "sparsification"]
+           "UncertaintyScores", "score_uncertainty", "sparsification", "uncertainty_table"]
 
 #: the groups scored, in report order
 GROUPS = ("12ch", "S0", "DoLP", "AoP")
@@ -283,3 +283,30 @@ def score_uncertainty(estimate, gt, maps: UncertaintyMaps, *, convention: str | 
         _check_values(name, group)
     settings = {"convention": conv.name, "border": b, "min_s0": s0_guard, "min_dolp": dolp_min}
     return UncertaintyScores({name: _score_group(name, values[name]) for name in GROUPS}, settings)
+
+
+def uncertainty_table(records: list[dict], methods: list[str]) -> str | None:
+    """A Markdown table of the error bars of a suite's cases (their ``uncertainty`` entries): per method, the mean over
+    the cases of each group's coverage, the 12 channels' mean width and AUSE, and the bootstrap's time; None when no
+    case has error bars."""
+    rows = []
+    for method in methods:
+        entries = [r["uncertainty"] for r in records if r.get("method") == method
+                   and isinstance(r.get("uncertainty"), dict) and "groups" in r["uncertainty"]]
+        if not entries:
+            continue
+
+        def mean(group: str, key: str):
+            values = [e["groups"][group][key] for e in entries if e["groups"][group][key] is not None]
+            return float(np.mean(values)) if values else None
+
+        cells = [f"{v:.3f}" if v is not None else "n/a" for v in (mean(g, "coverage") for g in GROUPS)]
+        width, ause = mean("12ch", "mean_width"), mean("12ch", "ause")
+        seconds = float(np.mean([e.get("time_s") or 0.0 for e in entries]))
+        rows.append(f"| {method} | {len(entries)} | " + " | ".join(cells)
+                    + f" | {width:.4f} | {'n/a' if ause is None else f'{ause:.3f}'} | {seconds:.1f} |")
+    if not rows:
+        return None
+    head = ("| method | cases | " + " | ".join(f"{g} coverage" for g in GROUPS)
+            + " | 12ch width | 12ch AUSE | bootstrap s |\n|---|---:|" + "---:|" * (len(GROUPS) + 3))
+    return head + "\n" + "\n".join(rows)

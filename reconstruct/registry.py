@@ -245,16 +245,8 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     """
     spec = get_method(method)
     dev = resolve_device(device)
-    estimate_uncertainty = None
-    if uncertainty:  # found by name, like the methods: the uncertainty room sits above this registry
-        estimate_uncertainty = importlib.import_module(UNCERTAINTY_MODULE)
-        estimate_uncertainty.check_uncertainty_options(uncertainty, uncertainty_options)
-    if spec.input_kind == "caps" and not true_warps:
-        registration_parameters(registration)  # UnknownNameError lists the modes
-    if spec.input_kind == "caps" and true_warps:
-        check_horizon(capture)
-    if spec.input_kind == "dofp" and capture.dofp_raw is None:
-        raise CaptureFormatError(f"method {method!r} needs dofp_raw.tiff, which this capture lacks.")
+    _check_run(spec, capture, true_warps=true_warps, registration=registration, uncertainty=uncertainty,
+               uncertainty_options=uncertainty_options)
     model = resolve_calibration(capture, calibration) if spec.input_kind == "caps" else None
     timer = StageTimer(dev)
     ctx = RunContext(device=dev, timer=timer, options=dict(options), true_warps=true_warps,
@@ -264,15 +256,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     with torch.no_grad():
         out = run_on_rggb(spec, capture, ctx)
     total = time.perf_counter() - t0
-    hh, ww = capture.hr_shape
-    image = np.asarray(out.image, dtype=np.float32)
-    if image.shape != (12, hh, ww):
-        raise RuntimeError(f"method {method!r} returned shape {image.shape}, expected {(12, hh, ww)}")
-    if not np.all(np.isfinite(image)):
-        given = ", ".join(f"{k}={v}" for k, v in options.items()) or "none"
-        raise CapssimError(f"method {method!r} returned {int(np.sum(~np.isfinite(image)))} non-finite values "
-                           f"(method options: {given}). Try the method's default options; if it fails with them "
-                           "too, please report it with the capture.")
+    image = _checked_image(method, out.image, capture.hr_shape, options)
     if callable(out.unobserved):
         out.unobserved = out.unobserved()
     projection = None
@@ -301,16 +285,50 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     if unobserved is not None:
         record["unobserved"] = unobserved
     non_finite: list[str] = []
-    if estimate_uncertainty is not None:
-        run_options = {"device": dev, "physical_projection": physical_projection, "calibration": calibration}
-        out.uncertainty = estimate_uncertainty.reconstruction_uncertainty(
-            capture, method, image, record, replicates=uncertainty, run=reconstruct, run_options=run_options,
-            **(uncertainty_options or {}))
-        record["uncertainty"] = out.uncertainty.record
+    if uncertainty:
+        _add_uncertainty(capture, method, out, record, uncertainty, uncertainty_options,
+                         {"device": dev, "physical_projection": physical_projection, "calibration": calibration})
     record = finite_or_null(record, found=non_finite)
     if non_finite:
         log.warning("%s: non-finite values recorded as null: %s", method, ", ".join(non_finite[:8]))
     return out, record
+
+
+def _check_run(spec: MethodSpec, capture: Capture, *, true_warps: bool, registration: str, uncertainty: int,
+               uncertainty_options: dict | None) -> None:
+    """The checks of :func:`reconstruct` before any work: the uncertainty options, the registration mode, the true
+    warps' horizon, a DoFP frame for a DoFP method."""
+    if uncertainty:
+        importlib.import_module(UNCERTAINTY_MODULE).check_uncertainty_options(uncertainty, uncertainty_options)
+    if spec.input_kind == "caps" and not true_warps:
+        registration_parameters(registration)  # UnknownNameError lists the modes
+    if spec.input_kind == "caps" and true_warps:
+        check_horizon(capture)
+    if spec.input_kind == "dofp" and capture.dofp_raw is None:
+        raise CaptureFormatError(f"method {spec.name!r} needs dofp_raw.tiff, which this capture lacks.")
+
+
+def _checked_image(method: str, image, hr_shape, options: dict) -> np.ndarray:
+    """A method's image as float32 ``(12, H, W)``; an error for another shape or a non-finite value."""
+    image = np.asarray(image, dtype=np.float32)
+    if image.shape != (12, *hr_shape):
+        raise RuntimeError(f"method {method!r} returned shape {image.shape}, expected {(12, *hr_shape)}")
+    if not np.all(np.isfinite(image)):
+        given = ", ".join(f"{k}={v}" for k, v in options.items()) or "none"
+        raise CapssimError(f"method {method!r} returned {int(np.sum(~np.isfinite(image)))} non-finite values "
+                           f"(method options: {given}). Try the method's default options; if it fails with them "
+                           "too, please report it with the capture.")
+    return image
+
+
+def _add_uncertainty(capture: Capture, method: str, out: MethodOutput, record: dict, replicates: int,
+                     options: dict | None, run_options: dict) -> None:
+    """``out.uncertainty`` and ``record["uncertainty"]``: the error bars of ``--uncertainty`` (the module is found
+    by name, like the methods: the uncertainty room sits above this registry and runs the method again through it)."""
+    estimate = importlib.import_module(UNCERTAINTY_MODULE).reconstruction_uncertainty
+    out.uncertainty = estimate(capture, method, out.image, record, replicates=replicates, run=reconstruct,
+                               run_options=run_options, **(options or {}))
+    record["uncertainty"] = out.uncertainty.record
 
 
 def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:

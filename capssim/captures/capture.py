@@ -381,6 +381,9 @@ def write_reconstruction(capture_path, method: str, image: np.ndarray, record: d
         if name not in COMPANION_SUFFIXES:
             raise InputError("companions", repr(name), "one of " + ", ".join(COMPANION_SUFFIXES))
         write_tiff(out_dir / f"{method}{COMPANION_SUFFIXES[name]}.tiff", np.asarray(array, dtype=np.float32))
+    for name, suffix in COMPANION_SUFFIXES.items():  # an earlier run's error bars do not describe this image
+        if name not in (companions or {}):
+            (out_dir / f"{method}{suffix}.tiff").unlink(missing_ok=True)
     atomic_write_json(js, record)
     return tiff, js
 

@@ -31,6 +31,22 @@ COMMAND_FLAGS = {"device": "--device", "true_warps": "--true-warps", "registrati
                  "uncertainty_options": "--uncertainty-calibration"}
 
 
+RegistrationOption = typer.Option(
+    "local-correlation", "--registration",
+    help="Registration mode when warps are estimated: local-correlation (default; of the binomial and the demosaicked "
+         "luminance, keeps the one whose registered images are more Stokes-consistent) | binomial-luminance | "
+         "ri-luminance (one of the two only: faster) | stokes-subspace (Stokes-consistent data whose polarization "
+         "texture biases the default); see the docs, guides/reconstruction.md.")
+UncertaintyOption = typer.Option(
+    None, "--uncertainty", metavar="N",
+    help="Also write error bars from an N-replicate bootstrap (e.g. 8): recon/METHOD.std.tiff, .interval90.tiff and "
+         ".stokes-uncertainty.tiff, calibrated 90 %% intervals (guides/reconstruction.md, 'Error bars').")
+UncertaintyCalibrationOption = typer.Option(
+    None, "--uncertainty-calibration", metavar="FILE|none",
+    help="With --uncertainty: the calibration of the intervals (default: the shipped one; 'none': the raw "
+         "bootstrap's 1.645 std).")
+
+
 def parse_options(pairs: List[str]) -> dict:
     """``KEY=VALUE`` strings -> dict (values stay strings; each method converts its own)."""
     options = {}
@@ -79,13 +95,7 @@ def reconstruct(
                                              callback=check_iterations),
     true_warps: bool = typer.Option(False, "--true-warps",
                                     help="Use the homographies stored in meta.json instead of estimating them."),
-    registration: str = typer.Option("local-correlation", "--registration",
-                                     help="Registration mode when warps are estimated: local-correlation "
-                                          "(default; of the binomial and the demosaicked luminance, keeps the one whose "
-                                          "registered images are more Stokes-consistent) | binomial-luminance | "
-                                          "ri-luminance (one of the two only: faster) | stokes-subspace (Stokes-consistent data "
-                                          "whose polarization texture biases the default); see the docs, "
-                                          "guides/reconstruction.md."),
+    registration: str = RegistrationOption,
     param: List[str] = typer.Option([], "--param", "-p", metavar="KEY=VALUE",
                                     help="Method option KEY=VALUE (repeatable), e.g. -p c1=0.002."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),
@@ -107,15 +117,8 @@ def reconstruct(
         True, "--physical-projection/--no-physical-projection",
         help="Project the output onto physically valid intensities (>= 0, I0 + I90 = I45 + I135, DoLP <= 1) "
              "where all four angles are observed."),
-    uncertainty: Optional[int] = typer.Option(
-        None, "--uncertainty", metavar="N",
-        help="Also write error bars from an N-replicate bootstrap (e.g. 8): recon/METHOD.std.tiff, "
-             ".interval90.tiff and .stokes-uncertainty.tiff, calibrated 90 %% intervals (guides/reconstruction.md, "
-             "'Error bars')."),
-    uncertainty_calibration: Optional[str] = typer.Option(
-        None, "--uncertainty-calibration", metavar="FILE|none",
-        help="With --uncertainty: the calibration of the intervals (default: the shipped one; 'none': the raw "
-             "bootstrap's 1.645 std)."),
+    uncertainty: Optional[int] = UncertaintyOption,
+    uncertainty_calibration: Optional[str] = UncertaintyCalibrationOption,
     tile: Optional[int] = TileOption,
     memory_gb: Optional[float] = MemoryOption,
     workers: Optional[int] = WorkersOption,
@@ -134,10 +137,9 @@ def reconstruct(
     check_full_frame_options(tile, workers, scheduler)
     check_iterations_agree(options, iterations)
     flags = dict(device=device, true_warps=true_warps, registration=registration,
-                 physical_projection=physical_projection, reuse_registration=reuse_registration, calibration=calibration)
-    if uncertainty is not None or uncertainty_calibration is not None:
-        flags.update(check_uncertainty_flags(capture, uncertainty, uncertainty_calibration, tiled=tile is not None
-                                             or uses_full_frames(capture, workers, scheduler)))
+                 physical_projection=physical_projection, reuse_registration=reuse_registration, calibration=calibration,
+                 **check_uncertainty_flags(capture, uncertainty, uncertainty_calibration,
+                                           tiled=tile is not None or uses_full_frames(capture, workers, scheduler)))
     if uses_full_frames(capture, workers, scheduler):  # a folder of captures, or tiles/frames on Dask
         names = expand_methods(method, first_capture(capture))
         check_recon_outputs(capture, names)
@@ -164,11 +166,14 @@ def reconstruct(
 def check_uncertainty_flags(capture: Path, uncertainty: Optional[int], calibration: Optional[str], *,
                             tiled: bool) -> dict:
     """``--uncertainty N`` and ``--uncertainty-calibration``, checked before any work: the count, the calibration
-    file, a capture with a noise model, one capture run untiled; the keywords of ``run_method`` they give."""
+    file, a capture with a noise model, one capture run untiled; the keywords of ``run_method`` they give ({}
+    without them)."""
     from capssim.captures.capture import Capture, read_meta
     from capssim.reconstruct.uncertainty.bootstrap import check_noise, check_replicates  # start-up time
     from capssim.reconstruct.uncertainty.conformal import load_calibration
 
+    if uncertainty is None and calibration is None:
+        return {}
     if uncertainty is None:
         raise InputError("--uncertainty-calibration", repr(calibration), "a calibration for --uncertainty N",
                          "Add --uncertainty 8, or drop --uncertainty-calibration.")

@@ -27,6 +27,7 @@ from capssim.captures.capture import read_capture, write_reconstruction
 from capssim.reconstruct.registry import available_methods, reconstruct
 
 from ..evaluate import CaptureScorer, mtf_summary
+from ..uncertainty_scores import score_uncertainty
 from .captures import CaptureFactory, Unavailable
 from .provenance import PeakMemory, environment
 
@@ -164,6 +165,11 @@ def _run_method(rec: dict, method: dict, capture, scorer: CaptureScorer, capture
                cuda_peak_mb=mem.cuda_peak_mb, params=record.get("params"), calibration=record.get("calibration"),
                registration=record.get("registration"), capture_info=capture_info,
                recon=str(Path(capture_path) / "recon" / f"{method['label']}.tiff"))
+    if out.uncertainty is not None:  # the suite asked for error bars: scored like capssim evaluate scores them
+        scores = score_uncertainty(out.image, capture.gt, out.uncertainty).to_dict(with_curves=False)
+        rec["uncertainty"] = {**scores, "calibration": record["uncertainty"]["calibration"].get("name"),
+                              "replicates": record["uncertainty"]["replicates"],
+                              "time_s": record["uncertainty"]["time_s"]}
     if scorer.gt_mtf is not None:
         rec["gt_mtf"] = mtf_summary(scorer.gt_mtf)["mean"]
         rec["star"] = scorer.star

@@ -40,6 +40,8 @@ from capssim.runtime.resources import check_range
 from capssim.simulate import simulate_capture
 from capssim.stokes.polarization import aop_deg, dolp, stokes_from_12
 
+from ..registry import get_method
+
 log = logging.getLogger(__name__)
 
 __all__ = ["BootstrapMoments", "MAX_REPLICATES", "WARM_ITERATIONS", "bootstrap_moments", "capture_bootstrap",
@@ -234,8 +236,6 @@ def capture_bootstrap(capture, method: str, estimate: np.ndarray, record: dict, 
     (BootstrapMoments, dict)
         The moments of :func:`replicate_statistics` and the bootstrap's record.
     """
-    from ..registry import get_method  # the dispatcher's table: this room sits above it
-
     check_noise(capture)
     spec = get_method(method)
     registration = record.get("registration") or {}

@@ -9,6 +9,8 @@ from typing import Callable
 
 import numpy as np
 
+from capssim.errors import InputError
+
 from .bootstrap import WARM_ITERATIONS, capture_bootstrap, check_replicates
 from .conformal import NOMINAL, calibration_scales
 from .intervals import bootstrap_spreads, uncertainty_maps
@@ -23,8 +25,6 @@ UNCERTAINTY_OPTIONS = {"seed": 0, "equivariant": False, "warm_iterations": WARM_
 
 def check_uncertainty_options(replicates, options: dict | None) -> tuple[int, dict]:
     """The replicate count and the options over their defaults; :class:`InputError` for an unknown one."""
-    from capssim.errors import InputError
-
     count = check_replicates(replicates)
     options = dict(options or {})
     unknown = sorted(set(options) - set(UNCERTAINTY_OPTIONS))

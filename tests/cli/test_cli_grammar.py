@@ -42,6 +42,7 @@ AUXILIARY_PATHS = {
     ("bench budget", "--results-page"): "a secondary output: the Markdown results page",
     ("bench reconstruct", "--plot"): "a secondary output: the PNG of time and memory against the pixel count",
     ("bench budget", "--cache"): "a cache folder of captures (default: OUTPUT/cache)",
+    ("bench uncertainty", "--cache"): "a cache folder of captures (default: OUTPUT/cache)",
     ("bench suite", "--check"): "a baseline to compare the run with (a reference, not the input)",
     ("bench suite", "--update-baseline"): "a second output: the run's metrics as the new baseline",
     ("bench suite", "--results-page"): "a second output: the Markdown results page",

@@ -69,7 +69,6 @@ def test_conformal_quantile_is_the_finite_sample_rank():
 
 
 def test_aop_interval_wraps_around_180_degrees():
-    stokes = np.zeros((27, 1, 1))
     lower, upper = stokes_plane("AoP", "lower", 0), stokes_plane("AoP", "upper", 0)
     assert (lower, upper) == (21, 24)
     assert aop_inside(179.0, 170.0, 190.0) and aop_inside(5.0, 170.0, 190.0) and not aop_inside(90.0, 170.0, 190.0)
@@ -147,3 +146,24 @@ def test_a_noise_free_capture_or_a_tiled_run_is_refused_before_work(tmp_path, ca
     assert not (tmp_path / "cap" / "recon").exists()
     meta = json.loads((tmp_path / "cap" / "meta.json").read_text())
     assert meta["sensor"]["model"] == "gaussian"
+
+
+def test_a_suite_that_asks_for_uncertainty_scores_the_error_bars(tmp_path):
+    from typer.testing import CliRunner
+
+    from capssim.cli import app
+
+    suite = tmp_path / "bars.yaml"
+    suite.write_text("name: bars\nrole: development\nuncertainty: 3\nnoise: [{name: g, noise: gaussian, sigma: 0.01}]\n"
+                     "methods: [dofp-bilinear, {name: dofp-igri2, uncertainty: 2}]\n"
+                     "scenes: [{name: tex, source: synthetic, generator: texture, size: 48}]\n")
+    result = CliRunner().invoke(app, ["bench", "suite", str(suite), "-o", str(tmp_path / "out"), "--no-plots"])
+    assert result.exit_code == 0, result.output
+    records = [json.loads(line) for line in (tmp_path / "out" / "results.jsonl").read_text().splitlines()]
+    by_method = {r["method"]: r for r in records}
+    assert by_method["dofp-bilinear"]["uncertainty"]["replicates"] == 3
+    assert by_method["dofp-igri2"]["uncertainty"]["replicates"] == 2  # a method's own count wins
+    coverage = by_method["dofp-bilinear"]["uncertainty"]["groups"]["12ch"]["coverage"]
+    assert 0.0 < coverage <= 1.0
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "## Error bars" in report and "| dofp-igri2 | 1 |" in report
