@@ -28,7 +28,8 @@ COMMAND_FLAGS = {"device": "--device", "true_warps": "--true-warps", "registrati
                  "physical_projection": "--physical-projection/--no-physical-projection",
                  "reuse_registration": "--reuse-registration/--no-reuse-registration",
                  "calibration": "--calibration", "uncertainty": "--uncertainty",
-                 "uncertainty_options": "--uncertainty-calibration"}
+                 "uncertainty_options": "--uncertainty-calibration",
+                 "start": "the Python API, reconstruct(..., start=IMAGE) (a warm start; no command flag)"}
 
 
 RegistrationOption = typer.Option(

@@ -42,10 +42,13 @@ from capssim.reconstruct.uncertainty.maps import stokes_plane
 from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
 from ..benchmarks.captures import CaptureFactory, Unavailable
-from ..benchmarks.provenance import content_hash
+from ..benchmarks.provenance import code_fingerprint, content_hash
 from ..metrics import get_convention
 
 log = logging.getLogger(__name__)
+
+#: what a case's result depends on besides its spec: capssim's code (a change runs every case again)
+CODE = code_fingerprint("capssim", "reconstruct")
 
 __all__ = ["case_scores", "fit_calibration", "load_case_scores", "run_uncertainty_calibration"]
 
@@ -84,7 +87,7 @@ def case_scores(estimate: np.ndarray, truth: np.ndarray, maps) -> dict[str, tupl
 
 
 def _case_key(spec: dict, scene: dict, noise: dict, seed: int, method: dict) -> str:
-    return content_hash({"scene": scene, "noise": noise, "seed": seed, "method": method,
+    return content_hash({"scene": scene, "noise": noise, "seed": seed, "method": method, "code": CODE,
                          "replicates": spec["replicates"], "options": spec.get("options") or {}})[:20]
 
 

@@ -35,10 +35,13 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import torch
+
+from ..model.polarization_split import angle_mean
 from ..pipeline import PipelineConfig, caps_observations
 from ..pipeline.option_table import MethodOption, caps_method_options, check_option_names
 from ..pipeline.options import given_option_names
-from ..pipeline.run import parse_pipeline_options, solve_front_end
+from ..pipeline.run import fused_initialization, parse_pipeline_options, solve_front_end
 from ..pipeline.slots import available_priors, parameter_defaults
 from ..pipeline.start import INITIALIZATIONS, check_initialization, start_image
 from ..registry import MethodOutput, RunContext, register_method, resolve_device
@@ -109,8 +112,9 @@ def run_caps_plus(capture, context: RunContext, config: PipelineConfig = CAPS_PL
     if choices.denoiser_blend is not None:
         opts = replace(opts, prior_parameters=replace(opts.prior_parameters, denoiser_blend=choices.denoiser_blend))
     problem = front.problems[0]
-    if context.start is None:  # a warm start replaces the start
-        problem.init = start_image(capture, context, front.geometry, problem, opts, own["init"])
+    problem.init = start_image(capture, context, front.geometry, problem, opts, own["init"])
+    if context.start is not None:  # a warm start: its analyzer mean, and this capture's own polarization part
+        problem.init = warm_start(context, problem.init if problem.init is not None else fused_initialization(problem))
     chosen = choices.polarization_filter
     finish = (lambda image, params: apply_chosen_filter(image, {"radius": chosen[0], "eps": chosen[1]})) \
         if chosen else None
@@ -119,6 +123,14 @@ def run_caps_plus(capture, context: RunContext, config: PipelineConfig = CAPS_PL
                        "polarization_filter": choices.options()["polarization_filter"], "selection": choices.record})
     out.extra["resolved_options"] = choices.options()
     return out
+
+
+def warm_start(context: RunContext, own_start):
+    """The start of a warm-started run (the bootstrap's replicates, :attr:`RunContext.start`): the warm image's
+    analyzer mean with ``own_start``'s polarization part. The data direction moves the polarization part only where
+    the analyzers agree, so elsewhere it stays what the start made it: a replicate must draw it from its own data."""
+    warm = torch.as_tensor(context.start, dtype=torch.float32, device=own_start.device)
+    return (angle_mean(warm) + own_start - angle_mean(own_start)).clamp(0.0, 1.0).contiguous()
 
 
 def caps_plus_frame_choices(capture, options: dict, *, homographies, device, config: PipelineConfig = CAPS_PLUS,

@@ -199,11 +199,13 @@ def _solve_problem(capture, context: RunContext, opts: CapsOptions, defaults: Ca
     problem, timer, admm_params = problems[index], context.timer, opts.admm
     data = get_data_term(opts.data_term).factory(problem, options=opts, stage=timer.stage)
     with timer.stage("init"):
-        if context.start is not None:  # a warm start given by the caller (the bootstrap's replicates)
+        if problem.init is not None:  # the front end's start (it may hold a warm start, see caps-plus)
+            init = problem.init
+        elif context.start is not None:  # a warm start given by the caller (the bootstrap's replicates)
             init = torch.as_tensor(context.start, dtype=torch.float32, device=context.device)[problem.channels]
             init = init.contiguous()
         else:
-            init = problem.init if problem.init is not None else fused_initialization(problem)  # or the front end's
+            init = fused_initialization(problem)
     spec = get_prior(opts.prior)
     shape = problem.image_shape
     if spec.factory is not None and shape not in priors:

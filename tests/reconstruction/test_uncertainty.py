@@ -167,3 +167,38 @@ def test_a_suite_that_asks_for_uncertainty_scores_the_error_bars(tmp_path):
     assert 0.0 < coverage <= 1.0
     report = (tmp_path / "out" / "report.md").read_text()
     assert "## Error bars" in report and "| dofp-igri2 | 1 |" in report
+
+
+def test_caps_plus_warm_start_keeps_the_replicates_own_polarization_part():
+    """caps-plus's data direction leaves the polarization part where the analyzers disagree as its start made it:
+    a warm-started replicate takes the warm image's analyzer mean and draws its polarization part from its own data."""
+    import torch
+
+    from capssim.reconstruct.methods.caps_plus import warm_start
+    from capssim.reconstruct.model.polarization_split import angle_mean
+    from capssim.reconstruct.run_context import RunContext, StageTimer
+
+    rng = np.random.default_rng(0)
+    warm = (0.4 + 0.1 * rng.random((12, 8, 8))).astype(np.float32)
+    own = torch.as_tensor(0.4 + 0.1 * rng.random((12, 8, 8)), dtype=torch.float32)
+    cpu = torch.device("cpu")
+    start = warm_start(RunContext(device=cpu, timer=StageTimer(cpu), start=warm), own)
+    assert torch.allclose(angle_mean(start), angle_mean(torch.as_tensor(warm)), atol=1e-6)
+    assert torch.allclose(start - angle_mean(start), own - angle_mean(own), atol=1e-6)
+
+
+def test_the_command_writes_the_error_bars_beside_the_reconstruction(tmp_path):
+    from typer.testing import CliRunner
+
+    from capssim.cli import app
+
+    folder = small_gaussian_capture(tmp_path / "cap")
+    result = CliRunner().invoke(app, ["reconstruct", str(folder), "-m", "dofp-bilinear", "--uncertainty", "3",
+                                      "--no-progress"])
+    assert result.exit_code == 0, result.output
+    assert "error bars: 3 replicates" in result.output
+    maps = read_uncertainty(folder, "dofp-bilinear")
+    assert maps is not None and maps.interval90.shape == (2, 12, 32, 32)
+    again = CliRunner().invoke(app, ["reconstruct", str(folder), "-m", "dofp-bilinear", "--no-progress"])
+    assert again.exit_code == 0, again.output
+    assert read_uncertainty(folder, "dofp-bilinear") is None  # a run without error bars leaves no stale ones
