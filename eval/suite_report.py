@@ -19,9 +19,11 @@ import numpy as np
 from capssim.captures.capture import read_capture
 from capssim.files.imageio import atomic_write_text, read_tiff
 from capssim.reconstruct.registry import available_methods
+from capssim.reconstruct.uncertainty.maps import read_uncertainty
 
 from . import plots as P
 from .benchmarks.compare import DEFAULT_METRICS, comparison_markdown, paired_rows, summarize
+from .uncertainty_plots import polarization_uncertainty_plot
 from .uncertainty_scores import NOMINAL_COVERAGE, uncertainty_table
 
 log = logging.getLogger(__name__)
@@ -221,6 +223,7 @@ def _group_plots(scene: str, noise: str, rs: list[dict], methods: list[str], plo
         p = P.crops(capture.gt, estimates, plot_dir / f"crops_{_slug(scene)}_{_slug(noise)}.png",
                     title=f"{scene} / {noise} / seed {first_seed}", center_rowcol=centre)
         lines += [f"![crops {scene} {noise}](plots/{p.name})", ""]
+        lines += _uncertainty_crops(scene, noise, rs0, methods, estimates, plot_dir)
         if any(r.get("mtf") for r in rs0):
             p = P.mtf_curves(rs0[0].get("gt_mtf"), {r["method"]: r["mtf"] for r in rs0 if r.get("mtf")},
                              plot_dir / f"mtf_{_slug(scene)}_{_slug(noise)}.png", title=f"{scene} / {noise}",
@@ -230,6 +233,20 @@ def _group_plots(scene: str, noise: str, rs: list[dict], methods: list[str], plo
     except Exception as exc:  # a plot must never lose the results
         log.warning("plots of %s/%s failed: %s", scene, noise, exc)
         lines += [f"(plots of this group failed: {exc})", ""]
+    return lines
+
+
+def _uncertainty_crops(scene: str, noise: str, rs0: list[dict], methods: list[str], estimates: dict,
+                       plot_dir: Path) -> list[str]:
+    """DoLP and AoP with their error bars, for each method of the group whose case made them (``uncertainty``)."""
+    lines = []
+    for m in methods:
+        r = next((x for x in rs0 if x["method"] == m and x.get("uncertainty")), None)
+        maps = None if r is None or m not in estimates else read_uncertainty(Path(r["recon"]).parent.parent, m)
+        if maps is not None:
+            p = polarization_uncertainty_plot(estimates[m], maps, plot_dir / f"bars_{_slug(scene)}_{_slug(noise)}_"
+                                              f"{_slug(m)}.png", title=f"{m}: {scene} / {noise}")
+            lines += [f"![error bars {m} {scene} {noise}](plots/{p.name})", ""]
     return lines
 
 

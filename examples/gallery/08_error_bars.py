@@ -9,7 +9,9 @@ per channel and for S0, DoLP and AoP (guide: [Error bars](../guides/reconstructi
 How to read them: DoLP's interval widens where S0 is dark (a DoLP is a ratio over S0), and AoP is only worth
 reading where its interval is narrow, so it is drawn there only. The bars cover the noise and, through the
 calibration, the typical bias of the method on scenes like the development ones; they do not cover a model error
-outside the simulator (parallax on a 3-D scene, an array the capture does not describe).
+outside the simulator (parallax on a 3-D scene, an array the capture does not describe). The 90 % holds pooled
+over development scenes; one scene may lie well off it (this dark-banded texture does: see the printed coverage,
+and the per-scene range on the [results page](../results/uncertainty.md)).
 """
 
 import matplotlib.pyplot as plt

@@ -157,7 +157,7 @@ def test_a_suite_that_asks_for_uncertainty_scores_the_error_bars(tmp_path):
     suite.write_text("name: bars\nrole: development\nuncertainty: 3\nnoise: [{name: g, noise: gaussian, sigma: 0.01}]\n"
                      "methods: [dofp-bilinear, {name: dofp-igri2, uncertainty: 2}]\n"
                      "scenes: [{name: tex, source: synthetic, generator: texture, size: 48}]\n")
-    result = CliRunner().invoke(app, ["bench", "suite", str(suite), "-o", str(tmp_path / "out"), "--no-plots"])
+    result = CliRunner().invoke(app, ["bench", "suite", str(suite), "-o", str(tmp_path / "out")])
     assert result.exit_code == 0, result.output
     records = [json.loads(line) for line in (tmp_path / "out" / "results.jsonl").read_text().splitlines()]
     by_method = {r["method"]: r for r in records}
@@ -167,6 +167,7 @@ def test_a_suite_that_asks_for_uncertainty_scores_the_error_bars(tmp_path):
     assert 0.0 < coverage <= 1.0
     report = (tmp_path / "out" / "report.md").read_text()
     assert "## Error bars" in report and "| dofp-igri2 | 1 |" in report
+    assert (tmp_path / "out" / "plots" / "bars_tex_g_dofp-igri2.png").is_file()  # DoLP and AoP with their bars
 
 
 def test_caps_plus_warm_start_keeps_the_replicates_own_polarization_part():
