@@ -23,6 +23,7 @@ from capssim.reconstruct.uncertainty.maps import read_uncertainty
 
 from . import plots as P
 from .benchmarks.compare import DEFAULT_METRICS, comparison_markdown, paired_rows, summarize
+from .front import front_table
 from .uncertainty_plots import polarization_uncertainty_plot
 from .uncertainty_scores import NOMINAL_COVERAGE, uncertainty_table
 
@@ -250,6 +251,16 @@ def _uncertainty_crops(scene: str, noise: str, rs0: list[dict], methods: list[st
     return lines
 
 
+def front_section(ok: list[dict]) -> list[str]:
+    """"The front" (:mod:`capssim.eval.front`): per time budget, the best camera-array and DoFP methods; [] when the
+    run lacks one of the kinds."""
+    table = front_table(ok)
+    return [] if table is None else [
+        "## The front: the best method of each kind per time budget", "",
+        "Median time per case (registration included), mean scores over the cases every method scored; oracles "
+        "(true warps) left out.", "", table, ""]
+
+
 def _report_tail(recs: list[dict], ok: list[dict]) -> list[str]:
     """The skipped cases, the failed cases with their tracebacks, and the metric notes."""
     lines: list[str] = []
@@ -310,6 +321,7 @@ def write_report(run, output, *, verdict=None, plots: bool = True) -> Path:
                   "One point per method (mean over seeds); the dashed step line is the Pareto front "
                   "(no other method is both faster and better).", ""]
         lines += [f"![{label}](plots/{p.name})" for label, p in speed_plots] + [""]
+    lines += front_section(ok)
     errors = uncertainty_table(ok, methods)
     if errors:
         lines += ["## Error bars", "", f"Coverage of the calibrated {NOMINAL_COVERAGE:.0%} intervals (mean over the "
@@ -354,6 +366,7 @@ def results_page(run, *, verdict=None, written: str | None = None) -> str:
         lines += ["## Substitutions", ""] + [f"- {n}" for n in run.notes] + [""]
     tuned = tuned_labels(spec)
     lines += paired_section(spec, recs)
+    lines += front_section([r for r in recs if r["status"] == "ok"])
     lines += ["## Results", "", TABLE_LEGEND, ""] + ([TUNED_LEGEND, ""] if tuned else [])
     for (scene, noise), rs in sorted(group_records(recs).items()):
         lines += [f"### {scene} / {noise}", "", results_table(rs, methods, tuned), ""]

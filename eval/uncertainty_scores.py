@@ -43,7 +43,8 @@ from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp, sto
 from . import metrics as M
 
 __all__ = ["GROUPS", "NOMINAL_COVERAGE", "SPARSIFICATION_FRACTIONS", "WIDTH_UNITS", "GroupScore", "Sparsification",
-           "UncertaintyScores", "score_uncertainty", "sparsification", "uncertainty_table"]
+           "ScoredValues", "UncertaintyScores", "score_uncertainty", "scored_values", "sparsification",
+           "uncertainty_table"]
 
 #: the groups scored, in report order
 GROUPS = ("12ch", "S0", "DoLP", "AoP")
@@ -158,7 +159,7 @@ def sparsification(abs_error, std, *, fractions=SPARSIFICATION_FRACTIONS) -> Spa
     return Sparsification(fractions=f, curve=curve, oracle=oracle, ause=ause)
 
 
-class _Values(NamedTuple):
+class ScoredValues(NamedTuple):
     """One group's scored values, 1-D over its scored pixels."""
 
     truth: np.ndarray
@@ -174,7 +175,7 @@ def _stokes_maps(stokes: np.ndarray, quantity: str) -> tuple[np.ndarray, np.ndar
 
 
 def _group_values(est: np.ndarray, gt: np.ndarray, maps: dict[str, np.ndarray], *, min_s0: float | None,
-                  min_dolp: float | None) -> dict[str, _Values]:
+                  min_dolp: float | None) -> dict[str, ScoredValues]:
     """The scored values of every group from cropped float64 ``(12, H, W)`` images and cropped maps."""
     st_e, st_g = stokes_from_12(est), stokes_from_12(gt)
     guard = min_s0 if min_s0 is not None else 0.0  # the metrics' DoLP dark guard
@@ -185,18 +186,18 @@ def _group_values(est: np.ndarray, gt: np.ndarray, maps: dict[str, np.ndarray], 
     if not np.any(np.hypot(st_g[1], st_g[2]) > 0):
         aop_mask[:] = False  # as the metrics: AoP is undefined where the ground truth is unpolarized everywhere
     interval = maps["interval90"]
-    out = {"12ch": _Values(gt.ravel(), (est - gt).ravel(), maps["std"].ravel(), interval[0].ravel(),
+    out = {"12ch": ScoredValues(gt.ravel(), (est - gt).ravel(), maps["std"].ravel(), interval[0].ravel(),
                            interval[1].ravel())}
     every = np.ones(st_g.shape[1:], dtype=bool)
     for name, truth, error, mask in (("S0", st_g[0], st_e[0] - st_g[0], every),
                                      ("DoLP", d_g, d_e - d_g, dolp_mask),
                                      ("AoP", a_g, angle_difference_deg(a_e, a_g), aop_mask)):
         std, lower, upper = _stokes_maps(maps["stokes"], name)
-        out[name] = _Values(truth[mask], error[mask], std[mask], lower[mask], upper[mask])
+        out[name] = ScoredValues(truth[mask], error[mask], std[mask], lower[mask], upper[mask])
     return out
 
 
-def _check_values(name: str, values: _Values) -> None:
+def _check_values(name: str, values: ScoredValues) -> None:
     """Refuse non-finite, negative standard deviations or ``upper < lower`` at a group's scored pixels."""
     for what, array in (("std", values.std), ("lower", values.lower), ("upper", values.upper)):
         file = "stokes-uncertainty" if name != "12ch" else "std" if what == "std" else "interval90"
@@ -213,7 +214,7 @@ def _check_values(name: str, values: _Values) -> None:
                          "below their lower bounds", "lower <= upper")
 
 
-def _score_group(name: str, values: _Values) -> GroupScore:
+def _score_group(name: str, values: ScoredValues) -> GroupScore:
     """Coverage, mean width and sparsification of one group's values."""
     n = int(values.truth.size)
     if n == 0:
@@ -268,6 +269,27 @@ def score_uncertainty(estimate, gt, maps: UncertaintyMaps, *, convention: str | 
         Mismatched shapes, non-finite images or error bars (at scored pixels), negative standard deviations,
         an interval with ``upper < lower``, a border that leaves no pixel.
     """
+    values, settings = scored_values(estimate, gt, maps, convention=convention, min_s0=min_s0, min_dolp=min_dolp,
+                                     border=border)
+    return UncertaintyScores({name: _score_group(name, values[name]) for name in GROUPS}, settings)
+
+
+def scored_values(estimate, gt, maps: UncertaintyMaps, *, convention: str | M.Convention = "capssim",
+                  min_s0: float | None = None, min_dolp: float | None = None,
+                  border: int | None = None) -> tuple[dict[str, "ScoredValues"], dict]:
+    """The scored values of every group (:func:`score_uncertainty`'s pixels, checked) and the settings used.
+
+    Parameters
+    ----------
+    estimate, gt, maps, convention, min_s0, min_dolp, border
+        As :func:`score_uncertainty`.
+
+    Returns
+    -------
+    (dict, dict)
+        ``{group: ScoredValues}`` (1-D ``truth``, ``error``, ``std``, ``lower``, ``upper`` over the group's scored
+        pixels; AoP errors wrapped to [-90, 90) degrees) and the settings (convention, border, thresholds).
+    """
     conv = M.get_convention(convention)
     est, truth = M.check_pair(estimate, gt)
     conv, b, s0_guard, dolp_min = M.resolve_settings(conv, min_s0=min_s0, min_dolp=min_dolp, border=border)
@@ -281,8 +303,7 @@ def score_uncertainty(estimate, gt, maps: UncertaintyMaps, *, convention: str | 
     values = _group_values(est_c, gt_c, cropped, min_s0=s0_guard, min_dolp=dolp_min)
     for name, group in values.items():
         _check_values(name, group)
-    settings = {"convention": conv.name, "border": b, "min_s0": s0_guard, "min_dolp": dolp_min}
-    return UncertaintyScores({name: _score_group(name, values[name]) for name in GROUPS}, settings)
+    return values, {"convention": conv.name, "border": b, "min_s0": s0_guard, "min_dolp": dolp_min}
 
 
 def uncertainty_table(records: list[dict], methods: list[str]) -> str | None:

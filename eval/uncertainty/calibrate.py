@@ -38,52 +38,29 @@ from capssim.reconstruct.uncertainty.conformal import (
     conformal_quantile,
     noise_key,
 )
-from capssim.reconstruct.uncertainty.maps import stokes_plane
-from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
 from ..benchmarks.captures import CaptureFactory, Unavailable
 from ..benchmarks.provenance import code_fingerprint, content_hash
-from ..metrics import get_convention
+from ..uncertainty_scores import scored_values
 
 log = logging.getLogger(__name__)
 
-#: what a case's result depends on besides its spec: capssim's code (a change runs every case again)
-CODE = code_fingerprint("capssim", "reconstruct")
+#: what a case's result depends on besides its spec: the project's code, scoring included (a change runs every case again)
+CODE = code_fingerprint("capssim", "reconstruct", "eval")
 
 __all__ = ["case_scores", "fit_calibration", "load_case_scores", "run_uncertainty_calibration"]
 
 
-def _stokes_planes(stokes: np.ndarray, quantity: str, statistic: str) -> np.ndarray:
-    return stokes[[stokes_plane(quantity, statistic, k) for k in range(3)]]
-
-
 def case_scores(estimate: np.ndarray, truth: np.ndarray, maps) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """``{group: (scores, spreads)}`` over the scored pixels (module docstring) of one uncalibrated reconstruction:
-    ``spreads`` the floored bootstrap spread (``maps.std`` of a ``calibration="none"`` run) and ``scores`` the
-    absolute error over it (AoP: the wrapped angle error, degrees)."""
-    convention = get_convention("capssim")
-    b = convention.border
-
-    def crop(x):
-        return x[..., b:x.shape[-2] - b, b:x.shape[-1] - b]
-
-    est, gt = crop(np.asarray(estimate, np.float64)), crop(np.asarray(truth, np.float64))
-    std12 = np.maximum(crop(maps.std), FLOORS["12ch"])
-    stokes = crop(maps.stokes)
-    st_e, st_g = stokes_from_12(est), stokes_from_12(gt)
-    s0_mask = st_g[0] > convention.min_s0
-    d_e, d_g = dolp(st_e, min_s0=1e-6), dolp(st_g, min_s0=convention.min_s0, fill=0.0)
-    aop_mask = s0_mask & (d_g > convention.min_dolp)
-    spreads = {"S0": _stokes_planes(stokes, "S0", "std"), "DoLP": _stokes_planes(stokes, "DoLP", "std"),
-               "AoP": _stokes_planes(stokes, "AoP", "std")}
-    errors = {"S0": np.abs(st_e[0] - st_g[0]), "DoLP": np.abs(d_e - d_g),
-              "AoP": np.abs(angle_difference_deg(aop_deg(st_e), aop_deg(st_g)))}
-    out = {"12ch": (np.abs(est - gt).ravel() / std12.ravel(), std12.ravel())}
-    masks = {"S0": np.ones_like(s0_mask), "DoLP": s0_mask, "AoP": aop_mask}
-    for group in ("S0", "DoLP", "AoP"):
-        spread = np.maximum(spreads[group], FLOORS[group])[masks[group]]
-        out[group] = (errors[group][masks[group]] / spread, spread)
-    return {g: (s.astype(np.float32), w.astype(np.float32)) for g, (s, w) in out.items()}
+    """``{group: (scores, spreads)}`` over the scored pixels of one uncalibrated reconstruction (the metrics' and
+    :func:`~capssim.eval.uncertainty_scores.scored_values`'s): ``spreads`` the floored bootstrap spread (the std
+    of a ``calibration="none"`` run) and ``scores`` the absolute error over it (AoP: the wrapped angle error)."""
+    values, _ = scored_values(estimate, truth, maps)
+    out = {}
+    for group, v in values.items():
+        spread = np.maximum(v.std.astype(np.float64), FLOORS[group])
+        out[group] = ((np.abs(v.error) / spread).astype(np.float32), spread.astype(np.float32))
+    return out
 
 
 def _case_key(spec: dict, scene: dict, noise: dict, seed: int, method: dict) -> str:

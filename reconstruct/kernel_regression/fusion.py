@@ -25,10 +25,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..model.aperture_demosaic import sampling_grid
+from ..model.aperture_demosaic import demosaicked_frames, flat_corrected_raw, sampling_grid
 
-__all__ = ["ALPHA", "BETA", "ENERGY_SIGMA", "POL_SIGMA", "SHARPEN", "fuse_apertures", "gaussian", "robust_noise_sigma",
-           "unseen_pixels", "visibility"]
+__all__ = ["ALPHA", "BETA", "ENERGY_SIGMA", "POL_SIGMA", "SHARPEN", "demosaicked_fusion", "fuse_apertures", "gaussian",
+           "known_noise_sigma", "robust_noise_sigma", "unseen_pixels", "visibility"]
 
 POL_SIGMA = 2.0
 ENERGY_SIGMA = 1.5
@@ -141,3 +141,32 @@ def fuse_apertures(rgb: torch.Tensor, usable: torch.Tensor, raw_h: np.ndarray, h
             warped = _warp(rgb[:, k:k + 1], raw_h, (a, b), wo, "bicubic", "border")[:, 0]
             out[:, k, r0:r1] = _fuse_colour(warped, vis, float(sigma_n), detail, float(sharpen))[:, r0 - a:r1 - a]
     return out
+
+
+def known_noise_sigma(capture) -> float | None:
+    """The Gaussian noise std of the capture's sensor model when its set-up states one (a calibrated camera knows
+    its noise; a single small frame of dense texture, e.g. a Siemens star, cannot tell noise from texture)."""
+    try:
+        sigma = getattr(capture.setup.sensor, "sigma", None)
+    except (AttributeError, ValueError, KeyError):
+        return None
+    return float(sigma) if sigma is not None and capture.setup.noise == "gaussian" else None
+
+
+def demosaicked_fusion(capture, context, geometry, *, detail: bool = True, sharpen: float = SHARPEN,
+                       held_out=None) -> tuple[torch.Tensor, float]:
+    """``array-kr``'s default image of a capture under ``geometry``: each aperture's frame demosaicked (Menon 2007,
+    flat field divided out with a calibration) and fused (:func:`fuse_apertures`); ``(4, 3, Ho, Wo)`` float32 on the
+    context device and the raw noise std used (the sensor's when its set-up states one, else a robust estimate).
+    ``held_out`` ``(4, H, W)`` bool: raw pixels it must not see (filled from their neighbours, weight 0)."""
+    rgb = demosaicked_frames(capture, context, "menon2007", held_out=held_out)
+    usable = ~np.asarray(capture.caps_saturated(), bool)
+    if held_out is not None:
+        usable &= ~np.asarray(held_out, bool)
+    sigma_n = known_noise_sigma(capture)
+    if sigma_n is None:
+        raw, _ = flat_corrected_raw(capture, context)
+        sigma_n = robust_noise_sigma(torch.as_tensor(np.asarray(raw, dtype=np.float32)))
+    image = fuse_apertures(rgb, torch.as_tensor(usable, device=context.device), geometry.raw_homographies,
+                           geometry.hr_shape, sigma_n, detail=detail, sharpen=sharpen)
+    return image, float(sigma_n)

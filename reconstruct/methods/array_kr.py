@@ -45,11 +45,11 @@ import torch
 from capssim.conventions import CFA_PATTERNS, cfa_pattern
 from capssim.errors import InputError
 
-from ..kernel_regression.fusion import fuse_apertures, robust_noise_sigma, unseen_pixels
+from ..kernel_regression.fusion import demosaicked_fusion, unseen_pixels
 from ..kernel_regression.gather import SampleField
 from ..kernel_regression.merge import POLARIZATION_MODES, merge_apertures
 from ..kernel_regression.steering import noise_sigma
-from ..model.aperture_demosaic import demosaicked_frames, flat_corrected_raw
+from ..model.aperture_demosaic import flat_corrected_raw
 from ..model.observation_model import calibrated_analyzer, method_geometry, unmix_analyzer
 from ..pipeline import caps_option_names, coerce_option, mean_psnr
 from ..pipeline.option_table import MethodOption, check_option_names
@@ -125,16 +125,6 @@ def raw_noise_sigma(raw: torch.Tensor) -> float:
     return noise_sigma(subs.reshape(16, h2 // 2, w2 // 2))
 
 
-def known_noise_sigma(capture) -> float | None:
-    """The Gaussian noise std of the capture's sensor model when its set-up states one (a calibrated camera knows
-    its noise; a single small frame of dense texture, e.g. a Siemens star, cannot tell noise from texture)."""
-    try:
-        sigma = getattr(capture.setup.sensor, "sigma", None)
-    except (AttributeError, ValueError, KeyError):
-        return None
-    return float(sigma) if sigma is not None and capture.setup.noise == "gaussian" else None
-
-
 def reconstruct_raw(raw, saturated, raw_homographies, hr_shape, *, cfa: str = "RGGB", device="cpu",
                     scale: float = 1.0, steer: bool = True, polarization: str = "ratio",
                     sigma_n: float | None = None) -> tuple[torch.Tensor, dict]:
@@ -179,15 +169,10 @@ def array_kr(capture, *, context: RunContext) -> MethodOutput:
                                             cfa=capture.cfa, device=context.device, scale=opts["scale"],
                                             steer=opts["steer"], polarization=opts["polarization"])
     else:
-        with timer.stage("demosaic"):
-            rgb = demosaicked_frames(capture, context, "menon2007")
-        with timer.stage("merge"):
-            sigma_n = known_noise_sigma(capture)
-            if sigma_n is None:
-                sigma_n = robust_noise_sigma(torch.as_tensor(np.asarray(raw, dtype=np.float32)))
-            image = fuse_apertures(rgb, usable, geometry.raw_homographies, geometry.hr_shape, sigma_n,
-                                   detail=opts["detail"], sharpen=opts["sharpen"])
-            record = {"noise_sigma": float(sigma_n)}
+        with timer.stage("merge"):  # the apertures demosaicked and fused
+            image, sigma_n = demosaicked_fusion(capture, context, geometry, detail=opts["detail"],
+                                                sharpen=opts["sharpen"])
+            record = {"noise_sigma": sigma_n}
     with timer.stage("to_host"):
         image = image.reshape(12, *image.shape[-2:])
         analyzer = calibrated_analyzer(context)

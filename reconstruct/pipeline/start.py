@@ -11,7 +11,10 @@ own sampling. With ``alpha`` ``(H, W)`` the analyzers' agreement
 - ``agree``: ``P fusion + (I - P) (alpha fusion + (1 - alpha) naive)``: the polarization differences blended,
   the analyzer mean from the fusion;
 - ``agree-all``: ``alpha fusion + (1 - alpha) naive``: the whole image blended;
-- ``fusion``, ``naive``: either alone.
+- ``fusion``, ``naive``: either alone;
+- ``array-kr``: the fast camera-array method's image (:func:`~capssim.reconstruct.kernel_regression.fusion.demosaicked_fusion`:
+  the demosaicked apertures fused, their mean as the intensity, each analyzer's own detail where the intensity does
+  not explain it).
 
 With a calibration (``--calibration``) the flat field is divided out before demosaicking and the registered
 images are unmixed by the calibrated analyzer, as ``caps-naive`` does.
@@ -23,6 +26,7 @@ import torch
 
 from capssim.errors import InputError
 
+from ..kernel_regression.fusion import demosaicked_fusion
 from ..model.aperture_demosaic import bicubic_warp, demosaicked_frames
 from ..model.observation_model import calibrated_analyzer, unmix_analyzer
 from ..model.polarization_split import angle_mean
@@ -33,7 +37,7 @@ from .slots import problem_agreement
 __all__ = ["INITIALIZATIONS", "check_initialization", "demosaicked_initialization", "start_image"]
 
 #: ``-p init=NAME`` (module docstring)
-INITIALIZATIONS = ("agree", "agree-all", "fusion", "naive")
+INITIALIZATIONS = ("agree", "agree-all", "fusion", "naive", "array-kr")
 #: the Bayer demosaicking of the demosaicked start (``caps-naive``'s default)
 INIT_BAYER_METHOD = "menon2007"
 
@@ -43,7 +47,7 @@ def check_initialization(name) -> str:
     text = str(name).strip()
     if text not in INITIALIZATIONS:
         raise InputError("option init", repr(name), "one of " + ", ".join(INITIALIZATIONS),
-                         "Use -p init=agree (the default), agree-all, fusion (caps's start) or naive.")
+                         "Use -p init=agree (the default), agree-all, fusion (caps's start), naive or array-kr.")
     return text
 
 
@@ -70,6 +74,14 @@ def start_image(capture, context: RunContext, geometry, problem, options, name: 
     (the pipeline's own start, eq. 24). ``held_out``: raw pixels the demosaicked apertures must not see."""
     if name == "fusion":
         return None
+    if name == "array-kr":  # the fast method's image (issue 58): the apertures demosaicked and fused
+        with context.timer.stage("init_array_kr"):
+            image, _ = demosaicked_fusion(capture, context, geometry, held_out=held_out)
+            image = image.reshape(12, *geometry.hr_shape)
+            analyzer = calibrated_analyzer(context)
+            if analyzer is not None:
+                image = unmix_analyzer(image, analyzer)
+            return image.clamp(0.0, 1.0).contiguous()
     with context.timer.stage("init_demosaic"):
         start = demosaicked_initialization(capture, context, geometry, held_out=held_out)
         if name in ("agree", "agree-all"):

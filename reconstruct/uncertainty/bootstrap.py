@@ -225,7 +225,8 @@ def capture_bootstrap(capture, method: str, estimate: np.ndarray, record: dict, 
         ``N``; the seed of every draw; the equivariant variant; the warm-started replicates' ADMM count.
     registration_jitter_hr_px : float, optional
         The std of each replicate's warp translation (HR px); None: :data:`REGISTRATION_JITTER_HR_PX` for warps the
-        method estimated, 0 for true warps and for DoFP methods.
+        method estimated, 0 for true or calibrated warps and for DoFP methods. Replicates are simulated and solved
+        with the warps the run used (its record's ``registration.aperture_homographies``).
     run : callable
         The dispatcher, ``run(capture, method, *, true_warps, start, **options) -> (MethodOutput, record)``.
     **run_options
@@ -239,8 +240,9 @@ def capture_bootstrap(capture, method: str, estimate: np.ndarray, record: dict, 
     check_noise(capture)
     spec = get_method(method)
     registration = record.get("registration") or {}
-    estimated = spec.input_kind == "caps" and "aperture_homographies" in registration and not record.get("true_warps")
-    warps = np.asarray(registration["aperture_homographies"]) if estimated else capture.aperture_homographies()
+    used = spec.input_kind == "caps" and "aperture_homographies" in registration  # true, calibrated or estimated
+    estimated = used and str(registration.get("source", "")).startswith("estimated")
+    warps = np.asarray(registration["aperture_homographies"]) if used else capture.aperture_homographies()
     jitter = (REGISTRATION_JITTER_HR_PX if estimated else 0.0) if registration_jitter_hr_px is None \
         else float(registration_jitter_hr_px)
     options = _warm_options(spec, record, warm_iterations)
@@ -262,7 +264,8 @@ def capture_bootstrap(capture, method: str, estimate: np.ndarray, record: dict, 
                                     replicates=replicates, seed=seed, statistics=replicate_statistics,
                                     transforms=grid_transforms if equivariant else None)
     info = {"replicates": replicates, "seed": seed, "equivariant": bool(equivariant),
-            "warps": "estimated, jittered" if estimated else ("true" if spec.input_kind == "caps" else "none (DoFP)"),
+            "warps": f"the run's ({registration.get('source')}){', jittered' if jitter else ''}" if used
+            else "the capture's stored warps" if spec.input_kind == "caps" else "none (DoFP)",
             "registration_jitter_hr_px": jitter, "replicate_options": options,
             "time_s": time.perf_counter() - start_time}
     if not math.isfinite(info["time_s"]):

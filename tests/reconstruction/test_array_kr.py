@@ -154,3 +154,13 @@ def test_cuda_matches_cpu(smooth_capture):
     cpu, _ = reconstruct(capture, "array-kr", true_warps=True, device="cpu")
     gpu, _ = reconstruct(capture, "array-kr", true_warps=True, device="cuda")
     np.testing.assert_allclose(gpu.image, cpu.image, atol=2e-4)
+
+
+def test_array_kr_as_caps_plus_start_is_the_fast_methods_image(smooth_capture):
+    """``-p init=array-kr`` (issue 58): with no iteration, caps-plus returns its start, which is array-kr's image."""
+    capture, _ = smooth_capture
+    fast, _ = reconstruct(capture, "array-kr", true_warps=True, physical_projection=False)
+    started, record = reconstruct(capture, "caps-plus", true_warps=True, init="array-kr", iterations=0,
+                                  physical_projection=False)  # the two mark other pixels unobserved
+    assert record["params"]["init"] == "array-kr"
+    assert np.allclose(started.image, fast.image, atol=1e-5)
