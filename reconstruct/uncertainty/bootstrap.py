@@ -51,9 +51,10 @@ __all__ = ["BootstrapMoments", "MAX_REPLICATES", "WARM_ITERATIONS", "bootstrap_m
 MAX_REPLICATES = 256
 #: ADMM iterations of a warm-started replicate of an iterative method
 WARM_ITERATIONS = 4
-#: translation std (HR px) of the warps of a replicate, per axis and aperture, for warps the method estimated: the
-#: median registration error of the development captures (docs: guides/reconstruction.md, "Error bars")
-REGISTRATION_JITTER_HR_PX = 0.1
+#: translation std (HR px) of the warps of a replicate, per axis and aperture, for warps the method estimated: a 2-D
+#: Gaussian of this std moves a warp by 1.18 x 0.23 = 0.27 HR px at the median, the median registration error of
+#: the ``dev`` suite's 12 captures (apertures 1-3: 0.275 HR px; per capture 0.02 to 1.3) (guides/reconstruction.md)
+REGISTRATION_JITTER_HR_PX = 0.23
 #: DoLP is computed only where S0 exceeds this (on [0, 2]); 0 elsewhere
 MIN_S0 = 1e-6
 

@@ -128,6 +128,7 @@ def run_main(args: list, capsys, monkeypatch, *, quiet: bool = False) -> tuple[i
     from capssim.cli import main
 
     monkeypatch.setattr(sys, "argv", ["capssim", *(["-q"] if quiet else []), *map(str, args)])
+    capsys.readouterr()  # what was printed before the command (e.g. a log line through a stale handler) is not its
     handlers = logging.root.handlers[:]
     try:
         try:
