@@ -124,6 +124,12 @@ class CaptureScorer:
             self.star = None
         return self.gt_mtf
 
+    def score_uncertainty(self, estimate: np.ndarray, maps) -> UncertaintyScores:
+        """Coverage, width and AUSE of the error bars ``maps`` of a ``(12, 2H, 2W)`` estimate, under this scorer's
+        convention, border and thresholds (:func:`~capssim.eval.uncertainty_scores.score_uncertainty`)."""
+        options = {k: v for k, v in self.score_options.items() if k != "lpips"}
+        return score_uncertainty(estimate, self.gt, maps, convention=self.convention, **options)
+
     def score(self, estimate: np.ndarray) -> EstimateScore:
         """Scores of a ``(12, 2H, 2W)`` estimate; a metric error (NaN, wrong shape) raises :class:`InputError`."""
         result = EstimateScore(M.score(estimate, self.gt, convention=self.convention, **self.score_options))
@@ -201,8 +207,7 @@ def _score_uncertainty(path: Path, name: str, estimate: np.ndarray, gt: np.ndarr
         maps = read_uncertainty(path, name)
         if maps is None:
             return None
-        options = {k: v for k, v in scorer.score_options.items() if k != "lpips"}
-        scores = score_uncertainty(estimate, gt, maps, convention=scorer.convention, **options)
+        scores = scorer.score_uncertainty(estimate, maps)
     except CapssimError as exc:
         return {"error": str(exc)}
     block = uncertainty_entry(scores, record)

@@ -350,8 +350,7 @@ def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:
     """
     capture = read_capture(capture_path, load_gt=wants_ground_truth(kwargs))  # track_psnr: PSNR per iteration
     out, record = reconstruct(capture, method, **kwargs)
-    companions = out.uncertainty.arrays() if out.uncertainty is not None else None
-    write_reconstruction(capture_path, method, out.image, record, companions=companions)
+    write_reconstruction(capture_path, method, out.image, record, companions=out.companions())
     return record
 
 

@@ -82,3 +82,7 @@ class MethodOutput:
     unobserved: np.ndarray | Callable[[], np.ndarray] | None = None
     #: the error bars of ``--uncertainty`` (:class:`capssim.reconstruct.uncertainty.maps.UncertaintyMaps`), or None
     uncertainty: object | None = None
+
+    def companions(self) -> dict[str, np.ndarray] | None:
+        """The arrays written beside the image (``write_reconstruction``'s ``companions``): the error bars, or None."""
+        return None if self.uncertainty is None else self.uncertainty.arrays()

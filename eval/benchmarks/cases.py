@@ -27,7 +27,6 @@ from capssim.captures.capture import read_capture, write_reconstruction
 from capssim.reconstruct.registry import available_methods, reconstruct
 
 from ..evaluate import CaptureScorer, mtf_summary
-from ..uncertainty_scores import score_uncertainty
 from .captures import CaptureFactory, Unavailable
 from .provenance import PeakMemory, environment
 
@@ -155,8 +154,7 @@ def _run_method(rec: dict, method: dict, capture, scorer: CaptureScorer, capture
         out, record = reconstruct(capture, method["name"], device=device, true_warps=bool(method["true_warps"]),
                                   registration=method["registration"], calibration=method_calibration(method),
                                   uncertainty=method.get("uncertainty") or 0, **method["options"])
-    companions = out.uncertainty.arrays() if out.uncertainty is not None else None
-    write_reconstruction(capture_path, method["label"], out.image, record, companions=companions)
+    write_reconstruction(capture_path, method["label"], out.image, record, companions=out.companions())
     scored = scorer.score(out.image)
     rec.update(status="ok", metrics=scored.flat(), notes=scored.metrics["notes"],
                metric_settings=scored.metrics["settings"],
@@ -166,7 +164,7 @@ def _run_method(rec: dict, method: dict, capture, scorer: CaptureScorer, capture
                registration=record.get("registration"), capture_info=capture_info,
                recon=str(Path(capture_path) / "recon" / f"{method['label']}.tiff"))
     if out.uncertainty is not None:  # the suite asked for error bars: scored like capssim evaluate scores them
-        scores = score_uncertainty(out.image, capture.gt, out.uncertainty).to_dict(with_curves=False)
+        scores = scorer.score_uncertainty(out.image, out.uncertainty).to_dict(with_curves=False)
         rec["uncertainty"] = {**scores, "calibration": record["uncertainty"]["calibration"].get("name"),
                               "replicates": record["uncertainty"]["replicates"],
                               "time_s": record["uncertainty"]["time_s"]}

@@ -44,7 +44,8 @@ __all__ = ["SCENE_SOURCES", "SUITES_DIR", "BenchRun", "available_suites", "case_
 
 #: the source files whose change re-runs a case (cached captures are kept)
 RECONSTRUCTION_CODE = ("reconstruct",)
-SCORING_CODE = ("eval/metrics.py", "eval/mtf.py", "eval/star.py", "eval/evaluate.py", "eval/benchmarks/suite.py",
+SCORING_CODE = ("eval/metrics.py", "eval/mtf.py", "eval/star.py", "eval/evaluate.py", "eval/uncertainty_scores.py",
+                "eval/benchmarks/suite.py",
                 "eval/benchmarks/cases.py", "eval/benchmarks/runner.py")
 
 

@@ -17,10 +17,6 @@ from .calibrate import load_case_scores
 
 __all__ = ["check_rows", "write_uncertainty_report"]
 
-#: units of each group's width
-WIDTH_UNITS = {"12ch": "", "S0": "", "DoLP": "", "AoP": " deg"}
-
-
 def check_rows(result: dict, spec: dict, cases_dir: Path) -> list[dict]:
     """One row per (method, noise key) with the calibration's scales: ``coverage``, ``coverage_range`` (per scene),
     ``width`` per group and ``scenes``, over the check scenes' cases."""
@@ -68,7 +64,7 @@ def write_uncertainty_report(output: Path, result: dict, spec: dict, *, command:
     for row in rows:
         cover = [f"{row['coverage'][g]:.3f} ({row['coverage_range'][g][0]:.2f}-{row['coverage_range'][g][1]:.2f})"
                  if row["coverage"][g] is not None else "n/a" for g in GROUPS]
-        width = [f"{row['width'][g]:.4g}{WIDTH_UNITS[g]}" for g in GROUPS]
+        width = [f"{row['width'][g]:.4g}" + (" deg" if g == "AoP" else "") for g in GROUPS]
         ause = "n/a" if row["ause_12ch"] is None else f"{row['ause_12ch']:.3f}"
         lines.append(f"| {row['method']} | {row['noise']} | " + " | ".join(cover + width) + f" | {ause} |")
     path = Path(output) / "report.md"

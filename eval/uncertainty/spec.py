@@ -20,6 +20,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from capssim.files.schema import Boolean, ConfigError, Integer, Mapping, Number, Sequence, String, join
+from capssim.reconstruct.uncertainty.bootstrap import MAX_REGISTRATION_JITTER_HR_PX
 
 from ..benchmarks.spec_files import load_spec_file
 from ..benchmarks.suite_schema import MAX_SEED, MethodEntrySpec, NoiseSpec, SceneSpec, load_suite
@@ -39,7 +40,7 @@ UNCERTAINTY_SPEC = Mapping({
     "calibration_scenes": Sequence(SceneSpec(), min_length=1, what="calibration scenes"),
     "check_scenes": Sequence(SceneSpec(), min_length=1, what="check scenes"),
     "options": Mapping({"equivariant": Boolean(), "warm_iterations": Integer(minimum=1, maximum=100),
-                        "registration_jitter_hr_px": Number(minimum=0, maximum=4)},
+                        "registration_jitter_hr_px": Number(minimum=0, maximum=MAX_REGISTRATION_JITTER_HR_PX)},
                        what="bootstrap options (equivariant, warm_iterations, registration_jitter_hr_px)"),
 }, required=("replicates", "noise", "methods", "calibration_scenes", "check_scenes"),
    what="an uncertainty calibration (replicates, seeds, noise, methods, calibration_scenes, check_scenes, options)")

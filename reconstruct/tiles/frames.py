@@ -112,18 +112,17 @@ def reconstruct_frame(path: str | Path, method: str, *, tile: int | None = None,
         log.warning("%s: --tile and --memory-gb apply to CAPS-input methods only; this DoFP method runs untiled",
                     method)
     elif get_method(method).input_kind == "caps":  # untiled (None) unless asked or past the memory budget
-        if kwargs.get("uncertainty") and (tile is not None or not fits(capture.hr_shape, memory_budget(memory_gb)[0])):
-            raise InputError("--uncertainty", f"{kwargs['uncertainty']} replicates on a frame run in tiles",
-                             "a frame reconstructed untiled (error bars are not made tile by tile)",
-                             "Drop --tile, give the run more memory (--memory-gb) or reconstruct a crop of the frame.")
         if not kwargs.get("uncertainty"):
             result = reconstruct_tiled(capture, method, tile=tile, memory_gb=memory_gb, workers=workers,
                                        runner=runner, parts=parts, progress=progress, **kwargs)
+        elif tile is not None or not fits(capture.hr_shape, memory_budget(memory_gb)[0]):
+            raise InputError("--uncertainty", f"{kwargs['uncertainty']} replicates on a frame run in tiles",
+                             "a frame reconstructed untiled (error bars are not made tile by tile)",
+                             "Drop --tile, give the run more memory (--memory-gb) or reconstruct a crop of the frame.")
     if result is None:
         result = reconstruct(capture, method, progress=progress, **kwargs)
     out, record = result
     record["job"] = key
-    companions = out.uncertainty.arrays() if out.uncertainty is not None else None
-    write_reconstruction(path, method, out.image, record, companions=companions)
+    write_reconstruction(path, method, out.image, record, companions=out.companions())
     shutil.rmtree(parts, ignore_errors=True)
     return record

@@ -26,8 +26,6 @@ for S0, DoLP and the doubled AoP (as its cosine and sine: the AoP's spread is ci
 from __future__ import annotations
 
 import logging
-import math
-import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
@@ -55,6 +53,8 @@ WARM_ITERATIONS = 4
 #: Gaussian of this std moves a warp by 1.18 x 0.23 = 0.27 HR px at the median, the median registration error of
 #: the ``dev`` suite's 12 captures (apertures 1-3: 0.275 HR px; per capture 0.02 to 1.3) (guides/reconstruction.md)
 REGISTRATION_JITTER_HR_PX = 0.23
+#: the largest jitter one may ask for (HR px)
+MAX_REGISTRATION_JITTER_HR_PX = 4.0
 #: DoLP is computed only where S0 exceeds this (on [0, 2]); 0 elsewhere
 MIN_S0 = 1e-6
 
@@ -247,7 +247,6 @@ def capture_bootstrap(capture, method: str, estimate: np.ndarray, record: dict, 
     jitter = (REGISTRATION_JITTER_HR_PX if estimated else 0.0) if registration_jitter_hr_px is None \
         else float(registration_jitter_hr_px)
     options = _warm_options(spec, record, warm_iterations)
-    start_time = time.perf_counter()
 
     def resimulate(x, rng):
         new = simulate_capture(np.clip(x, 0.0, None), capture.setup, seed=int(rng.integers(2**62)),
@@ -267,8 +266,5 @@ def capture_bootstrap(capture, method: str, estimate: np.ndarray, record: dict, 
     info = {"replicates": replicates, "seed": seed, "equivariant": bool(equivariant),
             "warps": f"the run's ({registration.get('source')}){', jittered' if jitter else ''}" if used
             else "the capture's stored warps" if spec.input_kind == "caps" else "none (DoFP)",
-            "registration_jitter_hr_px": jitter, "replicate_options": options,
-            "time_s": time.perf_counter() - start_time}
-    if not math.isfinite(info["time_s"]):
-        info["time_s"] = None
+            "registration_jitter_hr_px": jitter, "replicate_options": options}
     return moments, info

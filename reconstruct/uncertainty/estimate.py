@@ -11,10 +11,10 @@ import numpy as np
 
 from capssim.errors import InputError
 
-from .bootstrap import WARM_ITERATIONS, capture_bootstrap, check_replicates
+from .bootstrap import MAX_REGISTRATION_JITTER_HR_PX, WARM_ITERATIONS, capture_bootstrap, check_replicates
 from .conformal import NOMINAL, calibration_scales
 from .intervals import bootstrap_spreads, uncertainty_maps
-from .maps import UncertaintyMaps
+from .maps import UncertaintyMaps, stokes_layout
 
 __all__ = ["UNCERTAINTY_OPTIONS", "check_uncertainty_options", "reconstruction_uncertainty"]
 
@@ -33,8 +33,9 @@ def check_uncertainty_options(replicates, options: dict | None) -> tuple[int, di
     if int(options.get("warm_iterations", WARM_ITERATIONS)) < 1:
         raise InputError("uncertainty option warm_iterations", options["warm_iterations"], "an integer >= 1")
     jitter = options.get("registration_jitter_hr_px")
-    if jitter is not None and not (np.isfinite(float(jitter)) and 0 <= float(jitter) <= 4):
-        raise InputError("uncertainty option registration_jitter_hr_px", jitter, "a number in [0, 4] (HR pixels)")
+    if jitter is not None and not (np.isfinite(float(jitter)) and 0 <= float(jitter) <= MAX_REGISTRATION_JITTER_HR_PX):
+        raise InputError("uncertainty option registration_jitter_hr_px", jitter,
+                         f"a number in [0, {MAX_REGISTRATION_JITTER_HR_PX:g}] (HR pixels)")
     return count, {**UNCERTAINTY_OPTIONS, **options}
 
 
@@ -55,7 +56,7 @@ def reconstruction_uncertainty(capture, method: str, image: np.ndarray, record: 
         registration_jitter_hr_px=options["registration_jitter_hr_px"], run=run, **run_options)
     maps = uncertainty_maps(image, bootstrap_spreads(moments), scales)
     maps.record = {"method": "parametric bootstrap, split-conformal calibration", "nominal_coverage": NOMINAL,
-                   **info, "calibration": calibration, "stokes_layout": maps.record["stokes_layout"],
+                   **info, "calibration": calibration, "stokes_layout": stokes_layout(),
                    "files": {"std": "recon/METHOD.std.tiff (12, 2H, 2W)",
                              "interval90": "recon/METHOD.interval90.tiff (2 [lower, upper], 12, 2H, 2W)",
                              "stokes": "recon/METHOD.stokes-uncertainty.tiff (27, 2H, 2W): stokes_layout"},

@@ -17,7 +17,7 @@ from capssim.stokes.polarization import aop_deg, dolp, stokes_from_12
 
 from .bootstrap import MIN_S0, BootstrapMoments
 from .conformal import FLOORS, Z90
-from .maps import UncertaintyMaps, stokes_layout
+from .maps import UncertaintyMaps
 
 __all__ = ["bootstrap_spreads", "uncertainty_maps"]
 
@@ -30,8 +30,7 @@ def bootstrap_spreads(moments: BootstrapMoments) -> dict[str, np.ndarray]:
     return {"12ch": moments.std("channels"), "S0": moments.std("S0"), "DoLP": moments.std("DoLP"), "AoP": aop_std}
 
 
-def uncertainty_maps(estimate: np.ndarray, spreads: dict[str, np.ndarray], scales: dict[str, float],
-                     record: dict | None = None) -> UncertaintyMaps:
+def uncertainty_maps(estimate: np.ndarray, spreads: dict[str, np.ndarray], scales: dict[str, float]) -> UncertaintyMaps:
     """The error bars of the reconstruction ``estimate`` ``(12, H, W)`` (module docstring).
 
     Parameters
@@ -42,8 +41,6 @@ def uncertainty_maps(estimate: np.ndarray, spreads: dict[str, np.ndarray], scale
         :func:`bootstrap_spreads` of its bootstrap.
     scales : dict
         ``q`` per group (:func:`~capssim.reconstruct.uncertainty.conformal.calibration_scales`).
-    record : dict, optional
-        Kept with the maps (``stokes_layout`` is added).
     """
     estimate = np.asarray(estimate, dtype=np.float64)
     half = {g: scales[g] * np.maximum(spreads[g], FLOORS[g]) for g in spreads}
@@ -56,5 +53,4 @@ def uncertainty_maps(estimate: np.ndarray, spreads: dict[str, np.ndarray], scale
     planes = [half["S0"] / Z90, np.clip(s0 - half["S0"], 0.0, None), s0 + half["S0"],
               half["DoLP"] / Z90, np.clip(dolp_hat - half["DoLP"], 0.0, 1.0), np.clip(dolp_hat + half["DoLP"], 0.0, 1.0),
               half["AoP"] / Z90, aop_lower, aop_lower + 2.0 * aop_half]
-    record = {**(record or {}), "stokes_layout": stokes_layout()}
-    return UncertaintyMaps(std=std12, interval90=interval, stokes=np.concatenate(planes, axis=0), record=record)
+    return UncertaintyMaps(std=std12, interval90=interval, stokes=np.concatenate(planes, axis=0))
