@@ -382,7 +382,7 @@ def score(estimate12, gt12, *, convention: str | Convention = "capssim", min_s0:
 TOKYOTECH_COLUMNS = {"psnr_0": ("cpsnr", "0"), "psnr_45": ("cpsnr", "45"), "psnr_90": ("cpsnr", "90"),
                      "psnr_135": ("cpsnr", "135"), "psnr_s0": ("s0_psnr", None), "psnr_s1": ("s1_psnr", None),
                      "psnr_s2": ("s2_psnr", None), "psnr_dolp": ("dolp_psnr", None),
-                     "aop_rmse_deg": ("aop_rmse_deg", None)}
+                     "aop_rmse_deg": ("aop_rmse_deg", None), "aop_mae_deg": ("aop_mae_deg", None)}
 
 
 def tokyotech_scores(estimate12, gt12, *, border: int | None = None) -> dict[str, float | None]:
@@ -391,7 +391,8 @@ def tokyotech_scores(estimate12, gt12, *, border: int | None = None) -> dict[str
     :func:`score` under the ``tokyotech`` convention (their MATLAB crop of ``border`` pixels,
     default 15), without SSIM: ``psnr_<angle>`` CPSNR of each polarizer image, ``psnr_s0``
     (S0 = mean of the four angles), ``psnr_s1`` and ``psnr_s2`` of ``(S + 1) / 2``, ``psnr_dolp``,
-    all peak 1 in dB, and ``aop_rmse_deg`` over every pixel.
+    all peak 1 in dB, and ``aop_rmse_deg`` and ``aop_mae_deg`` (the published tables' AoP error) over every
+    pixel.
     """
     result = score(estimate12, gt12, convention="tokyotech", border=border, with_ssim=False)
     return {column: result[key] if sub is None else result[key][sub] for column, (key, sub) in TOKYOTECH_COLUMNS.items()}

@@ -376,6 +376,16 @@ def _number(value) -> float:
         raise InputError("sensor level", repr(value), "a number") from None
 
 
+def noise_std_map(sensor: Sensor, x: np.ndarray) -> np.ndarray:
+    """Noise std on the [0, 1] scale of each value of ``x`` (irradiance on [0, 1], any shape), float32:
+    constant for a Gaussian sensor (its sigma with the quantization step), ``noise_std(x)`` for a
+    Poisson-Gaussian one, 0 without noise."""
+    x = np.asarray(x, dtype=np.float64)
+    if isinstance(sensor, PoissonGaussianSensor):
+        return sensor.noise_std(x).astype(np.float32)
+    return np.full(x.shape, noise_sigma_estimate(sensor), dtype=np.float32)
+
+
 def noise_sigma_estimate(sensor: Sensor, level: float = 0.5) -> float:
     """Noise std on the [0, 1] scale at irradiance ``level`` (0 for ``none``)."""
     if isinstance(sensor, GaussianSensor):

@@ -18,7 +18,7 @@ from capssim.runtime.data_range import warn_out_of_range
 from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_image_memory
 from capssim.stokes.physical_validity import project_to_physical
 
-DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2", "dofp-jcpd", "cpdnet")
+DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2", "dofp-jcpd", "cpdnet", "dofp-nafnet")
 #: peak bytes per raw mosaic pixel of ``capssim demosaic`` (the float copies of the mosaic, the (12, H, W)
 #: output, the method's working arrays and the previews; measured 1.05-1.15 KiB with dofp-eari and dofp-igri2)
 DEMOSAIC_BYTES_PER_PIXEL = 1280

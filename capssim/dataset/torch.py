@@ -19,6 +19,7 @@ key                         shape, dtype           meaning
 ``lr_images``               (16, h/2, w/2) float32 the 16 Bayer sub-images, ``m = 4n + q``
 ``dofp_raw``                (2h, 2w) float32       DoFP mosaic on [0, 1] (if the capture has one)
 ``dofp_saturated``          (2h, 2w) bool
+``dofp_noise_std``          (2h, 2w) float32       the sensor's noise std at each DoFP sample (:func:`~capssim.camera.sensor.noise_std_map`)
 ``gt``                      (12, 2h, 2w) float32   ground truth, ``c = 3p + k``
 ``aperture_homographies``   (4, 3, 3) float64      HR reference -> aperture-HR, in crop coordinates
 ``lr_homographies``         (16, 3, 3) float64     HR reference -> sub-image pixel, in crop coordinates
@@ -54,7 +55,7 @@ import torch
 from torch.utils.data import Dataset
 
 from capssim.camera.array_geometry import ArrayGeometry
-from capssim.camera.sensor import noise_sigma_estimate
+from capssim.camera.sensor import noise_sigma_estimate, noise_std_map
 from capssim.captures.capture import read_capture
 from capssim.conventions import split_bayer
 from capssim.dataset.manifest import MANIFEST, SAMPLES_DIR, read_manifest
@@ -200,6 +201,7 @@ class CaptureDataset(Dataset):
         if self.load_dofp and cap.dofp_raw is not None:
             d = cap.dofp_raw[top:top + ch, left:left + cw]
             item["dofp_raw"] = torch.from_numpy(np.ascontiguousarray(sensor.to_float(d)))
+            item["dofp_noise_std"] = torch.from_numpy(noise_std_map(sensor, item["dofp_raw"].numpy()))
             item["dofp_saturated"] = torch.from_numpy(np.ascontiguousarray(sensor.saturation_mask(d)))
         if self.load_gt:
             item["gt"] = torch.from_numpy(np.ascontiguousarray(cap.gt[:, top:top + ch, left:left + cw]))

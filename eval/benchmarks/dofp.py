@@ -42,7 +42,8 @@ EARI_VARIANTS = {
 COLUMNS = [("scene", "scene", "{}"), ("method", "method", "{}"), ("psnr_0", "0", "{:.2f}"),
            ("psnr_45", "45", "{:.2f}"), ("psnr_90", "90", "{:.2f}"), ("psnr_135", "135", "{:.2f}"),
            ("psnr_s0", "S0", "{:.2f}"), ("psnr_s1", "S1", "{:.2f}"), ("psnr_s2", "S2", "{:.2f}"),
-           ("psnr_dolp", "DoLP", "{:.2f}"), ("aop_rmse_deg", "AoP RMSE", "{:.2f}"), ("time_s", "time s", "{:.2f}")]
+           ("psnr_dolp", "DoLP", "{:.2f}"), ("aop_rmse_deg", "AoP RMSE", "{:.2f}"),
+           ("aop_mae_deg", "AoP MAE", "{:.2f}"), ("time_s", "time s", "{:.2f}")]
 
 
 def default_gt_root() -> Path:

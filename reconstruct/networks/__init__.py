@@ -3,8 +3,8 @@
 A model file (``.pt``, written by ``capssim train``) is a ``torch.save`` dict read back with
 ``torch.load(weights_only=True)`` (no code is unpickled)::
 
-    {"format": "capssim-model", "version": 1, "network": "cpdnet" | "edsr" | "denoiser",
-     "params": {constructor keywords}, "state_dict": {...}, "input": "dofp" | "aperture" | "noisy-gt",
+    {"format": "capssim-model", "version": 1, "network": "cpdnet" | "dofp-nafnet" | "edsr" | "denoiser",
+     "params": {constructor keywords}, "state_dict": {...}, "input": "dofp" | "dofp-igri2" | "aperture" | "noisy-gt",
      "training": {config, steps, seed, validation PSNR, ...}}
 
 :func:`load_model` rebuilds the network from ``network`` and ``params``. Shipped weights live in
@@ -25,11 +25,13 @@ from capssim.files.imageio import atomic_write_bytes
 from .cpdnet import CPDNet
 from .denoiser import NoiseLevelDenoiser
 from .edsr import EDSR
+from .nafnet import DofpNAFNet
 
 MODEL_FORMAT = "capssim-model"
 MODEL_VERSION = 1
-#: network name -> class; each class has ``input_kind`` ("dofp", "aperture" or "noisy-gt")
-NETWORKS: dict[str, type[nn.Module]] = {"cpdnet": CPDNet, "edsr": EDSR, "denoiser": NoiseLevelDenoiser}
+#: network name -> class; each class has ``input_kind`` ("dofp", "dofp-igri2", "aperture" or "noisy-gt")
+NETWORKS: dict[str, type[nn.Module]] = {"cpdnet": CPDNet, "dofp-nafnet": DofpNAFNet, "edsr": EDSR,
+                                        "denoiser": NoiseLevelDenoiser}
 #: shipped weights folder (package data of capssim.reconstruct)
 WEIGHTS_DIR = Path(__file__).resolve().parents[1] / "weights"
 

@@ -57,7 +57,8 @@ from .pairs import INPUT_KINDS
 
 OPTIMIZERS = ("adam", "adamw", "sgd")
 DECAYS = ("cosine", "constant", "step")
-LOSS_KEYS = {"dofp": ("intermediate_weight", "stokes_weight"), "aperture": (), "noisy-gt": (), "gt-patches": ()}
+LOSS_KEYS = {"dofp": ("intermediate_weight", "stokes_weight"), "dofp-igri2": ("stokes_weight",), "aperture": (),
+             "noisy-gt": (), "gt-patches": ()}
 #: the dictionary of dofp-jcpd, learned from ground-truth patches (schedule.steps: MOD iterations)
 DICTIONARY_MODEL, DICTIONARY_INPUT = "jcpd-dictionary", "gt-patches"
 DICTIONARY_DEFAULTS = {"patch": 8, "atoms": 256, "sparsity": 8, "patches": 8000}
@@ -106,6 +107,11 @@ MODEL_SPECS = {
     "cpdnet": Mapping({"network": _NETWORK, "features": Integer(minimum=1), "colour_blocks": Integer(minimum=0),
                        "polarization_blocks": Integer(minimum=0)},
                       what="a cpdnet model (network, features, colour_blocks, polarization_blocks)"),
+    "dofp-nafnet": Mapping({"network": _NETWORK, "width": Integer(minimum=1),
+                            "encoder_blocks": Sequence(Integer(minimum=0, maximum=64), what="block counts (top level first)", lengths=(3,)),
+                            "middle_blocks": Integer(minimum=0, maximum=64),
+                            "decoder_blocks": Sequence(Integer(minimum=0, maximum=64), what="block counts (top level first)", lengths=(3,))},
+                           what="a dofp-nafnet model (network, width, encoder_blocks, middle_blocks, decoder_blocks)"),
     "edsr": Mapping({"network": _NETWORK, "channels": Integer(minimum=1, maximum=64), "features": Integer(minimum=1),
                      "blocks": Integer(minimum=0), "residual_scale": Number(minimum=0, maximum=10),
                      "bicubic_skip": Boolean()},
@@ -123,6 +129,8 @@ INPUT_CHANNELS = {"aperture": 3, "noisy-gt": 12}
 INPUT_CHANNEL_NAMES = {"aperture": "one aperture's demosaicked RGB", "noisy-gt": "RGB x 4 polarizer angles"}
 #: the constructor defaults of each network, for the memory estimate (the config keeps only what it sets)
 NETWORK_DEFAULTS = {"cpdnet": {"features": 24, "colour_blocks": 2, "polarization_blocks": 2},
+                    "dofp-nafnet": {"width": 24, "encoder_blocks": [1, 1, 2], "middle_blocks": 2,
+                                    "decoder_blocks": [1, 1, 1]},
                     "edsr": {"channels": 3, "features": 32, "blocks": 4},
                     "denoiser": {"channels": 12, "features": 48, "depth": 7}}
 
@@ -210,7 +218,7 @@ def _data(raw: dict, base_dir: Path, kind: str) -> dict:
         _fail("data.dataset", repr(data["dataset"]), f"an existing dataset config (looked at {dataset})",
               "Give the path relative to the training config.")
     crop = data.get("crop", 64)
-    if kind == "dofp" and crop % 4:
+    if kind in ("dofp", "dofp-igri2") and crop % 4:
         _fail("data.crop", crop, "a multiple of 4 for DoFP input (the mosaic period)", f"Try crop: {crop - crop % 4}.")
     return {"dataset_config": dataset, "dataset_root": Path(data.get("root") or f"runs/datasets/{dataset.stem}"),
             "validation": data.get("validation", 8), "crop": crop, "batch": data.get("batch", 8)}
@@ -240,10 +248,16 @@ def model_memory_bytes(network: str, params: dict, *, batch: int, crop: int, act
     p = {**NETWORK_DEFAULTS.get(network, {}), **params}
     if network == DICTIONARY_MODEL:
         return 8.0 * 4 * p["patches"] * (12 * p["patch"] ** 2 + p["atoms"])
-    f = p["features"]
+    f = p.get("features", 0)
     if network == "cpdnet":
         weights = 9 * f * (9 + 3 + 8 + 4) + 18 * f * f * (p["colour_blocks"] + p["polarization_blocks"])
         maps = batch * crop ** 2 * f * (4 * (4 * p["colour_blocks"] + 3) + 3 * (4 * p["polarization_blocks"] + 3))
+    elif network == "dofp-nafnet":  # a block of width c: about 7 c^2 weights and 12 c maps per pixel of its level
+        w, enc, dec = p["width"], list(p["encoder_blocks"]), list(p["decoder_blocks"])
+        counts = [e + d for e, d in zip(enc, dec)] + [p["middle_blocks"]]
+        weights = 9 * 100 * w + 9 * w * 48 + sum(7 * (w * 2 ** level) ** 2 * n for level, n in enumerate(counts))
+        maps = batch * sum(12 * w * 2 ** level * (crop / 2 ** (level + 1)) ** 2 * max(n, 1)
+                           for level, n in enumerate(counts)) + batch * crop ** 2 * 100
     elif network == "denoiser":
         weights = 9 * f * (2 * p["channels"] + 1) + 9 * f * f * (p["depth"] - 2)
         maps = batch * crop ** 2 * (2 * f * (p["depth"] - 1) + 3 * p["channels"])

@@ -6,6 +6,9 @@ capssim dataset (:class:`capssim.dataset.torch.CaptureDataset`, whole captures):
 * ``dofp``: the DoFP mosaic ``(H, W)`` as CPDNet reads it, ``(sparse, bilinear)`` ``(12, H, W)``
   each (:func:`capssim.reconstruct.networks.cpdnet.dofp_network_input`); target the ground truth
   ``(12, H, W)``. Crops start on multiples of 4 (the mosaic period).
+* ``dofp-igri2``: the DoFP mosaic as ``dofp-nafnet`` reads it, ``(sparse, igri2, noise_std)``
+  (:func:`capssim.reconstruct.methods.dofp_nafnet.dofp_nafnet_input`: the IGRI2 demosaicking is
+  computed once per sample); target the ground truth. Crops start on multiples of 4.
 * ``aperture``: each aperture's raw frame demosaicked as ``caps-sisr`` does (Menon 2007,
   :func:`capssim.reconstruct.methods.caps_naive.demosaic_apertures`), ``(3, h, w)``; target the
   ground truth of that aperture's polarizer angle resampled onto the aperture-HR grid
@@ -26,9 +29,11 @@ import torch.nn.functional as F
 from capssim.errors import InputError
 
 from ..methods.caps_naive import bicubic_warp, demosaic_apertures, sampling_grid
+from ..methods.dofp_nafnet import dofp_nafnet_input
 from ..networks.cpdnet import cpdnet_loss, dofp_network_input
+from ..networks.nafnet import nafnet_loss
 
-INPUT_KINDS = ("dofp", "aperture", "noisy-gt")
+INPUT_KINDS = ("dofp", "dofp-igri2", "aperture", "noisy-gt")
 #: aperture targets read the ground truth at least this far (HR px) inside its border
 BORDER_HR_PX = 3.0
 
@@ -97,6 +102,18 @@ class DofpPairs(PairSet):
     @staticmethod
     def baseline(inputs):
         """What the network refines: the bilinear demosaicking (``dofp-bilinear``)."""
+        return inputs[1]
+
+
+class DofpIgri2Pairs(PairSet):
+    kind, crop_step = "dofp-igri2", 4
+
+    def loss(self, outputs, target, mask, loss_params: dict):
+        return nafnet_loss(outputs, target, **loss_params)
+
+    @staticmethod
+    def baseline(inputs):
+        """What the network refines: the IGRI2 demosaicking (``dofp-igri2``)."""
         return inputs[1]
 
 
@@ -173,6 +190,21 @@ def dofp_pairs(items: list[dict]) -> DofpPairs:
     return DofpPairs((torch.stack(sparse), torch.stack(bilinear)), target, torch.ones_like(target[:, :1]), 1)
 
 
+def dofp_igri2_pairs(items: list[dict]) -> DofpIgri2Pairs:
+    """:class:`DofpIgri2Pairs` of CaptureDataset items: ``(sparse, igri2, noise_std)`` of each whole mosaic
+    (IGRI2 computed once per sample, here) and the ground truth."""
+    inputs = []
+    for item in items:
+        if "dofp_raw" not in item:
+            raise InputError("input", "dofp-igri2", "captures with a DoFP mosaic (dofp_raw.tiff)",
+                             "Generate the dataset with its DoFP captures.")
+        inputs.append(dofp_nafnet_input(item["dofp_raw"][None], [r.tolist() for r in item["dofp_layout"]],
+                                        item["dofp_noise_std"][None]))
+    target = torch.stack([item["gt"] for item in items])
+    stacked = tuple(torch.cat([x[i] for x in inputs]) for i in range(3))
+    return DofpIgri2Pairs(stacked, target, torch.ones_like(target[:, :1]), 1)
+
+
 def aperture_targets(gt: torch.Tensor, homographies: np.ndarray, hr_shape) -> tuple[torch.Tensor, torch.Tensor]:
     """``(4, 3, H, W)`` targets on the aperture-HR grids and ``(4, 1, H, W)`` masks of a ``(12, H, W)`` GT."""
     inverse = np.linalg.inv(np.asarray(homographies, dtype=np.float64))
@@ -200,7 +232,8 @@ def aperture_pairs(items: list[dict]) -> AperturePairs:
 def build_pairs(kind: str, items: list[dict]) -> PairSet:
     if kind not in INPUT_KINDS:
         raise InputError("input", kind, " or ".join(INPUT_KINDS))
-    return {"dofp": dofp_pairs, "aperture": aperture_pairs, "noisy-gt": noisy_gt_pairs}[kind](items)
+    return {"dofp": dofp_pairs, "dofp-igri2": dofp_igri2_pairs, "aperture": aperture_pairs,
+            "noisy-gt": noisy_gt_pairs}[kind](items)
 
 
 def masked_psnr(image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> float:

@@ -79,7 +79,7 @@ def ensure_dataset(config: TrainConfig, *, dataset_workers: int = 0, say: Callab
 def load_pairs(config: TrainConfig, *, dataset_workers: int = 0, say: Callable[[str], None] = log.info):
     """Generate the dataset if it is not finished, then ``(train, validation)`` :class:`PairSet`."""
     ensure_dataset(config, dataset_workers=dataset_workers, say=say)
-    items = CaptureDataset(config.dataset_root, crop=None, load_dofp=config.input == "dofp")
+    items = CaptureDataset(config.dataset_root, crop=None, load_dofp=config.input in ("dofp", "dofp-igri2"))
     n = len(items)
     first = items[0]
     check_memory("data.dataset", n * first["gt"].numel() * BYTES_PER_GT_VALUE, what="the training pairs in memory",

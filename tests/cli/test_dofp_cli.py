@@ -167,4 +167,9 @@ def test_tokyotech_scores_definitions(scene64):
         return twelve_from_stokes(s)
 
     assert tokyotech_scores(scene(179.0), scene(1.0))["aop_rmse_deg"] == pytest.approx(2.0, abs=1e-6)
+    half = scene(1.0)
+    half[:, :20] = scene(5.0)[:, :20]  # half the pixels 4 deg off: MAE 2 deg, RMSE sqrt(8) deg
+    mixed = tokyotech_scores(half, scene(1.0), border=0)
+    assert mixed["aop_mae_deg"] == pytest.approx(2.0, abs=1e-6)
+    assert mixed["aop_rmse_deg"] == pytest.approx(np.sqrt(8.0), abs=1e-6)
     assert tokyotech_scores(scene(179.0), scene(1.0))["psnr_dolp"] == PSNR_CAP_DB

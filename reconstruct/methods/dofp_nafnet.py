@@ -1,0 +1,112 @@
+"""``dofp-nafnet``: a learned colour-polarization DoFP demosaicker, a NAFNet-style U-Net over IGRI2.
+
+References: Chen, Chu, Zhang, Sun, "Simple Baselines for Image Restoration", ECCV 2022 (NAFNet, the
+block); Morimatsu, Monno, Tanaka, Okutomi, IEEE Sensors Journal 21(23) 2021 (IGRI2, the start); the
+architecture and its loss: :mod:`capssim.reconstruct.networks.nafnet`.
+
+Input: the capture's DoFP mosaic ``(H, W)`` on [0, 1], its layout and its sensor's noise model (the
+noise std at each sample, :func:`capssim.camera.sensor.noise_std_map`; 0 for a capture without
+noise). Output ``(12, H, W)`` (``c = 3p + k``): IGRI2 plus the network's correction, which removes
+noise and demosaicking errors together. Option ``weights=PATH``: a model file from ``capssim train``
+(default: the shipped ``weights/dofp-nafnet.pt``, trained by ``examples/train-dofp-nafnet.yaml`` on
+development data only: renders and the real scenes that the frozen test suite does not use).
+Mosaics larger than :data:`TILE` px run in tiles with a :data:`HALO` px halo; the network's channel
+attention averages over its input, so a tiled result differs slightly from an untiled one.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import numpy as np
+import torch
+
+from capssim.camera.sensor import noise_std_map
+from capssim.captures.capture import Capture
+
+from ..dofp.bilinear import dofp_unobserved
+from ..dofp.method_body import reject_unknown_options
+from ..dofp.mosaic import check_mosaic
+from ..kernel_regression.steering import noise_sigma
+from ..networks import load_model, shipped_weights
+from ..networks.cpdnet import sparse_channels
+from ..networks.tiling import apply_tiled
+from ..registry import MethodOutput, RunContext, register_method
+from .dofp_igri2 import demosaic_dofp_igri2
+
+REFERENCE = ("Chen, Chu, Zhang, Sun, 'Simple Baselines for Image Restoration', ECCV 2022 (NAFNet); over IGRI2 "
+             "(Morimatsu et al., IEEE Sensors Journal 21(23) 2021); trained with capssim train")
+SHIPPED = "dofp-nafnet"
+NETWORK = "dofp-nafnet"
+#: the suites that score scenes it was trained on (examples/dataset-train-dofp.yaml: the development real scenes)
+TUNED_ON = ("dev", "quick", "ablation", "baselines", "calibration", "full", "learned", "paper")
+#: tiles of the network's input (px, a multiple of 16) and their halo (px)
+TILE, HALO = 1024, 64
+
+
+def dofp_nafnet_input(mosaic: torch.Tensor, layout, noise_std: torch.Tensor,
+                      timer=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(N, H, W)`` mosaics and noise stds -> ``(sparse, igri2, noise_std)``: ``(N, 12, H, W)`` twice and
+    ``(N, 1, H, W)``, float32 on the mosaics' device."""
+    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    mosaic = mosaic.to(torch.float32)
+    with stage("igri2"):
+        base = torch.stack([demosaic_dofp_igri2(m, layout=layout) for m in mosaic])
+    return sparse_channels(mosaic, layout), base, noise_std.to(mosaic)[:, None]
+
+
+def run_dofp_nafnet(model, mosaic: torch.Tensor, layout, noise_std: torch.Tensor, timer=None) -> torch.Tensor:
+    """``(H, W)`` mosaic and noise std tensors -> ``(12, H, W)`` float32 on the mosaic's device."""
+    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    inputs = dofp_nafnet_input(mosaic[None], layout, noise_std[None], timer)
+    with stage("network"):
+        image = apply_tiled(model, inputs, tile=TILE, halo=HALO, step=16)[0]
+    return image.clamp(0.0, max(1.0, float(mosaic.max())))
+
+
+def mosaic_noise_std(mosaic: torch.Tensor) -> float:
+    """White-noise std on [0, 1] of an ``(H, W)`` mosaic with no noise model: Immerkaer's estimate over its 16
+    single-channel sub-mosaics (period 4: the 2x2 polarizer cell under the 2x2 Bayer cell), their median."""
+    h, w = (s - s % 4 for s in mosaic.shape)
+    subs = mosaic[:h, :w].reshape(h // 4, 4, w // 4, 4).permute(1, 3, 0, 2).reshape(16, h // 4, w // 4)
+    return noise_sigma(subs)
+
+
+def demosaic_dofp_nafnet(mosaic, *, layout="sony", noise_std=None, device=None, timer=None, weights=None):
+    """The plain array form: ``(H, W)`` mosaic (numpy or tensor) -> ``(12, H, W)`` with the shipped weights.
+
+    ``noise_std``: the noise std on [0, 1], a number or an ``(H, W)`` map (0: a noise-free mosaic; None:
+    estimated from the mosaic, :func:`mosaic_noise_std`, as for a real raw frame without a noise model).
+    """
+    x = check_mosaic(mosaic, device=device).to(torch.float32)
+    noise_std = mosaic_noise_std(x) if noise_std is None else noise_std
+    sigma = torch.as_tensor(np.asarray(noise_std, dtype=np.float32), device=x.device).expand(x.shape)
+    model, _ = load_model(weights or shipped_weights(SHIPPED), device=x.device, expect=NETWORK)
+    image = run_dofp_nafnet(model, x, layout, sigma, timer)
+    return image.cpu().numpy() if isinstance(mosaic, np.ndarray) else image
+
+
+@register_method("dofp-nafnet", input_kind="dofp", array_function=demosaic_dofp_nafnet, reference=REFERENCE,
+                 tuned_on=TUNED_ON,
+                 description="NAFNet-style U-Net over IGRI2 with the sensor's noise map, trained with capssim train on "
+                             "development data; option weights=PATH (default: the shipped dofp-nafnet)")
+def dofp_nafnet(capture: Capture, *, context: RunContext) -> MethodOutput:
+    opts = dict(context.options)
+    weights = str(opts.pop("weights", "") or "").strip() or None
+    reject_unknown_options(opts, ["weights"])
+    path = weights or shipped_weights(SHIPPED)
+    with context.timer.stage("load_model"):
+        model, record = load_model(path, device=context.device, expect=NETWORK)
+        mosaic = capture.dofp_float()
+        noise_std = torch.from_numpy(noise_std_map(capture.sensor, mosaic)).to(context.device)
+        mosaic = torch.from_numpy(mosaic).to(context.device)
+    image = run_dofp_nafnet(model, mosaic, capture.dofp_layout, noise_std, context.timer)
+    with context.timer.stage("to_host"):
+        image = image.to("cpu", torch.float32).numpy()
+    training = record.get("training", {})
+    return MethodOutput(image=image,
+                        params={"weights": str(path), "network": record["network"], "network_params": record["params"],
+                                "training_steps": training.get("steps"), "layout": [list(r) for r in capture.dofp_layout],
+                                "noise_model": capture.sensor.model},
+                        extra={"training_validation_psnr_db": training.get("validation_psnr_db")},
+                        unobserved=lambda: dofp_unobserved(capture.dofp_saturated(), capture.dofp_layout))
