@@ -32,9 +32,10 @@ from ..evaluate import CaptureScorer
 from .ladder import run_ladder
 
 #: the methods of the results page (issue 32): the paper's method, its cascade ablation, the
-#: camera-array baseline, the best classical and the learned DoFP method, and capssim's caps-plus and its
+#: camera-array baseline, the best classical and the two learned DoFP methods, and capssim's caps-plus and its
 #: prior-choice ablation caps-plus-cv
-BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet", "caps-plus", "caps-plus-cv")
+BUDGET_METHODS = ("caps", "caps-iccp", "caps-naive", "dofp-igri2", "cpdnet", "dofp-nafnet", "caps-plus",
+                  "caps-plus-cv")
 #: the code whose change redoes a case (the report, plots and command do not change a number)
 BUDGET_CODE = ("eval/error_budget/ladder.py", "eval/error_budget/oracles.py")
 RESULTS_NAME = BUDGET_OUTPUT.results_name

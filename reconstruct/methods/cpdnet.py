@@ -19,9 +19,8 @@ import torch
 from capssim.captures.capture import Capture
 
 from ..dofp.bilinear import dofp_unobserved
-from ..dofp.method_body import reject_unknown_options
 from ..dofp.mosaic import check_mosaic
-from ..networks import load_model, shipped_weights
+from ..networks import load_model, shipped_weights, weights_option
 from ..networks.cpdnet import dofp_network_input
 from ..networks.tiling import apply_tiled
 from ..registry import MethodOutput, RunContext, register_method
@@ -55,10 +54,7 @@ def demosaic_dofp_cpdnet(mosaic, *, layout="sony", device=None, timer=None, weig
                  description="CPDNet (colour module, then polarization module), trained with capssim train; "
                              "option weights=PATH (default: the shipped cpdnet-small)")
 def cpdnet(capture: Capture, *, context: RunContext) -> MethodOutput:
-    opts = dict(context.options)
-    weights = str(opts.pop("weights", "") or "").strip() or None
-    reject_unknown_options(opts, ["weights"])
-    path = weights or shipped_weights(SHIPPED)
+    path = weights_option(context.options, SHIPPED)
     with context.timer.stage("load_model"):
         model, record = load_model(path, device=context.device, expect="cpdnet")
         mosaic = torch.from_numpy(capture.dofp_float()).to(context.device)

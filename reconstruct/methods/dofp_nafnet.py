@@ -25,10 +25,9 @@ from capssim.camera.sensor import noise_std_map
 from capssim.captures.capture import Capture
 
 from ..dofp.bilinear import dofp_unobserved
-from ..dofp.method_body import reject_unknown_options
 from ..dofp.mosaic import check_mosaic
 from ..kernel_regression.steering import noise_sigma
-from ..networks import load_model, shipped_weights
+from ..networks import load_model, shipped_weights, weights_option
 from ..networks.cpdnet import sparse_channels
 from ..networks.tiling import apply_tiled
 from ..registry import MethodOutput, RunContext, register_method
@@ -91,10 +90,7 @@ def demosaic_dofp_nafnet(mosaic, *, layout="sony", noise_std=None, device=None, 
                  description="NAFNet-style U-Net over IGRI2 with the sensor's noise map, trained with capssim train on "
                              "development data; option weights=PATH (default: the shipped dofp-nafnet)")
 def dofp_nafnet(capture: Capture, *, context: RunContext) -> MethodOutput:
-    opts = dict(context.options)
-    weights = str(opts.pop("weights", "") or "").strip() or None
-    reject_unknown_options(opts, ["weights"])
-    path = weights or shipped_weights(SHIPPED)
+    path = weights_option(context.options, SHIPPED)
     with context.timer.stage("load_model"):
         model, record = load_model(path, device=context.device, expect=NETWORK)
         mosaic = capture.dofp_float()

@@ -115,6 +115,16 @@ def load_model(path, *, device: torch.device | str = "cpu", expect: str | None =
     return model, {k: v for k, v in record.items() if k != "state_dict"}
 
 
+def weights_option(options: dict, shipped: str) -> Path:
+    """The model file of a learned method's only option, ``weights=PATH`` (default: the shipped ``shipped``); any
+    other option is an UnknownNameError."""
+    opts = dict(options)
+    weights = str(opts.pop("weights", "") or "").strip() or None
+    for key in opts:
+        raise UnknownNameError("option", str(key), ["weights"])
+    return Path(weights) if weights else shipped_weights(shipped)
+
+
 def shipped_weights(name: str) -> Path:
     """The path of the shipped model ``weights/NAME.pt`` (an InputError listing them if absent)."""
     path = WEIGHTS_DIR / f"{name}.pt"

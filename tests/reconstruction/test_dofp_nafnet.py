@@ -13,7 +13,7 @@ import torch
 from capssim.camera.sensor import make_sensor, noise_std_map
 from capssim.errors import InputError
 from capssim.files.schema import ConfigError
-from capssim.reconstruct.methods.dofp_nafnet import demosaic_dofp_nafnet, dofp_nafnet_input
+from capssim.reconstruct.methods.dofp_nafnet import demosaic_dofp_nafnet, dofp_nafnet_input, mosaic_noise_std
 from capssim.reconstruct.networks import WEIGHTS_DIR, build_network, load_model, save_model
 from capssim.reconstruct.networks.nafnet import DofpNAFNet
 from capssim.reconstruct.registry import reconstruct
@@ -62,6 +62,17 @@ def test_noise_map_follows_the_sensor_model():
     assert np.all(np.diff(shot) > 0) and shot.dtype == np.float32
 
 
+def test_noise_estimate_of_a_mosaic_without_a_noise_model():
+    """The std ``capssim demosaic`` gives the network for a raw frame: Immerkaer's estimate over the 16 sub-mosaics
+    (exact on planes, which its Laplacian cancels)."""
+    ramp = np.linspace(0.2, 0.7, 128, dtype=np.float32)
+    gt = np.stack([ramp[None, :] * (0.6 + 0.03 * c) + 0.1 * ramp[:, None] for c in range(12)])
+    clean = simulate_capture(gt, make_sensor("none"), seed=0, psf={"type": "none"}).dofp_raw
+    noisy = clean + np.random.default_rng(0).normal(0, 0.01, clean.shape)
+    assert mosaic_noise_std(torch.as_tensor(clean)) < 0.002
+    assert mosaic_noise_std(torch.as_tensor(noisy)) == pytest.approx(0.01, rel=0.25)
+
+
 @pytest.fixture
 def capture(smooth_random_scene):
     gt = smooth_random_scene(48, seed=5)
@@ -81,18 +92,22 @@ def test_method_with_a_model_file_and_its_refusals(tmp_path, capture):
         reconstruct(capture, "dofp-nafnet", weights=str(tmp_path / "missing.pt"))
 
 
-def test_shipped_weights_are_small_come_from_the_shipped_config_and_beat_igri2(capture):
+def test_shipped_weights_are_small_come_from_the_shipped_config_and_beat_igri2(natural_scene):
     path = WEIGHTS_DIR / "dofp-nafnet.pt"
     assert path.stat().st_size <= 20 * 2**20
     _, record = load_model(path, expect="dofp-nafnet")
     config = load_train_config(REPO / "examples" / "train-dofp-nafnet.yaml")
     assert record["training"]["fingerprint"] == config.fingerprint()
     assert record["training"]["steps"] == config.schedule["steps"]
+    gt = natural_scene().astype(np.float32)
+    capture = simulate_capture(gt, make_sensor("gaussian", sigma=0.01), seed=3, psf={"type": "none"})
     out, _ = reconstruct(capture, "dofp-nafnet")
     igri2, _ = reconstruct(capture, "dofp-igri2")
+
     def mse(image):
-        return float(np.mean((np.clip(image, 0, 1) - capture.gt)[:, 8:-8, 8:-8] ** 2))
-    assert mse(out.image) < 0.9 * mse(igri2.image)  # about 0.5 dB or more on a smooth noisy scene
+        return float(np.mean((np.clip(image, 0, 1) - gt)[:, 8:-8, 8:-8] ** 2))
+
+    assert mse(out.image) < 0.97 * mse(igri2.image)  # 0.945 when shipped: +0.25 dB on a scene it never saw
 
 
 @pytest.mark.parametrize("fill", [0.0, 1e-6, 1.0, "noise"])
@@ -110,7 +125,7 @@ def test_hard_inputs_stay_finite_and_in_range(fill):
 DATASET = """
 name: tiny
 seed: 4
-samples: 4
+samples: 3
 defaults:
   sensor: {noise: {choice: [gaussian, poisson-gaussian]}, sigma: 0.01}
   dofp_layout: {choice: [sony, 0-45-135-90]}
@@ -140,10 +155,10 @@ def _config(root: Path, steps: int) -> Path:
 
 def test_training_lowers_the_loss_and_retrains_to_the_same_weights(tmp_path, write_png_gt, smooth_random_scene):
     write_png_gt(tmp_path / "gt" / "a", smooth_random_scene(48, seed=2))
-    config = load_train_config(_config(tmp_path, 30))
+    config = load_train_config(_config(tmp_path, 20))
     losses = []
     first = train(config, tmp_path / "first", progress=lambda s, n, loss, v: losses.append(loss))
-    assert sum(losses[-6:]) < sum(losses[:6])
+    assert sum(losses[-5:]) < sum(losses[:5])
     second = train(config, tmp_path / "second")
     a = torch.load(first.model, weights_only=True)["state_dict"]
     b = torch.load(second.model, weights_only=True)["state_dict"]
