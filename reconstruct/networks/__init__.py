@@ -22,6 +22,7 @@ from torch import nn
 from capssim.errors import InputError, UnknownNameError
 from capssim.files.imageio import atomic_write_bytes
 
+from ..dofp.method_body import reject_unknown_options
 from .cpdnet import CPDNet
 from .denoiser import NoiseLevelDenoiser
 from .edsr import EDSR
@@ -120,8 +121,7 @@ def weights_option(options: dict, shipped: str) -> Path:
     other option is an UnknownNameError."""
     opts = dict(options)
     weights = str(opts.pop("weights", "") or "").strip() or None
-    for key in opts:
-        raise UnknownNameError("option", str(key), ["weights"])
+    reject_unknown_options(opts, ["weights"])
     return Path(weights) if weights else shipped_weights(shipped)
 
 

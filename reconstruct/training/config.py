@@ -53,7 +53,7 @@ from capssim.files.schema import (
 from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_memory
 
 from ..networks import NETWORKS
-from .pairs import INPUT_KINDS
+from .pairs import INPUT_KINDS, MOSAIC_INPUT_KINDS
 
 OPTIMIZERS = ("adam", "adamw", "sgd")
 DECAYS = ("cosine", "constant", "step")
@@ -102,15 +102,15 @@ TOP_SPEC = Mapping({
 }, required=("model", "input", "data"), what="a training config (model, input, data, ...)")
 
 _NETWORK = String(choices=list(MODEL_INPUTS))
+#: dofp-nafnet's blocks per U-Net level, top level first
+_LEVEL_BLOCKS = Sequence(Integer(minimum=0, maximum=64), what="block counts (top level first)", lengths=(3,))
 #: per model: the keys of ``model`` (sizes have no upper bound here: the memory estimate refuses what cannot fit)
 MODEL_SPECS = {
     "cpdnet": Mapping({"network": _NETWORK, "features": Integer(minimum=1), "colour_blocks": Integer(minimum=0),
                        "polarization_blocks": Integer(minimum=0)},
                       what="a cpdnet model (network, features, colour_blocks, polarization_blocks)"),
-    "dofp-nafnet": Mapping({"network": _NETWORK, "width": Integer(minimum=1),
-                            "encoder_blocks": Sequence(Integer(minimum=0, maximum=64), what="block counts (top level first)", lengths=(3,)),
-                            "middle_blocks": Integer(minimum=0, maximum=64),
-                            "decoder_blocks": Sequence(Integer(minimum=0, maximum=64), what="block counts (top level first)", lengths=(3,))},
+    "dofp-nafnet": Mapping({"network": _NETWORK, "width": Integer(minimum=1), "encoder_blocks": _LEVEL_BLOCKS,
+                            "middle_blocks": Integer(minimum=0, maximum=64), "decoder_blocks": _LEVEL_BLOCKS},
                            what="a dofp-nafnet model (network, width, encoder_blocks, middle_blocks, decoder_blocks)"),
     "edsr": Mapping({"network": _NETWORK, "channels": Integer(minimum=1, maximum=64), "features": Integer(minimum=1),
                      "blocks": Integer(minimum=0), "residual_scale": Number(minimum=0, maximum=10),
@@ -218,7 +218,7 @@ def _data(raw: dict, base_dir: Path, kind: str) -> dict:
         _fail("data.dataset", repr(data["dataset"]), f"an existing dataset config (looked at {dataset})",
               "Give the path relative to the training config.")
     crop = data.get("crop", 64)
-    if kind in ("dofp", "dofp-igri2") and crop % 4:
+    if kind in MOSAIC_INPUT_KINDS and crop % 4:
         _fail("data.crop", crop, "a multiple of 4 for DoFP input (the mosaic period)", f"Try crop: {crop - crop % 4}.")
     return {"dataset_config": dataset, "dataset_root": Path(data.get("root") or f"runs/datasets/{dataset.stem}"),
             "validation": data.get("validation", 8), "crop": crop, "batch": data.get("batch", 8)}

@@ -34,6 +34,8 @@ from ..networks.cpdnet import cpdnet_loss, dofp_network_input
 from ..networks.nafnet import nafnet_loss
 
 INPUT_KINDS = ("dofp", "dofp-igri2", "aperture", "noisy-gt")
+#: the inputs read from the DoFP mosaic (crops on multiples of 4, its period)
+MOSAIC_INPUT_KINDS = ("dofp", "dofp-igri2")
 #: aperture targets read the ground truth at least this far (HR px) inside its border
 BORDER_HR_PX = 3.0
 
@@ -176,13 +178,18 @@ def noisy_gt_pairs(items: list[dict]) -> NoisyGtPairs:
     return NoisyGtPairs((target,), target, torch.ones_like(target[:, :1]), 1)
 
 
+def _require_mosaic(item: dict, kind: str) -> None:
+    """Refuse a CaptureDataset item without a DoFP mosaic for a mosaic input ``kind``."""
+    if "dofp_raw" not in item:
+        raise InputError("input", kind, "captures with a DoFP mosaic (dofp_raw.tiff)",
+                         "Generate the dataset with its DoFP captures, or use input: aperture.")
+
+
 def dofp_pairs(items: list[dict]) -> DofpPairs:
     """:class:`DofpPairs` of CaptureDataset items (whole captures with ``dofp_raw`` and ``gt``)."""
     sparse, bilinear = [], []
     for item in items:
-        if "dofp_raw" not in item:
-            raise InputError("input", "dofp", "captures with a DoFP mosaic (dofp_raw.tiff)",
-                             "Generate the dataset with its DoFP captures, or use input: aperture.")
+        _require_mosaic(item, "dofp")
         s, b = dofp_network_input(item["dofp_raw"][None], [r.tolist() for r in item["dofp_layout"]])
         sparse.append(s[0])
         bilinear.append(b[0])
@@ -195,9 +202,7 @@ def dofp_igri2_pairs(items: list[dict]) -> DofpIgri2Pairs:
     (IGRI2 computed once per sample, here) and the ground truth."""
     inputs = []
     for item in items:
-        if "dofp_raw" not in item:
-            raise InputError("input", "dofp-igri2", "captures with a DoFP mosaic (dofp_raw.tiff)",
-                             "Generate the dataset with its DoFP captures.")
+        _require_mosaic(item, "dofp-igri2")
         inputs.append(dofp_nafnet_input(item["dofp_raw"][None], [r.tolist() for r in item["dofp_layout"]],
                                         item["dofp_noise_std"][None]))
     target = torch.stack([item["gt"] for item in items])
@@ -243,4 +248,4 @@ def masked_psnr(image: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
 
 
-__all__ = ["INPUT_KINDS", "NoisyGtPairs", "PairSet", "build_pairs", "masked_psnr"]
+__all__ = ["INPUT_KINDS", "MOSAIC_INPUT_KINDS", "NoisyGtPairs", "PairSet", "build_pairs", "masked_psnr"]

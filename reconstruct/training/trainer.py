@@ -37,7 +37,7 @@ from capssim.runtime.resources import check_memory
 from ..networks import build_network, save_model, unreadable_reason
 from .config import DICTIONARY_MODEL, TrainConfig, learning_rate
 from .dictionary import DICTIONARY_FILE, learn_jcpd_dictionary
-from .pairs import PairSet, build_pairs, masked_psnr
+from .pairs import MOSAIC_INPUT_KINDS, PairSet, build_pairs, masked_psnr
 
 log = logging.getLogger(__name__)
 CHECKPOINT, MODEL, HISTORY, PLOT, CONFIG_COPY = "checkpoint.pt", "model.pt", "history.jsonl", "training.png", \
@@ -79,7 +79,7 @@ def ensure_dataset(config: TrainConfig, *, dataset_workers: int = 0, say: Callab
 def load_pairs(config: TrainConfig, *, dataset_workers: int = 0, say: Callable[[str], None] = log.info):
     """Generate the dataset if it is not finished, then ``(train, validation)`` :class:`PairSet`."""
     ensure_dataset(config, dataset_workers=dataset_workers, say=say)
-    items = CaptureDataset(config.dataset_root, crop=None, load_dofp=config.input in ("dofp", "dofp-igri2"))
+    items = CaptureDataset(config.dataset_root, crop=None, load_dofp=config.input in MOSAIC_INPUT_KINDS)
     n = len(items)
     first = items[0]
     check_memory("data.dataset", n * first["gt"].numel() * BYTES_PER_GT_VALUE, what="the training pairs in memory",
