@@ -9,7 +9,7 @@ share (observation model, DoFP method body) read and write them without dependin
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import dataclass, field
 from typing import Callable, Iterator
 
@@ -20,7 +20,7 @@ from capssim.runtime.threads import adapt_threads
 
 from .calibration_model import CalibrationModel
 
-__all__ = ["MethodOutput", "RunContext", "StageTimer"]
+__all__ = ["MethodOutput", "RunContext", "StageTimer", "stage_factory"]
 
 
 @dataclass
@@ -43,6 +43,16 @@ class StageTimer:
             if self.device.type == "cuda":
                 torch.cuda.synchronize(self.device)
             self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
+
+
+def _untimed(name: str) -> AbstractContextManager:
+    return nullcontext()
+
+
+def stage_factory(timer: StageTimer | None) -> Callable[[str], AbstractContextManager]:
+    """``timer.stage``, or a stage that times nothing when ``timer`` is None (the array functions called
+    outside a method, e.g. ``capssim demosaic`` or a test)."""
+    return timer.stage if timer is not None else _untimed
 
 
 @dataclass

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from ..filters import normalized_interpolation
+from ..run_context import stage_factory
 from .mosaic import (
     KERNEL_BILINEAR_QUINCUNX,
     KERNEL_BILINEAR_RECT,
@@ -74,9 +75,7 @@ def demosaic_dofp_bilinear(mosaic, *, layout="sony", device: str | torch.device 
     the 2x2 polarizer cell (``'sony'``, ``'0-45-135-90'`` or ``[[a, b], [c, d]]`` degrees).
     ``timer``: optional :class:`capssim.reconstruct.registry.StageTimer` to record the two stages.
     """
-    from contextlib import nullcontext
-
-    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    stage = stage_factory(timer)
     x = check_mosaic(mosaic, device=device)
     with stage("bayer_bilinear"):
         sub_rgb = bilinear_bayer(split_submosaics(x, layout))  # (4, 3, H/2, W/2)

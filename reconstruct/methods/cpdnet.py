@@ -24,6 +24,7 @@ from ..networks import load_model, shipped_weights, weights_option
 from ..networks.cpdnet import dofp_network_input
 from ..networks.tiling import apply_tiled
 from ..registry import MethodOutput, RunContext, register_method
+from ..run_context import stage_factory
 
 REFERENCE = ("Wen, Zheng, Lu, Zhao, 'Convolutional demosaicing network for joint chromatic and polarimetric "
              "imagery', Optics Letters 44(22) 5646, 2019; trained with capssim train")
@@ -32,9 +33,7 @@ SHIPPED = "cpdnet-small"
 
 def run_cpdnet(model, mosaic: torch.Tensor, layout, timer=None) -> torch.Tensor:
     """``(H, W)`` mosaic tensor -> ``(12, H, W)`` float32 on the mosaic's device."""
-    from contextlib import nullcontext
-
-    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    stage = stage_factory(timer)
     with stage("network_input"):
         sparse, bilinear = dofp_network_input(mosaic[None], layout)
     with stage("network"):

@@ -41,8 +41,6 @@ Numerical choices where the descriptions are silent (their measured cost: docs, 
 
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import torch
 
 from capssim.captures.capture import Capture
@@ -64,6 +62,7 @@ from ..dofp.residual_interpolation import (
 )
 from ..filters import correlate
 from ..registry import MethodOutput, RunContext, register_method
+from ..run_context import stage_factory
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking using edge-aware "
              "residual interpolation', IEEE ICIP 2020; colour stage: Kiku et al., 'Beyond color difference: residual "
@@ -115,7 +114,7 @@ def demosaic_dofp_eari(mosaic, *, layout="sony", device: str | torch.device | No
     ``weight_floor``, ``edge_eps``, ``bayer_sigma``: see the module docstring. ``dtype``:
     computation precision (default float32, float64 for a float64 input).
     """
-    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    stage = stage_factory(timer)
     x = check_mosaic(mosaic, device=device, dtype=dtype)
     ceiling = clip_ceiling(x)
     kw = dict(eps=eps, weight_floor=weight_floor, clip_max=ceiling)

@@ -33,8 +33,6 @@ zero, as in the reference; this only affects pixels near the image border.
 
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import torch
 
 from capssim.captures.capture import Capture
@@ -58,6 +56,7 @@ from ..dofp.residual_interpolation import (
     ri_green,
 )
 from ..registry import MethodOutput, RunContext, register_method
+from ..run_context import stage_factory
 from .dofp_eari import DEFAULTS
 
 REFERENCE = ("Morimatsu, Monno, Tanaka, Okutomi, 'Monochrome and color polarization demosaicking based on "
@@ -158,7 +157,7 @@ def demosaic_dofp_igri2(mosaic, *, layout="sony", device: str | torch.device | N
     Same interface and colour stage as :func:`capssim.reconstruct.methods.dofp_eari.demosaic_dofp_eari`;
     the layout must have orthogonal angles on its diagonals.
     """
-    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    stage = stage_factory(timer)
     check_diagonal_pairs(layout)
     x = check_mosaic(mosaic, device=device, dtype=dtype)
     ceiling = clip_ceiling(x)

@@ -48,7 +48,6 @@ mosaic's device, batched over patches (the only Python loops are over OMP iterat
 from __future__ import annotations
 
 import math
-from contextlib import nullcontext
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +64,7 @@ from ..dofp.mosaic import angle_offsets, as_output, check_mosaic, clip_ceiling
 from ..networks import WEIGHTS_DIR
 from ..priors.sparse_coding import constant_atoms, joint_dictionary, omp
 from ..registry import MethodOutput, RunContext, register_method
+from ..run_context import stage_factory
 
 REFERENCE = ("Wen, Zheng, Lu, 'A Sparse Representation Based Joint Demosaicing Method for Single-Chip Polarized "
              "Color Sensor', IEEE Trans. Image Processing 30, 2021 (JCPD)")
@@ -249,7 +249,7 @@ def jcpd_reconstruct(x: torch.Tensor, *, layout="sony", patch: int = 8, stride: 
 
     Computes in ``x.dtype`` on ``x.device``; see the module docstring for the steps.
     """
-    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    stage = stage_factory(timer)
     h, w = x.shape
     with stage("dictionary"):
         d = load_dictionary(dictionary, patch, dtype=torch.float64, device=x.device)

