@@ -20,7 +20,7 @@ from capssim.runtime.threads import adapt_threads
 
 from .calibration_model import CalibrationModel
 
-__all__ = ["MethodOutput", "RunContext", "StageTimer", "stage_factory"]
+__all__ = ["MethodOutput", "RunContext", "StageTimer", "no_stage", "stage_factory"]
 
 
 @dataclass
@@ -45,14 +45,15 @@ class StageTimer:
             self.stages[name] = self.stages.get(name, 0.0) + time.perf_counter() - t0
 
 
-def _untimed(name: str) -> AbstractContextManager:
+def no_stage(name: str) -> AbstractContextManager:
+    """A stage factory (``stage(name)``, as :meth:`StageTimer.stage`) that times nothing."""
     return nullcontext()
 
 
 def stage_factory(timer: StageTimer | None) -> Callable[[str], AbstractContextManager]:
     """``timer.stage``, or a stage that times nothing when ``timer`` is None (the array functions called
     outside a method, e.g. ``capssim demosaic`` or a test)."""
-    return timer.stage if timer is not None else _untimed
+    return timer.stage if timer is not None else no_stage
 
 
 @dataclass

@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import logging
 import math
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager
 from typing import Callable, Protocol
 
 import torch
 
 from capssim.errors import InputError
+
+from ..run_context import no_stage
 
 log = logging.getLogger(__name__)
 
@@ -104,11 +106,6 @@ class StoppingRule(Protocol):
     def final(self, image: torch.Tensor) -> torch.Tensor:
         """The image the solver returns, given its last iterate ``image``."""
         ...
-
-
-def no_stage(name: str) -> AbstractContextManager:
-    """A :data:`StageFactory` that times nothing."""
-    return nullcontext()
 
 
 def check_initial_estimate(data: DataFidelity, init: torch.Tensor) -> None:
