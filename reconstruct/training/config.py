@@ -30,6 +30,7 @@ one-line :class:`~capssim.files.schema.ConfigError` naming the file and the key.
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -127,12 +128,11 @@ MODEL_SPECS = {
 #: the channels of each input's images (a network's ``channels`` must match: the pairs have no other count)
 INPUT_CHANNELS = {"aperture": 3, "noisy-gt": 12}
 INPUT_CHANNEL_NAMES = {"aperture": "one aperture's demosaicked RGB", "noisy-gt": "RGB x 4 polarizer angles"}
-#: the constructor defaults of each network, for the memory estimate (the config keeps only what it sets)
-NETWORK_DEFAULTS = {"cpdnet": {"features": 24, "colour_blocks": 2, "polarization_blocks": 2},
-                    "dofp-nafnet": {"width": 24, "encoder_blocks": [1, 1, 2], "middle_blocks": 2,
-                                    "decoder_blocks": [1, 1, 1]},
-                    "edsr": {"channels": 3, "features": 32, "blocks": 4},
-                    "denoiser": {"channels": 12, "features": 48, "depth": 7}}
+#: the constructor defaults of each network, for the memory estimate (the config keeps only what it sets), read
+#: from the constructors themselves
+NETWORK_DEFAULTS = {name: {key: parameter.default for key, parameter in inspect.signature(cls).parameters.items()
+                           if parameter.default is not inspect.Parameter.empty}
+                    for name, cls in NETWORKS.items()}
 
 
 class UnknownConfigName(ConfigError, UnknownNameError):
