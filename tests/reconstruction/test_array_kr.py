@@ -140,6 +140,61 @@ def test_fusion_in_chunks_of_rows_equals_one_piece(monkeypatch):
     np.testing.assert_allclose(fuse_apertures(rgb, usable, raw_h, (80, 24), 0.01).numpy(), whole.numpy(), atol=1e-6)
 
 
+def test_detail_noise_energy_matches_white_noise():
+    """DETAIL_NOISE_ENERGY is the analyzers' detail energy of pure sensor noise per unit raw variance: four
+    white-noise frames, Menon demosaicking and bicubic x2 resampling at four sub-pixel phases, as array-kr does."""
+    from capssim.reconstruct.model.aperture_demosaic import demosaic_apertures
+
+    sigma = 0.01
+    raw = 0.5 + sigma * np.random.default_rng(0).standard_normal((4, 96, 96)).astype(np.float32)
+    rgb = torch.from_numpy(demosaic_apertures(raw, bayer_method="menon2007"))
+    raw_h = _raw_h([(0, 0), (1, 0), (0, 1), (1, 1)])
+    for k in range(3):
+        b = fusion._warp(rgb[:, k:k + 1], raw_h, (0, 192), 192, "bicubic", "border")[:, 0]
+        d = b - b.mean(0)
+        d -= fusion.gaussian(d, fusion.POL_SIGMA)
+        energy = float((d * d).sum(0)[16:-16, 16:-16].mean()) / sigma ** 2
+        assert energy == pytest.approx(fusion.DETAIL_NOISE_ENERGY, rel=0.1), k
+
+
+def test_shared_intensity_energy_sees_intensity_edges_not_polarization_patterns():
+    """An intensity edge seen by all four analyzers counts; detail that differs between the analyzer pairs (a
+    polarization pattern's interpolation error: vertical stripes in one pair, horizontal in the other) or
+    independent noise does not, while the energy of the four's mean (the previous rule) sees the stripes."""
+    x = torch.arange(48, dtype=torch.float32)
+    edge = (x[None, :] > 24).float().expand(48, 48) * 0.4 + 0.3
+    assert fusion.shared_intensity_energy(edge.expand(4, 48, 48))[:, 20:28].mean() > 1e-3
+    vertical = 0.1 * torch.sign(torch.sin(x[None, :] * 1.3)).expand(48, 48)
+    pairs = torch.stack([0.5 + vertical, 0.5 + vertical.T, 0.5 + vertical, 0.5 + vertical.T])
+    m = pairs.mean(0)
+    mean_energy = fusion.gaussian((m - fusion.gaussian(m, fusion.POL_SIGMA)) ** 2, fusion.ENERGY_SIGMA)
+    shared = fusion.shared_intensity_energy(pairs)
+    assert float(shared[8:-8, 8:-8].mean()) < 0.1 * float(mean_energy[8:-8, 8:-8].mean())
+    noise = 0.5 + 0.01 * torch.randn(4, 48, 48, generator=torch.Generator().manual_seed(0))
+    assert float(fusion.shared_intensity_energy(noise).mean()) < 0.2 * 0.01 ** 2
+
+
+def test_detail_weight_keeps_polarization_only_structure_and_drops_noise():
+    """On a flat intensity with polarization stripes well above the noise, the fused analyzers keep the stripes
+    (w near 1); on pure noise the detail is dropped (the output's detail energy far below the input's)."""
+    x = torch.arange(24, dtype=torch.float32)
+    stripes = 0.1 * torch.sign(torch.sin(x[None, :] * 0.9)).expand(24, 24)
+    levels = torch.stack([0.5 + stripes, torch.full_like(stripes, 0.5), 0.5 - stripes, torch.full_like(stripes, 0.5)])
+    rgb = levels[:, None].expand(4, 3, 24, 24).contiguous()
+    usable = torch.ones(4, 24, 24, dtype=torch.bool)
+    raw_h = _raw_h([(0, 0)] * 4)
+    out = fuse_apertures(rgb, usable, raw_h, (48, 48), 0.005)
+    ref = fuse_apertures(rgb, usable, raw_h, (48, 48), 0.005, detail=False)
+    truth = fusion._warp(rgb, raw_h, (0, 48), 48, "bicubic", "border")
+    assert (out - truth).abs()[..., 8:-8, 8:-8].mean() < 0.2 * (ref - truth).abs()[..., 8:-8, 8:-8].mean()
+    flat = 0.5 + 0.01 * torch.randn(4, 3, 24, 24, generator=torch.Generator().manual_seed(1))
+    noisy = fuse_apertures(flat, usable, raw_h, (48, 48), 0.01)
+    warped = fusion._warp(flat, raw_h, (0, 48), 48, "bicubic", "border")
+    def detail(a):
+        return float(((a - a.mean(0)) ** 2)[..., 8:-8, 8:-8].mean())
+    assert detail(noisy) < 0.3 * detail(warped)
+
+
 @pytest.mark.parametrize("raw_hw", [(1, 1), (3, 5), (7, 2)])
 def test_fusion_on_odd_and_tiny_frames(raw_hw):
     rgb = torch.rand(4, 3, *raw_hw)
