@@ -178,7 +178,7 @@ def _report_header(run, verdict) -> list[str]:
         "",
     ]
     if run.notes:
-        lines += ["## Substitutions", ""] + [f"- {n}" for n in run.notes] + [""]
+        lines += ["## Notes", ""] + [f"- {n}" for n in run.notes] + [""]
     if verdict is not None:
         lines += ["## Regression check", "", "```", verdict.text(), "```", ""]
     return lines
@@ -362,8 +362,8 @@ def results_page(run, *, verdict=None, written: str | None = None) -> str:
     if verdict is not None:
         lines += [f"Regression check against the stored baseline: **{'passed' if verdict.passed else 'FAILED'}** "
                   f"({len(verdict.compared)} case(s) compared, {len(verdict.failures)} failure(s)).", ""]
-    if run.notes:
-        lines += ["## Substitutions", ""] + [f"- {n}" for n in run.notes] + [""]
+    if run.notes:  # substitutions, and where a page's cases come from earlier runs
+        lines += ["## Notes", ""] + [f"- {n}" for n in run.notes] + [""]
     tuned = tuned_labels(spec)
     lines += paired_section(spec, recs)
     lines += front_section([r for r in recs if r["status"] == "ok"])

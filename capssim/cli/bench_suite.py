@@ -61,20 +61,33 @@ def _check_inputs(spec: dict, *, methods, scenes, workers, scheduler, check, upd
     return baseline, previous
 
 
-def _finish(run, output: Path, *, verdict, no_plots: bool, results_page, update_baseline, previous) -> None:
-    """The report, summary, results page and baseline of a finished run (the output folder still held)."""
+def _finish(run, output: Path, *, verdict, no_plots: bool, results_page, update_baseline, previous,
+            partial: bool = False) -> None:
+    """The report, summary, results page and baseline of a finished run (the output folder still held). After a
+    ``partial`` run (``-m``/``--scene``) the report and the results page show the whole suite: this run's cases
+    and the other cases' latest records in the folder
+    (:func:`~capssim.eval.benchmarks.whole_suite.whole_suite_run`); the summary shows this run's cases."""
     from capssim.eval.benchmarks.baseline import write_baseline
     from capssim.eval.suite_report import write_report, write_results_page
 
-    report = write_report(run, output, verdict=verdict, plots=not no_plots)
+    shown = run
+    if partial:
+        from capssim.eval.benchmarks.captures import expand_render_scenes
+        from capssim.eval.benchmarks.whole_suite import whole_suite_run
+
+        scene_names = {s["name"] for s in expand_render_scenes(run.spec["scenes"], lambda *a, **k: None)}
+        shown = whole_suite_run(run, scene_names=scene_names)
+    report = write_report(shown, output, verdict=verdict, plots=not no_plots)
     typer.echo(render_bench_summary(run))
     if run.execution.get("kind") == "dask":
         typer.echo(f"ran on {run.execution['workers']} Dask worker(s), {run.execution['compute_threads']} compute "
                    f"thread(s) each, in {run.wall_time_s:.1f} s")
     typer.echo(f"results: {run.results_path}")
+    for note in shown.notes[len(run.notes):]:
+        typer.echo(f"report: {note}")
     typer.echo(f"report:  {report}")
     if results_page is not None:
-        typer.echo(f"results page: {write_results_page(run, results_page, verdict=verdict)}")
+        typer.echo(f"results page: {write_results_page(shown, results_page, verdict=verdict)}")
     if update_baseline is not None:
         n, kept = write_baseline(run, update_baseline, previous=previous)
         more = f", {kept} kept from the existing baseline (--replace-baseline drops them)" if kept else ""
@@ -94,7 +107,10 @@ def suite(
                                           help="With --update-baseline: write only this run's cases, dropping the "
                                                "others of the existing baseline."),
     results_page: Optional[Path] = typer.Option(None, "--results-page",
-                                                help="(Re)write this Markdown results page, e.g. docs/results/quick.md."),
+                                                help="(Re)write this Markdown results page, e.g. docs/results/quick.md. "
+                                                     "With -m or --scene it, like report.md, still shows the whole "
+                                                     "suite: the other cases' latest results in OUTPUT (its notes "
+                                                     "say so)."),
     methods: Optional[List[str]] = typer.Option(None, "--method", "-m", metavar="METHOD",
                                                 help="Run only this method of the suite (repeatable)."),
     scenes: Optional[List[str]] = typer.Option(None, "--scene", metavar="SCENE",
@@ -147,7 +163,7 @@ def suite(
         run.notes[:0] = claim_notes
         verdict = check_against_baseline(run, baseline) if baseline is not None else None
         _finish(run, output, verdict=verdict, no_plots=no_plots, results_page=results_page,
-                update_baseline=update_baseline, previous=previous)
+                update_baseline=update_baseline, previous=previous, partial=bool(methods or scenes))
     if verdict is not None:
         typer.echo(verdict.text())
         if not verdict.passed:

@@ -123,7 +123,7 @@ def test_bench_runs_resumes_and_checks(tiny, monkeypatch):
     env = star["environment"]
     assert {"versions", "git", "cpu", "gpu", "device"} <= set(env)
     report = (out / "report.md").read_text()
-    assert "## Substitutions" in report
+    assert "## Notes" in report
     for name in ("speed_vs_psnr.png", "crops_star_gauss-0.01.png", "mtf_star_gauss-0.01.png"):
         assert (out / "plots" / name).is_file(), name
     base = json.loads(baseline.read_text())
@@ -164,6 +164,24 @@ def test_bench_runs_resumes_and_checks(tiny, monkeypatch):
     assert r.exit_code == 0, r.output
     assert "not compared: real/gauss-0.01/seed0/test-upsample (skipped: real: shared data" in r.output
     assert "PASSED (4 case(s) compared" in r.output
+
+
+def test_a_partial_rerun_reports_the_whole_suite(tiny):
+    """``-m METHOD --fresh --results-page``: the page and report.md keep the suite's other method (their latest
+    results in the folder, noted as from an earlier run); the summary shows only this run's cases."""
+    suite, tmp = tiny
+    out, page = tmp / "out", tmp / "page.md"
+    assert _bench(suite, "-o", out, "--no-plots").exit_code == 0
+    r = _bench(suite, "-o", out, "--no-plots", "-m", "test-upsample", "--fresh", "--results-page", page)
+    assert r.exit_code == 0, r.output
+    text = page.read_text()
+    assert "| test-nearest-dofp |" in text and "| test-upsample |" in text
+    assert "3 of the 6 cases on this page are the latest results of earlier runs" in text
+    assert "| test-nearest-dofp |" in (out / "report.md").read_text()
+    assert "test-nearest-dofp" not in r.output.split("results:")[0]  # the summary: this run's cases
+    # a whole run's page has no such note
+    assert _bench(suite, "-o", out, "--no-plots", "--results-page", page).exit_code == 0
+    assert "earlier runs" not in page.read_text()
 
 
 def test_check_fails_on_errors_missing_methods_and_empty_runs(tiny):
