@@ -16,7 +16,9 @@ Each analyzer's image is ``out_n = m' + L(D_n) + w (D_n - L(D_n))`` with ``D_n =
   pattern only in the polarization (the polarization star), whose interpolation error differs between the pairs,
   does not count as intensity. Detail of the analyzers that the intensity does not explain is kept; detail that
   comes with intensity edges (each aperture's own interpolation error, aliasing) or at the noise level is dropped;
-- ``m' = m + SHARPEN (1 - w) (m - G_1 m)``: the intensity sharpened by an unsharp mask where its detail leads.
+- ``m' = m + SHARPEN c (m - G_1 m)`` with ``c = ALPHA e_s / (e_d + ALPHA e_s)``: the intensity sharpened by an
+  unsharp mask where its shared detail leads the analyzers' detail (``1 - w`` without the noise term, so that the
+  noise, which lowers ``w``, is not sharpened).
 
 Where an aperture does not see a pixel (out of its view, or within two raw pixels (the bicubic support) of a saturated sample) its weight
 is zero: its image there is ``B_{n+1} + B_{n+3} - B_{n+2}`` (``I_0 + I_90 = I_45 + I_135``) from the others.
@@ -132,14 +134,14 @@ def _fuse_colour(b: torch.Tensor, vis: torch.Tensor, sigma_n: float, detail: boo
     del b, other
     d_low = gaussian(d, POL_SIGMA)
     d -= d_low  # the analyzers' detail
+    e_d = gaussian((d * d).sum(0), ENERGY_SIGMA)
+    shared = ALPHA * e_s / (e_d + ALPHA * e_s + 1e-12)  # 1 - w without the noise term
     if detail:
-        e_d = gaussian((d * d).sum(0), ENERGY_SIGMA)
         w = (e_d - LAMBDA * DETAIL_NOISE_ENERGY * sigma_n ** 2).clamp_min(0.0) / (e_d + ALPHA * e_s + 1e-12)
-        del e_d
     else:
         w = torch.zeros_like(m)
-    del e_s
-    m = m + sharpen * (1.0 - w) * (m - gaussian(m, 1.0))
+    del e_s, e_d
+    m = m + sharpen * shared * (m - gaussian(m, 1.0))
     d *= w
     d += d_low
     d += m
