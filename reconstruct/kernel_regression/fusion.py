@@ -34,8 +34,9 @@ import torch.nn.functional as F
 
 from ..model.aperture_demosaic import demosaicked_frames, flat_corrected_raw, sampling_grid
 
-__all__ = ["ALPHA", "DETAIL_NOISE_ENERGY", "ENERGY_SIGMA", "LAMBDA", "POL_SIGMA", "SHARPEN", "demosaicked_fusion", "fuse_apertures", "gaussian", "shared_intensity_energy",
-           "known_noise_sigma", "robust_noise_sigma", "unseen_pixels", "visibility"]
+__all__ = ["ALPHA", "DETAIL_NOISE_ENERGY", "ENERGY_SIGMA", "LAMBDA", "POL_SIGMA", "SHARPEN", "demosaicked_fusion",
+           "fuse_apertures", "gaussian", "known_noise_sigma", "robust_noise_sigma", "shared_intensity_energy",
+           "unseen_pixels", "visibility"]
 
 POL_SIGMA = 2.0
 ENERGY_SIGMA = 1.5
@@ -44,7 +45,7 @@ ALPHA = 1.0
 #: of the raw noise variance (Menon demosaicking, bicubic x2 resampling; measured on white noise, checked by a test)
 DETAIL_NOISE_ENERGY = 1.35
 #: the over-subtraction of the detail's noise energy (1: the plain Wiener gain); 2 chosen on the dev suite
-#: (+0.04 dB PSNR, +0.2 dB DoLP over 1 and over the previous rule, docs/guides/methods.md)
+#: (+0.05 dB PSNR and +0.28 dB DoLP over 1, with the earlier sharpening; docs/guides/methods.md)
 LAMBDA = 2.0
 SHARPEN = 0.5
 #: HR pixels fused per chunk of rows (about 400 bytes each while it is processed)
