@@ -136,12 +136,13 @@ def _fuse_colour(b: torch.Tensor, vis: torch.Tensor, sigma_n: float, detail: boo
     d_low = gaussian(d, POL_SIGMA)
     d -= d_low  # the analyzers' detail
     e_d = gaussian((d * d).sum(0), ENERGY_SIGMA)
-    shared = ALPHA * e_s / (e_d + ALPHA * e_s + 1e-12)  # 1 - w without the noise term
+    total = e_d + ALPHA * e_s + 1e-12
+    shared = ALPHA * e_s / total  # 1 - w without the noise term
     if detail:
-        w = (e_d - LAMBDA * DETAIL_NOISE_ENERGY * sigma_n ** 2).clamp_min(0.0) / (e_d + ALPHA * e_s + 1e-12)
+        w = (e_d - LAMBDA * DETAIL_NOISE_ENERGY * sigma_n ** 2).clamp_min(0.0) / total
     else:
         w = torch.zeros_like(m)
-    del e_s, e_d
+    del e_s, e_d, total
     m = m + sharpen * shared * (m - gaussian(m, 1.0))
     d *= w
     d += d_low
