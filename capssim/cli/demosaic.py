@@ -16,7 +16,6 @@ from capssim.errors import InputError, UnknownNameError
 from capssim.files.imageio import atomic_directory, atomic_write_json, check_output_free, read_image, write_tiff
 from capssim.runtime.data_range import warn_out_of_range
 from capssim.runtime.resources import MEMORY_LIMIT_ENV, check_image_memory
-from capssim.stokes.physical_validity import project_to_physical
 
 DOFP_METHODS = ("dofp-eari", "dofp-bilinear", "dofp-igri2", "dofp-jcpd", "cpdnet", "dofp-nafnet")
 #: peak bytes per raw mosaic pixel of ``capssim demosaic`` (the float copies of the mosaic, the (12, H, W)
@@ -140,6 +139,8 @@ def demosaic(
     image = np.asarray(image, dtype=np.float32)
     projection = None
     if physical_projection:
+        from capssim.stokes.physical_validity import project_to_physical  # torch: imported when used
+
         with timer.stage("physical_projection"):
             image, projection = project_to_physical(image)
     record = {
