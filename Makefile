@@ -7,7 +7,7 @@ OUT ?= runs/quick
 # pytest workers for `make test` (pytest-xdist); 2 matches the 2-core CI machines
 TEST_WORKERS ?= 2
 
-.PHONY: setup demo test test-all lint docs bench-check results-page bench-recon clean
+.PHONY: setup demo test test-processes test-all lint docs bench-check results-page bench-recon clean
 
 setup:
 	bash scripts/setup.sh
@@ -27,6 +27,10 @@ bench-recon: setup
 
 test: setup
 	$(PY) -m pytest -q -n $(TEST_WORKERS)
+
+# the tests that kill, resume or spread whole commands over Dask clusters (CI runs them after `make test`)
+test-processes: setup
+	$(PY) -m pytest -q -n $(TEST_WORKERS) -m processes
 
 test-all: setup
 	$(PY) -m pytest -q -n $(TEST_WORKERS) -m "slow or not slow"

@@ -54,6 +54,7 @@ def test_bad_full_frame_options_give_one_line(row, folder):
     assert row.fragment in message
 
 
+@pytest.mark.processes
 def test_a_folder_on_two_workers_equals_the_serial_run_and_resumes(folder, tmp_path):
     serial, dask = (shutil.copytree(folder, tmp_path / name) for name in ("serial", "dask"))
     assert invoke(["reconstruct", serial, *FAST])[0] == "ok"

@@ -65,6 +65,7 @@ def _lines(out: Path) -> list[dict]:
     return [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
 
 
+@pytest.mark.processes
 def test_two_workers_give_the_serial_metrics_and_pass_its_check(suite, tmp_path):
     serial, dask, baseline = tmp_path / "serial", tmp_path / "dask", tmp_path / "baseline.json"
     r = _bench(suite, serial, "--update-baseline", baseline)
@@ -123,6 +124,7 @@ def test_captures_that_write_the_same_cache_folder_wait_for_each_other(tmp_path,
     assert calls[("capture", 6)] == [("capture", 4)] and calls[("capture", 7)] == [("capture", 5)]
 
 
+@pytest.mark.processes
 def test_a_killed_run_run_again_does_only_the_missing_cases(suite, tmp_path, cluster):
     out = tmp_path / "out"
     command = [sys.executable, "-m", "capssim", "bench", "suite", str(suite), "-o", str(out), "--no-plots",

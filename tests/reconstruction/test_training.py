@@ -127,6 +127,7 @@ def test_finished_dataset_is_shared_while_another_run_holds_its_lock(tmp_path, t
     assert train(config, tmp_path / "stopped").steps == 2
 
 
+@pytest.mark.processes
 def test_sigkill_then_rerun_equals_uninterrupted(tmp_path, tmp_gt):
     config_path = tiny_config(tmp_gt, steps=150)
     threads = torch.get_num_threads()

@@ -31,6 +31,7 @@ def crash_once(spec: dict, samples_dir: str) -> dict:
     return generate_sample(spec, samples_dir)
 
 
+@pytest.mark.processes
 def test_local_cluster_two_workers_survives_a_dying_worker(make_config, records_by_index, tree_bytes, tmp_path):
     pytest.importorskip("distributed")
     import cloudpickle

@@ -228,9 +228,10 @@ def _wait_for_lines(manifest: Path, n: int, proc: subprocess.Popen, timeout: flo
     raise AssertionError("timed out waiting for samples")
 
 
+@pytest.mark.processes
 def test_sigkill_mid_run_then_rerun_is_complete_and_byte_identical(tmp_path, make_config, records_by_index, tree_bytes):
     """Done-when (a): SIGKILL the CLI mid-run, rerun it, and get the uninterrupted dataset."""
-    total = 16
+    total = 9  # enough that the kill (after 3 samples) lands mid-run; each sample costs the test three times
     path = make_config(tmp_path, samples=total, size=64, gt_size=72)
     ref = tmp_path / "ref"
     generate_dataset(load_config(path), ref, workers=0)  # uninterrupted, in-process
@@ -255,8 +256,8 @@ def test_sigkill_mid_run_then_rerun_is_complete_and_byte_identical(tmp_path, mak
     assert (out / "manifest.jsonl").read_bytes() == lines
     # make the kill's damage certain: a torn manifest line and a temporary folder
     with open(out / "manifest.jsonl", "ab") as fh:
-        fh.write(b'{"index": 15, "name": "000015", "fil')
-    (out / "samples" / ".000015.tmp-killed").mkdir(exist_ok=True)
+        fh.write(f'{{"index": {total - 1}, "name": "{total - 1:06d}", "fil'.encode())
+    (out / "samples" / f".{total - 1:06d}.tmp-killed").mkdir(exist_ok=True)
     report = verify_dataset(out)
     assert report.missing and not report.corrupt
     # rerun: finishes, removes the leftovers, redoes only the unfinished samples
