@@ -245,8 +245,8 @@ def _flag_match_quality(n: int, correlation: float, rescue: dict | None, min_cor
     """Warn about and flag an aperture whose warp the Stokes rescue set, or that matches poorly or weakly."""
     where = f"registration: aperture {n} ({45 * n} deg) matches the reference"
     if rescue is not None:
-        _warn(diag, f"{where} poorly (local R^2 = {correlation:.3f}: strong polarization texture); its warp was set "
-              f"by the Stokes consistency I0 + I90 = I45 + I135 (residual rms {rescue['stokes_rms_before']:.4g} -> "
+        _warn(diag, f"{where} poorly (local R^2 = {correlation:.3f}: strong polarization texture, or texture finer "
+              f"than the Bayer sub-images resolve); its warp was set by the Stokes consistency I0 + I90 = I45 + I135 (residual rms {rescue['stokes_rms_before']:.4g} -> "
               f"{rescue['stokes_rms_after']:.4g})")
         record["stokes_rescued"] = True
     elif not correlation >= min_correlation:
@@ -310,7 +310,8 @@ def _accept_warps(reg: StackRegistration, active: list[int], parameters: Registr
             _warn(diag, f"registration: aperture {n} ({45 * n} deg) matched at a rotation of {rotation_deg:.1f} deg "
                   f"and scale {scale:.3f}, implausible for a camera array (limits {max_rotation} deg, "
                   f"1 +- {max_scale_error}); using the identity for it. The analyzer images probably differ by "
-                  "design (polarization texture on flat intensity): use --true-warps or calibrated warps")
+                  "design (polarization texture on flat intensity) or alias texture finer than the Bayer sub-images "
+                  "resolve (a Siemens star rendered small): use --true-warps or calibrated warps, or a larger frame")
             per_ap[n]["fallback"] = "identity: implausible warp"
             per_ap[n]["rejected"] = {"rotation_deg": rotation_deg, "scale": scale}
             continue

@@ -343,3 +343,19 @@ def test_auto_keeps_the_binomial_warps_without_a_second_registration(monkeypatch
     assert auto.diagnostics["luminance"] == "binomial"
     assert "ri-binomial" not in auto.diagnostics["luminance_stokes_residual_rms"]
     np.testing.assert_array_equal(auto.aperture_homographies, binomial.aperture_homographies)
+
+
+def test_poor_and_implausible_matches_name_aliasing_as_well_as_polarization():
+    """An unpolarized Siemens star too small for its cycles (72 on 96 HR px: it aliases in the 24 px Bayer
+    sub-images) matches poorly or implausibly, like polarization texture does: the warnings name both causes."""
+    diag, record = {"warnings": []}, {}
+    registration._flag_match_quality(1, 0.2, {"stokes_rms_before": 0.01, "stokes_rms_after": 0.005}, 0.5, record, diag)
+    assert record["stokes_rescued"]
+    turn = np.deg2rad(10.0)
+    rotated = np.array([[np.cos(turn), -np.sin(turn), 0.0], [np.sin(turn), np.cos(turn), 0.0], [0.0, 0.0, 1.0]])
+    reg = core.StackRegistration(params=np.zeros((3, 4)), matrices=np.stack([rotated] * 3), correlation=np.ones(3))
+    aperture, per_aperture = np.tile(np.eye(3), (4, 1, 1)), [{} for _ in range(4)]
+    registration._accept_warps(reg, [1, 2, 3], RegistrationParameters(), aperture, per_aperture, diag)
+    assert [a.get("fallback") for a in per_aperture[1:]] == ["identity: implausible warp"] * 3
+    assert len(diag["warnings"]) == 4
+    assert all("polarization texture" in w and "finer than the Bayer sub-images" in w for w in diag["warnings"])
