@@ -246,8 +246,8 @@ def _flag_match_quality(n: int, correlation: float, rescue: dict | None, min_cor
     where = f"registration: aperture {n} ({45 * n} deg) matches the reference"
     if rescue is not None:
         _warn(diag, f"{where} poorly (local R^2 = {correlation:.3f}: strong polarization texture, or texture finer "
-              f"than the Bayer sub-images resolve); its warp was set by the Stokes consistency I0 + I90 = I45 + I135 (residual rms {rescue['stokes_rms_before']:.4g} -> "
-              f"{rescue['stokes_rms_after']:.4g})")
+              "than the Bayer sub-images resolve); its warp was set by the Stokes consistency I0 + I90 = I45 + I135 "
+              f"(residual rms {rescue['stokes_rms_before']:.4g} -> {rescue['stokes_rms_after']:.4g})")
         record["stokes_rescued"] = True
     elif not correlation >= min_correlation:
         _warn(diag, f"{where} poorly (local R^2 = {correlation:.3f} < {min_correlation}); its warp is unreliable")
