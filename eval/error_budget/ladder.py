@@ -19,8 +19,8 @@ warps are true; without noise last, the noise step is measured on the exact mode
 differs. A DoFP method (one sensor, no registration) has rungs 1, 3 and 4 (``model-exact`` is then the
 DoFP mosaic of the operator): its ceiling is the demosaicking (mosaic) loss.
 
-A method with a selection layer (``caps-plus``: count, polarization filter; its record's ``resolved_options``)
-makes its choices once, on the as-captured rung; every later rung and view runs those values.
+A method with a selection layer (``caps-plus``: count, polarization filter, data direction and start; its record's
+``resolved_options``) makes its choices once, on the as-captured rung; every later rung and view runs those values.
 
 Second views at the ceiling, where they apply (``views``): ``converged``: the noise-free, model-exact,
 true-warps case re-run with ``CONVERGED_FACTOR`` times the iterations (the solver's distance from its

@@ -21,11 +21,16 @@ Not the paper's method: capssim's own model beside it (docs: notes/caps-plus-mod
    guided-filtered by its intensity where the held-out pixels, or the absence of polarization structure (the
    Stokes-consistency test), ask for it; off by default (it did not earn its place on the development data).
 
+Where the Stokes-consistency test of the window finds no polarization structure, 1 and 2 have nothing to keep and
+would keep the apertures' disagreements (parallax, aliasing) as polarization: the frame then runs ``caps``'s
+direction and start (``data_term=cagf``, ``init=fusion``), and its count is chosen with them.
+
 Options beyond ``caps``'s (``capssim reconstruct --options caps-plus``): ``init``, ``polarization_filter``
 (``none``, the default, ``auto`` or ``R,EPS``), ``holdout_fraction``. Giving ``iterations`` (or a ``preset``) fixes
-the count; a ``polarization_filter`` other than ``auto`` fixes the filter; nothing else changes meaning. The record's
-``selection`` says how each choice was made, and ``resolved_options`` holds the values the solve ran with: a
-tiled run and the error budget pass them to every tile and rung.
+the count; a ``polarization_filter`` other than ``auto`` fixes the filter; a given ``data_term`` or ``init`` fixes
+that one; nothing else changes meaning. The record's ``selection`` says how each choice was made, and
+``resolved_options`` holds the values the solve ran with: a tiled run and the error budget pass them to every tile
+and rung.
 
 With a calibration (``--calibration``) the start divides the flat field out before demosaicking and unmixes the
 registered images by the calibrated analyzer, as ``caps-naive`` does; the choices are made on the whole frame.
@@ -108,7 +113,9 @@ def run_caps_plus(capture, context: RunContext, config: PipelineConfig = CAPS_PL
     front = caps_observations(capture, context, opts)
     choices = select(capture, context, opts, given=given, homographies=front.geometry.aperture_homographies,
                      front=front, blends=blends, **own)
-    opts = replace(opts, admm=replace(opts.admm, iterations=int(choices.iterations)))
+    opts = replace(opts, admm=replace(opts.admm, iterations=int(choices.iterations)),
+                   data_term=choices.data_term or opts.data_term)
+    own["init"] = choices.init or own["init"]
     if choices.denoiser_blend is not None:
         opts = replace(opts, prior_parameters=replace(opts.prior_parameters, denoiser_blend=choices.denoiser_blend))
     problem = front.problems[0]

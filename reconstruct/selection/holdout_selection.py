@@ -17,6 +17,10 @@ The choices, each one a plain option value afterwards (:class:`Choices`):
   (:mod:`capssim.reconstruct.selection.polarization_evidence`).
 - **the denoiser blend** (only with the ``nlstr-denoiser`` prior and ``blends`` given): the validation runs once
   per blend, in order, until the held-out error rises; the blend of the lowest error is taken.
+- **the data direction and start**, first: where the Stokes-consistency test of the window finds no polarization
+  structure, :data:`STRUCTURE_CHOICES` (``caps``'s CAGF direction and fusion start), and the validation runs them;
+  else the method's own. The polarization-aware direction and start keep the analyzers' disagreements as
+  polarization, which without polarization structure are the apertures' own errors (parallax, aliasing).
 
 The window: the central :data:`HOLDOUT_WINDOW` px of the HR grid (its corner and size multiples of 4 HR px), cut
 from the raw frames through the frame's warps and reconstructed with them
@@ -24,9 +28,9 @@ from the raw frames through the frame's warps and reconstructed with them
 selects on the same window of the whole frame, so that tiled and untiled runs make the same choices.
 
 A choice given as an option is not selected (``iterations`` or ``preset``: the count; ``polarization_filter``
-other than ``auto``: the filter; ``denoiser_blend``: the blend); where every choice is given nothing runs. Where
-the window has fewer than :data:`MIN_HELD_OUT` usable held-out samples (a tiny or saturated frame), the count is
-:data:`FALLBACK_ITERATIONS` and no filter is chosen by the held-out pixels.
+other than ``auto``: the filter; ``denoiser_blend``: the blend; ``data_term``, ``init``: each itself); where every
+choice is given nothing runs. Where the window has fewer than :data:`MIN_HELD_OUT` usable held-out samples (a tiny
+or saturated frame), the count is :data:`FALLBACK_ITERATIONS` and no filter is chosen by the held-out pixels.
 """
 
 from __future__ import annotations
@@ -49,10 +53,15 @@ from .polarization_evidence import problem_polarization_evidence
 from .polarization_filter import UNSTRUCTURED_FILTER
 
 __all__ = ["FALLBACK_ITERATIONS", "HOLDOUT_MAX_ITERATIONS", "HOLDOUT_PATIENCE", "HOLDOUT_WINDOW", "MIN_HELD_OUT",
-           "SELECTED_NOTHING", "Choices", "check_holdout_fraction", "format_filter", "parse_filter", "select", "selection_window"]
+           "SELECTED_NOTHING", "STRUCTURE_CHOICES", "Choices", "check_holdout_fraction", "format_filter", "parse_filter",
+           "select", "selection_window"]
 
 #: the selection record of a run whose every choice its options fixed (nothing was selected)
 SELECTED_NOTHING = {"chosen_by": "options", "iterations_from": "options", "polarization_filter_from": "options"}
+
+#: what ``caps-plus`` runs where the Stokes-consistency test finds no polarization structure in the window: ``caps``'s
+#: data direction (CAGF, eq. 26) and start (the fusion, eq. 24) instead of its polarization-aware ones
+STRUCTURE_CHOICES = {"data_term": "cagf", "init": "fusion"}
 
 #: the largest guided-filter radius ``polarization_filter=R,EPS`` takes (HR px)
 MAX_FILTER_RADIUS = 32
@@ -61,16 +70,20 @@ MAX_FILTER_RADIUS = 32
 @dataclass(frozen=True)
 class Choices:
     """The resolved choices of one frame: ``iterations`` (ADMM count), ``polarization_filter`` (``(radius HR px,
-    eps)`` or ``None``), ``denoiser_blend`` (``None``: the prior's own) and ``record`` (how each was made)."""
+    eps)`` or ``None``), ``denoiser_blend`` (``None``: the prior's own), ``record`` (how each was made), and the
+    ``data_term`` and ``init`` the solve runs (``None``: the options' own)."""
 
     iterations: int
     polarization_filter: tuple[int, float] | None
     denoiser_blend: float | None = None
     record: dict = field(default_factory=dict)
+    data_term: str | None = None
+    init: str | None = None
 
     def options(self) -> dict:
         """The choices as the ``-p`` option values that fix them: what tiles and the error budget's rungs run."""
         out = {"iterations": int(self.iterations), "polarization_filter": format_filter(self.polarization_filter)}
+        out.update({name: value for name, value in (("data_term", self.data_term), ("init", self.init)) if value})
         if self.denoiser_blend is not None:
             out["denoiser_blend"] = float(self.denoiser_blend)
         return out
@@ -149,13 +162,15 @@ def select(capture, context: RunContext, options, *, given: frozenset, init: str
     count_open = not given & {"iterations", "preset"}
     has_blend = hasattr(options.prior_parameters, "denoiser_blend")  # -p prior= may choose a prior without one
     blends = tuple(blends) if has_blend and "denoiser_blend" not in given else ()
+    model_open = tuple(name for name in STRUCTURE_CHOICES if name not in given)
     fixed = Choices(options.admm.iterations, None if filter_spec == "auto" else filter_spec,
-                    record=dict(SELECTED_NOTHING))
-    if not (count_open or filter_spec == "auto" or blends):
+                    record=dict(SELECTED_NOTHING), data_term=options.data_term, init=init)
+    if not (count_open or filter_spec == "auto" or blends or model_open):
         return fixed
     with context.timer.stage("selection"):
-        return _select(capture, context, options, count_open, filter_spec, blends, init, holdout_fraction,
-                       homographies, front)
+        choices = _select(capture, context, options, count_open, filter_spec, blends, init, holdout_fraction,
+                          homographies, front, model_open)
+    return replace(choices, data_term=choices.data_term or options.data_term, init=choices.init or init)
 
 
 def _window_problem(capture, context: RunContext, options, homographies, front):
@@ -172,24 +187,41 @@ def _window_problem(capture, context: RunContext, options, homographies, front):
     return crop, sub, window_front.geometry, window_front.problems[0], window
 
 
-def _select(capture, context, options, count_open, filter_spec, blends, init, fraction, homographies, front):
+def _select(capture, context, options, count_open, filter_spec, blends, init, fraction, homographies, front,
+            model_open=()):
     crop, sub, geometry, problem, window = _window_problem(capture, context, options, homographies, front)
     record = {"window": list(window), "holdout_fraction": float(fraction),
               "iterations_from": "holdout" if count_open else "options",
               "polarization_filter_from": "holdout" if filter_spec == "auto" else "options"}
     choose_filter = filter_spec == "auto"
     chosen_filter = None if choose_filter else filter_spec
-    if choose_filter:
+    model = {name: value for name, value in (("data_term", options.data_term), ("init", init)) if name in model_open}
+    if choose_filter or model_open:
         evidence = problem_polarization_evidence(problem, radius=options.cagf.radius)
         record["polarization_evidence"] = evidence
-        if not evidence["structure"]:
-            choose_filter, chosen_filter = False, UNSTRUCTURED_FILTER
-            record["polarization_filter_from"] = "stokes-consistency"
+        structure = evidence["structure"]
+        if not structure:
+            model = {name: STRUCTURE_CHOICES[name] for name in model}
+            if choose_filter:
+                choose_filter, chosen_filter = False, UNSTRUCTURED_FILTER
+                record["polarization_filter_from"] = "stokes-consistency"
+        record.update({f"{name}_from": "default" if structure else "stokes-consistency" for name in model})
+    options = replace(options, data_term=model.get("data_term", options.data_term))
+    init = model.get("init", init)
+    if not (count_open or choose_filter or blends):
+        return Choices(options.admm.iterations, chosen_filter, None, record, model.get("data_term"),
+                       model.get("init"))
+    choices = _validate(crop, sub, geometry, problem, record, options, count_open, (choose_filter, chosen_filter),
+                        blends, init, fraction)
+    return replace(choices, data_term=model.get("data_term"), init=model.get("init"))
+
+
+def _validate(crop, sub, geometry, problem, record, options, count_open, filters, blends, init, fraction):
+    """The held-out validation solve(s) of the window: the count, the filter and the blend (module docstring)."""
+    choose_filter, chosen_filter = filters
     held_out = holdout_mask(crop.caps_raw.shape, fraction)
     kept, held = split_held_out(problem.obs.weights, held_out)
     count = options.admm.iterations
-    if not (count_open or choose_filter or blends):
-        return Choices(count, chosen_filter, None, record)
     if float(held.sum()) < MIN_HELD_OUT:
         note = f"fewer than {MIN_HELD_OUT} usable held-out samples: the count {FALLBACK_ITERATIONS}, no filter chosen"
         record.update({"note": note, "iterations_from": "fallback" if count_open else "options",

@@ -144,7 +144,8 @@ def test_the_start_and_the_data_term_share_one_agreement_map(capture, monkeypatc
     computed = []
     original = slots.analyzer_agreement_map
     monkeypatch.setattr(slots, "analyzer_agreement_map", lambda *a, **k: computed.append(1) or original(*a, **k))
-    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=2, polarization_filter="none")
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=2, polarization_filter="none",
+                            data_term="cagf-stokes", init="agree")
     assert record["params"]["selection"] == SELECTED_NOTHING
     assert len(computed) == 1
 

@@ -46,7 +46,8 @@ def test_every_candidate_is_validated_in_turn_and_the_lowest_held_out_error_wins
     assert selection["iterations_from"] == "holdout" and params["init"] == "agree"
     assert params["prior"] == "nlstr-denoiser" and params["denoiser_sigma_steps"] == DENOISER_SIGMA_STEPS
     assert record["resolved_options"] == {"iterations": best["iterations"], "denoiser_blend": best["denoiser_blend"],
-                                          "polarization_filter": params["polarization_filter"]}
+                                          "polarization_filter": params["polarization_filter"],
+                                          "data_term": params["data_term"], "init": params["init"]}
     assert out.image.shape == (12, SIZE, SIZE) and np.isfinite(out.image).all()
 
 
@@ -76,7 +77,7 @@ def test_the_first_candidates_validation_is_caps_plus_own(capture, chosen):
 
 
 def test_blend_zero_is_caps_plus_exactly(capture, tiny_denoiser_weights):
-    fixed = {"iterations": 5, "polarization_filter": "none"}
+    fixed = {"iterations": 5, "polarization_filter": "none", "data_term": "cagf-stokes", "init": "agree"}
     plus, _ = reconstruct(capture, "caps-plus", true_warps=True, **fixed)
     zero, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_blend=0.0,
                                denoiser_weights=str(tiny_denoiser_weights), **fixed)
@@ -87,7 +88,7 @@ def test_blend_zero_is_caps_plus_exactly(capture, tiny_denoiser_weights):
 def test_a_given_blend_is_not_chosen_and_a_given_count_leaves_the_blend_open(capture, tiny_denoiser_weights):
     weights = str(tiny_denoiser_weights)
     _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=weights, denoiser_blend=0.5,
-                            polarization_filter="none", iterations=3)
+                            polarization_filter="none", iterations=3, data_term="cagf-stokes", init="agree")
     assert record["params"]["denoiser_blend"] == 0.5 and record["params"]["selection"] == SELECTED_NOTHING
     assert "denoiser_blend" not in record["resolved_options"]
     _, record = reconstruct(capture, "caps-plus-cv", true_warps=True, denoiser_weights=weights, iterations=3,

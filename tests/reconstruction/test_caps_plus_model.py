@@ -22,6 +22,8 @@ from capssim.simulate import simulate_capture
 #: the selection record of a run whose every choice was given as an option
 
 SIZE = 32
+#: caps-plus's own data direction and start (what the Stokes-consistency test keeps where it finds structure)
+MODEL_DEFAULTS = {"data_term": "cagf-stokes", "init": "agree"}
 #: options caps-plus took before its refactor, and a misspelling: refused by name
 UNLISTED = ("stopping", "patience", "holdout_refit", "holdout_rule", "blend_candidates", "noise_adaptive_iterations",
             "iteration")
@@ -112,8 +114,14 @@ def test_a_given_count_is_run_and_the_record_says_so(capture):
     assert record["params"]["iterations"] == 2 and len(out.history) == 2
     assert record["params"]["selection"]["iterations_from"] == "options"  # the filter is still chosen
     _, record = reconstruct(capture, "caps-plus", true_warps=True, preset="fast", polarization_filter="none")
+    selection = record["params"]["selection"]  # the data direction and start are still chosen (the Stokes test)
+    assert selection["data_term_from"] == selection["init_from"] == "default"
+    assert selection["polarization_evidence"]["structure"] is True
+    assert record["resolved_options"] == {"iterations": record["params"]["iterations"], "polarization_filter": "none",
+                                          **MODEL_DEFAULTS}
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, preset="fast", polarization_filter="none",
+                            **MODEL_DEFAULTS)
     assert record["params"]["selection"] == SELECTED_NOTHING
-    assert record["resolved_options"] == {"iterations": record["params"]["iterations"], "polarization_filter": "none"}
 
 
 # -- 3. a tiled run makes the untiled run's choices ---------------------------------------------------
@@ -163,7 +171,7 @@ def budget():
 def test_every_rung_and_the_converged_view_run_the_first_rungs_choices(budget):
     rungs, converged = budget["rungs"], budget["views"]["converged"]
     resolved = rungs[0]["resolved_options"]
-    assert set(resolved) == {"iterations", "polarization_filter"}
+    assert set(resolved) == {"iterations", "polarization_filter", "data_term", "init"}
     assert [r["rung"] for r in rungs] == list(ladder.CAPS_RUNGS)
     for rung in rungs[1:]:
         assert rung["resolved_options"] == resolved, rung["rung"]
@@ -198,12 +206,12 @@ def unpolarized_capture():
 
 
 def test_a_given_filter_is_parsed_recorded_and_applied(unpolarized_capture):
-    common = {"true_warps": True, "iterations": 3, "physical_projection": False}
+    common = {"true_warps": True, "iterations": 3, "physical_projection": False, **MODEL_DEFAULTS}
     plain, plain_record = reconstruct(unpolarized_capture, "caps-plus", polarization_filter="none", **common)
     out, record = reconstruct(unpolarized_capture, "caps-plus", polarization_filter=" 4, 0.01 ", **common)
     assert record["params"]["polarization_filter"] == "4,0.01" and plain_record["params"]["polarization_filter"] == "none"
     assert record["params"]["selection"] == SELECTED_NOTHING  # nothing left to choose
-    assert record["resolved_options"] == {"iterations": 3, "polarization_filter": "4,0.01"}
+    assert record["resolved_options"] == {"iterations": 3, "polarization_filter": "4,0.01", **MODEL_DEFAULTS}
     assert not np.allclose(out.image, plain.image, atol=1e-4)
     expected = filter_polarization(torch.from_numpy(plain.image), 4, 0.01).numpy()
     np.testing.assert_allclose(out.image, expected, atol=1e-6, rtol=0)

@@ -93,13 +93,20 @@ def test_caps_plus_smooths_the_polarization_of_a_capture_without_polarization_st
     assert params["polarization_filter"] == format_filter(UNSTRUCTURED_FILTER) == record["resolved_options"][
         "polarization_filter"]
     plain, plain_record = reconstruct(capture, "caps-plus", polarization_filter="none", **common)
-    assert plain_record["params"]["selection"] == SELECTED_NOTHING  # the test is not asked
+    plain_selection = plain_record["params"]["selection"]  # no filter asked: the test still sets the direction
+    assert plain_selection["polarization_filter_from"] == "options" and "holdout_error" not in plain_selection
+    assert plain_selection["data_term_from"] == plain_selection["init_from"] == "stokes-consistency"
+    assert plain_record["params"]["data_term"] == "cagf" and plain_record["params"]["init"] == "fusion"
     expected = filter_polarization(torch.from_numpy(plain.image), *UNSTRUCTURED_FILTER).numpy()
     np.testing.assert_allclose(out.image, expected, atol=1e-6, rtol=0)
     given, given_record = reconstruct(capture, "caps-plus", polarization_filter=format_filter(UNSTRUCTURED_FILTER),
                                       **common)
     np.testing.assert_array_equal(given.image, out.image)
-    assert "polarization_evidence" not in given_record["params"]["selection"]
+    assert given_record["params"]["selection"]["polarization_filter_from"] == "options"
+    fully_given, fully_record = reconstruct(capture, "caps-plus", polarization_filter="none", data_term="cagf",
+                                            init="fusion", **common)
+    assert fully_record["params"]["selection"] == SELECTED_NOTHING  # nothing left for the test to set
+    np.testing.assert_array_equal(fully_given.image, plain.image)
 
 
 def test_polarization_structure_is_left_to_the_held_out_pixels(smooth_random_scene):
@@ -152,3 +159,15 @@ def test_the_test_on_hard_captures_gives_a_consistent_record_and_a_finite_image(
         assert selection["polarization_filter_from"] == "stokes-consistency"
         assert record["params"]["polarization_filter"] == format_filter(UNSTRUCTURED_FILTER)
     assert record["params"]["iterations"] == 4 and np.isfinite(out.image).all()
+
+
+def test_without_structure_the_count_is_chosen_with_caps_direction_and_start():
+    """Where the test finds no polarization structure the validation runs caps's data direction and start too, so
+    the chosen count is the one chosen when they are given."""
+    capture = _unpolarized_capture(64, seed=9)
+    out, record = reconstruct(capture, "caps-plus", true_warps=True)
+    given, given_record = reconstruct(capture, "caps-plus", true_warps=True, data_term="cagf", init="fusion")
+    assert record["params"]["selection"]["iterations_from"] == "holdout"
+    assert record["resolved_options"] == given_record["resolved_options"]
+    assert record["resolved_options"]["data_term"] == "cagf" and record["resolved_options"]["init"] == "fusion"
+    np.testing.assert_array_equal(out.image, given.image)

@@ -136,7 +136,8 @@ def test_a_given_count_still_chooses_the_filter_and_none_turns_it_off(smooth_ran
     selection = record["params"]["selection"]
     assert selection["iterations_from"] == "options" and record["params"]["iterations"] == 3
     assert selection["polarization_filter_from"] in ("holdout", "stokes-consistency")
-    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=3, polarization_filter="none")
+    _, record = reconstruct(capture, "caps-plus", true_warps=True, iterations=3, polarization_filter="none",
+                            data_term="cagf-stokes", init="agree")
     assert record["params"]["selection"] == SELECTED_NOTHING and record["params"]["polarization_filter"] == "none"
 
 

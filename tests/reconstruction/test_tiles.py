@@ -153,7 +153,7 @@ def _psnr(image, gt):
 def test_tiled_caps_plus_equals_untiled(capture128, smooth_random_scene):
     """caps-plus's front-end initialization (the demosaicked apertures) is cut with the tile like the rest."""
     gt = smooth_random_scene(128, seed=1)
-    fixed = {"iterations": 2, "polarization_filter": "none"}
+    fixed = {"iterations": 2, "polarization_filter": "none", "data_term": "cagf-stokes", "init": "agree"}
     whole, _ = reconstruct(capture128, "caps-plus", true_warps=True, **fixed)
     tiled, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, **fixed)
     assert record["tiles"]["grid"] == [2, 2]
@@ -237,11 +237,13 @@ def test_a_tiled_caps_plus_makes_its_choices_once_for_the_frame(capture128, monk
     _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, runner=recording_runner,
                                   prior="none")
     frame = record["frame_options"]
-    assert set(frame) == {"iterations", "polarization_filter"} and isinstance(frame["iterations"], int)
+    assert set(frame) == {"iterations", "polarization_filter", "data_term", "init"}
+    assert isinstance(frame["iterations"], int)
     assert calls == [{"prior": "none", **frame}] * 4 and record["options"] == {"prior": "none", **frame}
     assert record["params"]["iterations"] == frame["iterations"]
     assert record["params"]["selection"] == SELECTED_NOTHING  # the tile selected nothing
     _, record = reconstruct_tiled(capture128, "caps-plus", tile=64, true_warps=True, iterations=1,
                                   polarization_filter="4,0.01", prior="none")
-    assert record["frame_options"] == {"iterations": 1, "polarization_filter": "4,0.01"}
+    assert record["frame_options"] == {"iterations": 1, "polarization_filter": "4,0.01",
+                                       "data_term": frame["data_term"], "init": frame["init"]}
     assert record["params"]["iterations"] == 1 and record["params"]["polarization_filter"] == "4,0.01"
