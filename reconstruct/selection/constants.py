@@ -28,5 +28,6 @@ HOLDOUT_MAX_ITERATIONS = 100
 MIN_HELD_OUT = 32
 #: the count where nothing can be validated: the paper's 25 (section 5.1)
 FALLBACK_ITERATIONS = 25
-#: the suites caps-plus's defaults were chosen on (its registration's ``tuned_on``)
-TUNED_ON = ("dev", "baselines", "paper", "ablation", "quick")
+#: the suites caps-plus's defaults were chosen on (its registration's ``tuned_on``); ``dev-256``: the direction and
+#: start without polarization structure (2026-11-29, with ``dev``, ``baselines`` and ``paper``)
+TUNED_ON = ("dev", "dev-256", "baselines", "paper", "ablation", "quick")
