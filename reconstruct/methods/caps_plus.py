@@ -114,8 +114,8 @@ def run_caps_plus(capture, context: RunContext, config: PipelineConfig = CAPS_PL
     choices = select(capture, context, opts, given=given, homographies=front.geometry.aperture_homographies,
                      front=front, blends=blends, **own)
     opts = replace(opts, admm=replace(opts.admm, iterations=int(choices.iterations)),
-                   data_term=choices.data_term or opts.data_term)
-    own["init"] = choices.init or own["init"]
+                   data_term=choices.data_term)
+    own["init"] = choices.init
     if choices.denoiser_blend is not None:
         opts = replace(opts, prior_parameters=replace(opts.prior_parameters, denoiser_blend=choices.denoiser_blend))
     problem = front.problems[0]

@@ -71,7 +71,7 @@ MAX_FILTER_RADIUS = 32
 class Choices:
     """The resolved choices of one frame: ``iterations`` (ADMM count), ``polarization_filter`` (``(radius HR px,
     eps)`` or ``None``), ``denoiser_blend`` (``None``: the prior's own), ``record`` (how each was made), and the
-    ``data_term`` and ``init`` the solve runs (``None``: the options' own)."""
+    ``data_term`` and ``init`` the solve runs (set by :func:`select`)."""
 
     iterations: int
     polarization_filter: tuple[int, float] | None
@@ -168,9 +168,8 @@ def select(capture, context: RunContext, options, *, given: frozenset, init: str
     if not (count_open or filter_spec == "auto" or blends or model_open):
         return fixed
     with context.timer.stage("selection"):
-        choices = _select(capture, context, options, count_open, filter_spec, blends, init, holdout_fraction,
-                          homographies, front, model_open)
-    return replace(choices, data_term=choices.data_term or options.data_term, init=choices.init or init)
+        return _select(capture, context, options, count_open, filter_spec, blends, init, holdout_fraction,
+                       homographies, front, model_open)
 
 
 def _window_problem(capture, context: RunContext, options, homographies, front):
@@ -195,25 +194,23 @@ def _select(capture, context, options, count_open, filter_spec, blends, init, fr
               "polarization_filter_from": "holdout" if filter_spec == "auto" else "options"}
     choose_filter = filter_spec == "auto"
     chosen_filter = None if choose_filter else filter_spec
-    model = {name: value for name, value in (("data_term", options.data_term), ("init", init)) if name in model_open}
+    model = {"data_term": options.data_term, "init": init}  # what the solve runs; the test may change the open ones
     if choose_filter or model_open:
         evidence = problem_polarization_evidence(problem, radius=options.cagf.radius)
         record["polarization_evidence"] = evidence
         structure = evidence["structure"]
         if not structure:
-            model = {name: STRUCTURE_CHOICES[name] for name in model}
+            model.update({name: STRUCTURE_CHOICES[name] for name in model_open})
             if choose_filter:
                 choose_filter, chosen_filter = False, UNSTRUCTURED_FILTER
                 record["polarization_filter_from"] = "stokes-consistency"
-        record.update({f"{name}_from": "default" if structure else "stokes-consistency" for name in model})
-    options = replace(options, data_term=model.get("data_term", options.data_term))
-    init = model.get("init", init)
+        record.update({f"{name}_from": "default" if structure else "stokes-consistency" for name in model_open})
+    options = replace(options, data_term=model["data_term"])
     if not (count_open or choose_filter or blends):
-        return Choices(options.admm.iterations, chosen_filter, None, record, model.get("data_term"),
-                       model.get("init"))
+        return Choices(options.admm.iterations, chosen_filter, None, record, **model)
     choices = _validate(crop, sub, geometry, problem, record, options, count_open, (choose_filter, chosen_filter),
-                        blends, init, fraction)
-    return replace(choices, data_term=model.get("data_term"), init=model.get("init"))
+                        blends, model["init"], fraction)
+    return replace(choices, **model)
 
 
 def _validate(crop, sub, geometry, problem, record, options, count_open, filters, blends, init, fraction):
