@@ -72,9 +72,11 @@ class LevelCriteria:
         self.noise_sigma = noise_sigma(torch.cat([ref[None], moving]))
 
     def __call__(self, level: int, stokes_weight: float, model: str | None = None, *,
-                 window_radius: int | None = None, robust_power: float = 0.0) -> LevelCriterion:
+                 window_radius: int | None = None, robust_power: float = 0.0,
+                 images: list[int] | None = None) -> LevelCriterion:
         """The criterion of pyramid ``level`` (0 = finest) with the Stokes term weighted by ``stokes_weight``;
-        ``model`` and ``window_radius`` default to the problem's (the radius is capped at a sixth of the level)."""
+        ``model`` and ``window_radius`` default to the problem's (the radius is capped at a sixth of the level).
+        ``images``: only these moving images (their indices; the Stokes term needs all three)."""
         s = 2 ** level
         rv = self.ref_valid[level][0].clone()
         lb = max(1, int(math.ceil(self.border / s)))
@@ -83,7 +85,10 @@ class LevelCriteria:
         rad = self.window_radius if window_radius is None else window_radius
         rad = max(1, min(rad, min(lh, lw) // 6))
         eps = float(((2.0 * self.noise_sigma.max()) / s) ** 2) + 1e-12
-        return LevelCriterion(self.ref[level][0], self.moving[level], rv, self.moving_valid[level], scale=s,
+        moving, moving_valid = self.moving[level], self.moving_valid[level]
+        if images is not None:
+            moving, moving_valid = moving[images], moving_valid[images]
+        return LevelCriterion(self.ref[level][0], moving, rv, moving_valid, scale=s,
                               window_radius=rad, model=self.model if model is None else model, centre=self.centre,
                               radius=self.radius, eps=eps, stokes_weight=stokes_weight, robust_power=robust_power)
 
