@@ -17,16 +17,17 @@ Not the paper's method: capssim's own model beside it (docs: notes/caps-plus-mod
    agree, each aperture demosaicked on its own where they disagree (the polarization part only).
 3. **the count of the frame** (:mod:`capssim.reconstruct.selection`): ADMM from ``mu0 = 0.25`` with ``c2 = 0.01``
    (``caps``: 0.5, 0.02) runs for the count ``K`` whose prediction of 5 % held-out raw pixels is best, on the
-   central 256 px window. With ``-p polarization_filter=auto`` the final image's polarization part is also
-   guided-filtered by its intensity where the held-out pixels, or the absence of polarization structure (the
-   Stokes-consistency test), ask for it; off by default (it did not earn its place on the development data).
+   central 256 px window. The final image's polarization part is also guided-filtered by its intensity where the
+   held-out pixels, or the absence of polarization structure (the Stokes-consistency test), ask for it
+   (``polarization_filter=auto``; the default since 2026-11-29, when the development suites together chose it:
+   docs/results/caps-plus.md).
 
 Where the Stokes-consistency test of the window finds no polarization structure, 1 and 2 have nothing to keep and
 would keep the apertures' disagreements (parallax, aliasing) as polarization: the frame then runs ``caps``'s
 direction and start (``data_term=cagf``, ``init=fusion``), and its count is chosen with them.
 
 Options beyond ``caps``'s (``capssim reconstruct --options caps-plus``): ``init``, ``polarization_filter``
-(``none``, the default, ``auto`` or ``R,EPS``), ``holdout_fraction``. Giving ``iterations`` (or a ``preset``) fixes
+(``auto``, the default, ``none`` or ``R,EPS``), ``holdout_fraction``. Giving ``iterations`` (or a ``preset``) fixes
 the count; a ``polarization_filter`` other than ``auto`` fixes the filter; a given ``data_term`` or ``init`` fixes
 that one; nothing else changes meaning. The record's ``selection`` says how each choice was made, and
 ``resolved_options`` holds the values the solve ran with: a tiled run and the error budget pass them to every tile
@@ -61,7 +62,7 @@ __all__ = ["CAPS_PLUS", "TUNED_ON", "caps_plus_frame_choices", "caps_plus_option
 #: caps-plus: caps's pipeline options it changes, and its own (module docstring)
 CAPS_PLUS = PipelineConfig(front_end=caps_observations,
                            defaults={"data_term": "cagf-stokes", "mu0": MU0, "c2": C2},
-                           front_end_options={"init": "agree", "polarization_filter": "none",
+                           front_end_options={"init": "agree", "polarization_filter": "auto",
                                               "holdout_fraction": HOLDOUT_FRACTION})
 
 #: one line of meaning of caps-plus's own options

@@ -36,9 +36,8 @@ def capture(smooth_random_scene):
 
 @pytest.fixture(scope="module")
 def chosen(capture):
-    """caps-plus with every choice open: the count and the filter chosen by the held-out pixels (the filter is
-    chosen only when asked: -p polarization_filter=auto)."""
-    return reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="auto")
+    """caps-plus with every choice open (its default): the count and the filter chosen per frame."""
+    return reconstruct(capture, "caps-plus", true_warps=True)
 
 
 def _names(method: str) -> list[str]:
@@ -100,9 +99,9 @@ def test_the_record_says_how_each_choice_was_made(chosen):
 def test_the_resolved_options_give_the_same_image_and_select_nothing(capture, chosen):
     out, record = chosen
     again, again_record = reconstruct(capture, "caps-plus", true_warps=True, **record["resolved_options"])
-    default, default_record = reconstruct(capture, "caps-plus", true_warps=True)  # the default chooses the count only
-    assert default_record["params"]["selection"]["polarization_filter_from"] == "options"
-    assert default_record["params"]["polarization_filter"] == "none"
+    asked, asked_record = reconstruct(capture, "caps-plus", true_warps=True, polarization_filter="auto")
+    assert asked_record["resolved_options"] == record["resolved_options"]  # auto is the default
+    assert np.array_equal(asked.image, out.image)
     assert np.array_equal(again.image, out.image)
     assert again_record["params"]["selection"] == SELECTED_NOTHING
     assert again_record["resolved_options"] == record["resolved_options"]
