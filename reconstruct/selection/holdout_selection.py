@@ -187,7 +187,7 @@ def _window_problem(capture, context: RunContext, options, homographies, front):
 
 
 def _select(capture, context, options, count_open, filter_spec, blends, init, fraction, homographies, front,
-            model_open=()):
+            model_open):
     crop, sub, geometry, problem, window = _window_problem(capture, context, options, homographies, front)
     record = {"window": list(window), "holdout_fraction": float(fraction),
               "iterations_from": "holdout" if count_open else "options",
