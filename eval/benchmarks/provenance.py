@@ -1,7 +1,8 @@
 """What a benchmark records next to its numbers: code fingerprints, the environment, peak memory.
 
-* :func:`code_fingerprint`: sha256 of source files, the cache and resume keys of the suite
-  runner (a changed renderer re-renders, a changed method re-runs its cases);
+* :func:`code_fingerprint`: sha256 of source files and shipped weights, the cache and resume keys of the
+  suite runner (a changed renderer re-renders, a changed method re-runs its cases);
+* :func:`option_file_hashes`: sha256 of the files a method's options name (a retrained ``weights`` file);
 * :func:`environment`: versions, git revision, CPU and GPU, stored with every case;
 * :class:`PeakMemory`: peak resident set size of this process while a block runs, sampled by a
   thread every 5 ms (and ``torch.cuda.max_memory_allocated`` on CUDA).
@@ -10,6 +11,7 @@
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import importlib.metadata as md
 import json
@@ -38,8 +40,13 @@ def content_hash(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()
 
 
+#: what a result depends on besides the source: the shipped weights and dictionaries (reconstruct/weights)
+SHIPPED_MODEL_SUFFIXES = (".pt", ".npz")
+
+
 def code_fingerprint(*parts: str) -> str:
-    """sha256 (16 hex digits) of the source files under ``parts`` (paths relative to the repository).
+    """sha256 (16 hex digits) of the source files and shipped model files under ``parts`` (paths relative to the
+    repository), so that new weights rerun the cases they score, as a code change does.
 
     The command line, the plots' colour maps and the design calculator never change a result and
     are left out.
@@ -47,13 +54,36 @@ def code_fingerprint(*parts: str) -> str:
     h = hashlib.sha256()
     for part in parts:
         base = REPO_ROOT / part
-        files = [base] if base.is_file() else sorted(base.rglob("*.py")) if base.is_dir() else []
+        files = [base] if base.is_file() else sorted(
+            f for f in base.rglob("*") if f.suffix == ".py" or f.suffix in SHIPPED_MODEL_SUFFIXES and f.is_file()
+        ) if base.is_dir() else []
         for f in files:
             rel = f.relative_to(REPO_ROOT).as_posix()
             if rel.startswith("capssim/cli/") or rel in ("capssim/visualize.py", "capssim/camera/design.py"):
                 continue
             h.update(rel.encode())
             h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def option_file_hashes(options: dict | None) -> dict[str, str]:
+    """``{option: sha256 of the file}`` for each option whose value names an existing file (a ``weights`` or a
+    ``dictionary`` made by ``capssim train``), so that a file retrained in place reruns the cases that read it."""
+    out = {}
+    for key, value in sorted((options or {}).items()):
+        if isinstance(value, str) and value and Path(value).is_file():
+            stat = Path(value).stat()
+            out[key] = _file_hash(str(Path(value).resolve()), stat.st_size, stat.st_mtime_ns)
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _file_hash(path: str, size: int, mtime_ns: int) -> str:
+    """sha256 of a file's bytes (cached by path, size and modification time)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
     return h.hexdigest()[:16]
 
 

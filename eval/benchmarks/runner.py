@@ -14,9 +14,9 @@ the rest:
 * **the registration order**: a camera-array method that estimates the warps waits for the first case
   on the same capture that registers it the same way, and reuses its stored warps;
 * **the case hash** (``case_id``): the capture's content key, the method entry, the device, the
-  convention and the task's ``identity`` (code fingerprints, options), and a plug-in method's package and
-  version (its record's ``plugin``); a case with an ``ok`` record of the same hash in the results file is
-  not run again;
+  convention and the task's ``identity`` (code fingerprints, options), a plug-in method's package and
+  version (its record's ``plugin``), and the bytes of any file an option names (a ``weights`` file); a
+  case with an ``ok`` record of the same hash in the results file is not run again;
 * **the results log** (:class:`~.results.ResultsLog`): each case's line appended as it finishes, the
   file rewritten in plan order at the end; **notes** (a fallback scene used, notes a task returns in
   ``notes_for_run``), and freeing the captures this process keeps.
@@ -42,7 +42,7 @@ from ..metrics import get_convention
 from .cases import capture_task, forget_captures
 from .executors import check_execution, open_executor
 from .output_claim import SUITE_OUTPUT, OutputKind, claim_output
-from .provenance import content_hash
+from .provenance import content_hash, option_file_hashes
 from .results import ResultsLog
 
 __all__ = ["CaseRun", "CaseTask", "RunOutcome", "case_key", "run_cases"]
@@ -193,10 +193,11 @@ class CaseRun:
 
     def case_id(self, entry, method: dict) -> str:
         """The case hash (module docstring); a plug-in's package version is part of it."""
-        plugin = self.plugin(method)
+        plugin, files = self.plugin(method), option_file_hashes(method.get("options"))
         return content_hash({"capture": entry.key, "method": method, "device": self.device,
                              "convention": self.convention, **self.task.identity,
-                             **({"plugin": plugin} if plugin else {})})[:20]
+                             **({"plugin": plugin} if plugin else {}),
+                             **({"option_files": files} if files else {})})[:20]
 
     def submit_cases(self, executor, g: int, entry, scene: dict) -> None:
         """Every method on the capture of group ``g``: those done in an earlier run are taken from it.

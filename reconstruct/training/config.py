@@ -15,7 +15,7 @@
       crop: 64                                   # crop side in input pixels (dofp: a multiple of 4)
       batch: 8
     loss: {intermediate_weight: 0.5, stokes_weight: 0.5}   # cpdnet's multitask weights; aperture: masked L1; noisy-gt: MSE
-    optimizer: {name: adam, lr: 0.001, weight_decay: 0}
+    optimizer: {name: adam, lr: 0.001, weight_decay: 0}   # clip_grad_norm: N bounds the gradient's norm
     schedule: {steps: 2000, warmup: 50, decay: cosine, final_lr_fraction: 0.05}
     validate_every: 250
     checkpoint_every: 50
@@ -91,8 +91,9 @@ TOP_SPEC = Mapping({
                     what="loss weights (intermediate_weight, stokes_weight)"),
     "optimizer": Mapping({"name": String(choices=list(OPTIMIZERS)),
                           "lr": Number(minimum=0, exclusive_minimum=True, maximum=10),
-                          "weight_decay": Number(minimum=0, maximum=10), "momentum": Number(minimum=0, maximum=10)},
-                         what="an optimizer (name, lr, weight_decay, momentum)"),
+                          "weight_decay": Number(minimum=0, maximum=10), "momentum": Number(minimum=0, maximum=10),
+                          "clip_grad_norm": Number(minimum=0, exclusive_minimum=True, maximum=1e6)},
+                         what="an optimizer (name, lr, weight_decay, momentum, clip_grad_norm)"),
     "schedule": Mapping({"steps": Integer(minimum=1, maximum=10**8), "warmup": Integer(minimum=0, maximum=10**8),
                          "decay": String(choices=list(DECAYS)), "final_lr_fraction": Number(minimum=0, maximum=1),
                          "milestones": Sequence(Integer(minimum=1, maximum=10**8), what="step numbers"),

@@ -232,12 +232,17 @@ def _run_steps(config, model, optimizer, generator, train_pairs, val_pairs, hist
         loss = train_pairs.loss(train_pairs.predict(model, inputs), target, mask, config.loss)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        grad_norm = None
+        if "clip_grad_norm" in config.optimizer:
+            grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), config.optimizer["clip_grad_norm"]))
         optimizer.step()
         done, value = step + 1, float(loss.detach())
         if not np.isfinite(value):
             raise InputError("optimizer.lr", config.optimizer["lr"], "a learning rate that keeps the loss finite",
                              f"The loss became {value} at step {done}; lower the learning rate.")
         record = {"step": done, "loss": value, "lr": lr}
+        if grad_norm is not None:  # before clipping
+            record["grad_norm"] = grad_norm
         if done % config.validate_every == 0 or done == steps:
             val_psnr = record["val_psnr"] = validate(model, val_pairs)
         if done % LOG_EVERY == 0 or "val_psnr" in record or done == end:

@@ -246,3 +246,41 @@ def test_a_suite_times_reused_registration_as_if_computed():
     assert reused_registration_s({"registration": {"store": "computed", "time_s": 2.5}}) == 0.0
     assert reused_registration_s({"registration": {"source": "true"}}) == 0.0
     assert reused_registration_s({}) == 0.0
+
+
+def test_code_fingerprint_follows_the_shipped_weights(tmp_path, monkeypatch):
+    """New weights rerun the cases they score: a changed ``.pt`` or ``.npz`` under a part changes its key; other
+    files (notes, images) do not."""
+    from capssim.eval.benchmarks import provenance
+
+    weights = tmp_path / "reconstruct" / "weights"
+    weights.mkdir(parents=True)
+    (tmp_path / "reconstruct" / "method.py").write_text("X = 1\n")
+    (weights / "net.pt").write_bytes(b"first")
+    monkeypatch.setattr(provenance, "REPO_ROOT", tmp_path)
+    first = provenance.code_fingerprint("reconstruct")
+    (weights / "README.txt").write_text("notes")
+    assert provenance.code_fingerprint("reconstruct") == first
+    (weights / "net.pt").write_bytes(b"second")
+    second = provenance.code_fingerprint("reconstruct")
+    (weights / "dictionary.npz").write_bytes(b"atoms")
+    assert len({first, second, provenance.code_fingerprint("reconstruct")}) == 3
+
+
+def test_a_weights_file_retrained_in_place_changes_the_case_hash(tmp_path):
+    """``-p weights=PATH``: the case hash holds the file's bytes, so a file trained again at the same path reruns
+    the cases that read it; options that name no file add nothing."""
+    import os
+
+    from capssim.eval.benchmarks.provenance import option_file_hashes
+
+    weights = tmp_path / "model.pt"
+    weights.write_bytes(b"first weights")
+    first = option_file_hashes({"weights": str(weights), "iterations": 5, "init": "fusion"})
+    assert set(first) == {"weights"}
+    assert option_file_hashes({"weights": str(weights)}) == first  # the same bytes: the same hash
+    weights.write_bytes(b"other weights")
+    os.utime(weights, ns=(1, 1))
+    assert option_file_hashes({"weights": str(weights)}) != first
+    assert option_file_hashes({"weights": str(tmp_path / "missing.pt"), "name": ""}) == {}
+    assert option_file_hashes(None) == {}
