@@ -24,6 +24,13 @@ def compare(
     metrics: Optional[List[str]] = typer.Option(None, "--metric", metavar="KEY",
                                                 help="Metric of results.jsonl (repeatable; default: psnr_mean, "
                                                      "dolp_psnr)."),
+    scenes: Optional[List[str]] = typer.Option(None, "--scene", metavar="PATTERN",
+                                               help="Only the scenes matching this shell pattern (repeatable; "
+                                                    "e.g. 'qiu-*')."),
+    exclude_scenes: Optional[List[str]] = typer.Option(None, "--exclude-scene", metavar="PATTERN",
+                                                       help="Leave out the scenes matching this shell pattern "
+                                                            "(repeatable), e.g. a learned method's training "
+                                                            "scenes."),
     cases: bool = typer.Option(False, "--cases", help="Also print every case's difference."),
     threads: Optional[int] = ThreadsOption,
     device: str = DeviceOption,
@@ -33,24 +40,55 @@ def compare(
 
     A default ships only if it beats its simpler alternative on development data by more than one paired
     standard error (the last column). Examples: `capssim bench compare runs/new runs/old` (every shared
-    label), `capssim bench compare runs/test -m caps-plus --against caps` (two methods of one run).
+    label), `capssim bench compare runs/test -m caps-plus --against caps` (two methods of one run),
+    `--exclude-scene 'qiu-*'` (leave out scenes, e.g. those a network was trained on).
     """
-    from capssim.errors import InputError
     from capssim.eval.benchmarks.compare import (
         DEFAULT_METRICS,
         comparison_markdown,
         load_run_records,
         paired_rows,
+        select_scenes,
         summarize,
     )
 
-    records_a = load_run_records(run_a, argument="RUN_A")
-    records_b = records_a if run_b is None else load_run_records(run_b, argument="RUN_B")
+    chosen = {"scenes": list(scenes or []), "exclude": list(exclude_scenes or []),
+              "argument": "--scene" if scenes else "--exclude-scene"}
+    records_a = select_scenes(load_run_records(run_a, argument="RUN_A"), **chosen)
+    records_b = records_a if run_b is None else select_scenes(load_run_records(run_b, argument="RUN_B"), **chosen)
+    wanted = _labels_to_compare(records_a, records_b, methods, against, two_runs=run_b is not None)
+    keys = list(metrics or DEFAULT_METRICS)
+    comparisons, details = [], []
+    for label in wanted:
+        other = against or label
+        for metric in keys:
+            rows = paired_rows(records_a, records_b, label, other, metric)
+            summary = summarize(rows, metric)
+            comparisons.append((label, other, summary))
+            details.append({"a": label, "b": other, **summary.to_dict(),
+                            "cases": [{"case": c, "a": a, "b": b, "difference": a - b} for c, a, b in rows]})
+    if as_json:
+        echo_json({"run_a": str(run_a), "run_b": str(run_b or run_a), "scenes": chosen["scenes"],
+                   "exclude_scenes": chosen["exclude"], "comparisons": details})
+        return
+    typer.echo(comparison_markdown(comparisons))
+    if cases:
+        for d in details:
+            typer.echo(f"\n{d['a']} - {d['b']}, {d['metric']}:")
+            for row in d["cases"]:
+                typer.echo(f"  {row['case']}: {row['a']:.3f} - {row['b']:.3f} = {row['difference']:+.3f}")
+
+
+def _labels_to_compare(records_a: list[dict], records_b: list[dict], methods, against, *, two_runs: bool) -> list:
+    """The labels of RUN_A to compare (``-m``, or every label both runs share, or every other label of one run
+    against ``--against``), each checked; an :class:`InputError` naming the option otherwise."""
+    from capssim.errors import InputError
+
     labels_a = sorted({r["method"] for r in records_a})
     labels_b = sorted({r["method"] for r in records_b})
     wanted = list(methods or [])
     if not wanted:
-        wanted = [m for m in labels_a if m in labels_b and (run_b is not None or against is not None)]
+        wanted = [m for m in labels_a if m in labels_b and (two_runs or against is not None)]
         if against is not None:
             wanted = [m for m in labels_a if m != against]
     for label in wanted:
@@ -63,25 +101,7 @@ def compare(
     if not wanted:
         raise InputError("--method", "nothing to compare", "a second run, or --against LABEL for two methods of "
                          "one run", "Example: capssim bench compare RUN -m caps-plus --against caps.")
-    keys = list(metrics or DEFAULT_METRICS)
-    comparisons, details = [], []
-    for label in wanted:
-        other = against or label
-        for metric in keys:
-            rows = paired_rows(records_a, records_b, label, other, metric)
-            summary = summarize(rows, metric)
-            comparisons.append((label, other, summary))
-            details.append({"a": label, "b": other, **summary.to_dict(),
-                            "cases": [{"case": c, "a": a, "b": b, "difference": a - b} for c, a, b in rows]})
-    if as_json:
-        echo_json({"run_a": str(run_a), "run_b": str(run_b or run_a), "comparisons": details})
-        return
-    typer.echo(comparison_markdown(comparisons))
-    if cases:
-        for d in details:
-            typer.echo(f"\n{d['a']} - {d['b']}, {d['metric']}:")
-            for row in d["cases"]:
-                typer.echo(f"  {row['case']}: {row['a']:.3f} - {row['b']:.3f} = {row['difference']:+.3f}")
+    return wanted
 
 
 def add_compare_command(bench_app: typer.Typer) -> None:

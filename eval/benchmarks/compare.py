@@ -77,6 +77,25 @@ def load_run_records(run: str | Path, *, argument: str = "RUN") -> list[dict]:
     return records
 
 
+def select_scenes(records: list[dict], *, scenes: list[str] | tuple = (), exclude: list[str] | tuple = (),
+                  argument: str = "--scene") -> list[dict]:
+    """The records whose scene matches one of ``scenes`` (shell patterns, e.g. ``qiu-*``; none: every scene) and
+    none of ``exclude``. Leaving out the scenes a learned method was trained on gives a development comparison
+    of two weight files that is not a memory test. An :class:`InputError` when nothing is left."""
+    from fnmatch import fnmatchcase
+
+    kept = [r for r in records
+            if (not scenes or any(fnmatchcase(str(r["scene"]), p) for p in scenes))
+            and not any(fnmatchcase(str(r["scene"]), p) for p in exclude)]
+    if records and not kept:
+        names = sorted({str(r["scene"]) for r in records})
+        shown = ", ".join(names[:12]) + (f", ... ({len(names)} in all)" if len(names) > 12 else "")
+        given = " ".join([*(f"--scene {p}" for p in scenes), *(f"--exclude-scene {p}" for p in exclude)])
+        raise InputError(argument, given, f"patterns that keep at least one scene of the run ({shown})",
+                         "Match a scene name above, e.g. --scene 'qiu-*', or exclude fewer.")
+    return kept
+
+
 def _case(record: dict) -> tuple:
     return (str(record["scene"]), str(record["noise"]), int(record.get("seed", 0)))
 

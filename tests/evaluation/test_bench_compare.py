@@ -87,6 +87,28 @@ def test_bad_labels_are_refused_in_one_line(tmp_path, args, argument, capsys, mo
     one_error_line(status, text, argument)
 
 
+def test_scene_patterns_keep_and_leave_out_cases(tmp_path, capsys, monkeypatch):
+    """``--scene`` / ``--exclude-scene``: shell patterns on the scene name, e.g. to leave out a network's training
+    scenes; a selection that keeps no scene is refused in one line naming the scenes there are."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in RECORDS))
+    result = CliRunner().invoke(app, ["bench", "compare", str(run), "-m", "a", "--against", "b", "--json",
+                                      "--exclude-scene", "s[01]", "--metric", "psnr_mean"])
+    assert result.exit_code == 0, result.output
+    out = json.loads(result.output)
+    assert [c["case"] for c in out["comparisons"][0]["cases"]] == ["s2 / g / 0", "s3 / g / 0"]
+    assert out["exclude_scenes"] == ["s[01]"]
+    assert out["comparisons"][0]["mean"] == pytest.approx(((29.5 - 29.9) + (33.0 - 32.0)) / 2)
+    kept = CliRunner().invoke(app, ["bench", "compare", str(run), "-m", "a", "--against", "b", "--json",
+                                    "--scene", "s*", "--exclude-scene", "s3", "--metric", "psnr_mean"])
+    assert json.loads(kept.output)["comparisons"][0]["n"] == 3
+    status, text = run_cli(["bench", "compare", str(run), "-m", "a", "--against", "b", "--scene", "qiu-*"],
+                           capsys, monkeypatch)
+    one_error_line(status, text, "--scene")
+    assert "only-a, s0, s1, s2, s3" in text
+
+
 def test_a_folder_without_results_is_refused(tmp_path):
     with pytest.raises(InputError, match="RUN_A"):
         load_run_records(tmp_path, argument="RUN_A")
