@@ -9,7 +9,6 @@ to the manifest instead).
 from __future__ import annotations
 
 import functools
-import hashlib
 import logging
 import math
 import os
@@ -27,7 +26,7 @@ from capssim.dataset.augment import rotate_flip_twelve
 from capssim.dataset.config import rig_model
 from capssim.dataset.config_specs import SETUP_KEYS_IN_DATASETS
 from capssim.errors import InputError
-from capssim.files.imageio import read_gt_scene
+from capssim.files.imageio import file_sha256, read_gt_scene
 from capssim.render import render_capture
 from capssim.render.pipeline import check_render
 from capssim.runtime.threads import set_threads
@@ -105,14 +104,6 @@ def crop_ground_truth(full: np.ndarray, source: dict) -> tuple[np.ndarray, dict]
     gt = rotate_flip_twelve(full, rot90=rot90, flip=flip)
     info.update(rot90=rot90, flip=flip)
     return np.array(gt, dtype=np.float32, copy=True), info
-
-
-def file_sha256(path: Path, *, chunk: int = 1 << 20) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        while block := fh.read(chunk):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def checksum_folder(folder: Path) -> dict:

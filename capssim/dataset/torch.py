@@ -59,8 +59,8 @@ from capssim.camera.sensor import noise_sigma_estimate, noise_std_map
 from capssim.captures.capture import read_capture
 from capssim.conventions import split_bayer
 from capssim.dataset.manifest import MANIFEST, SAMPLES_DIR, read_manifest
-from capssim.dataset.sample import file_sha256
 from capssim.errors import CaptureFormatError, InputError
+from capssim.files.imageio import file_sha256
 
 CROP_MULTIPLE = 4
 

@@ -26,8 +26,8 @@ from capssim.dataset.manifest import (
     read_dataset_json,
     read_manifest,
 )
-from capssim.dataset.sample import file_sha256
 from capssim.errors import CaptureFormatError, InputError
+from capssim.files.imageio import file_sha256
 
 log = logging.getLogger(__name__)
 

@@ -176,6 +176,15 @@ def _json_default(o):
     raise TypeError(f"not JSON serializable: {type(o).__name__}")
 
 
+def file_sha256(path: str | os.PathLike, *, chunk: int = 1 << 20) -> str:
+    """sha256 hex digest of a file's bytes, read in ``chunk``-byte blocks (datasets' manifests, benchmark keys)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while block := fh.read(chunk):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def write_tiff(path: str | os.PathLike, array: np.ndarray) -> None:
     """Write a TIFF atomically (zlib-compressed, deterministic bytes)."""
     import tifffile

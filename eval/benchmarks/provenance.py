@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from capssim.captures.capture import software_versions
+from capssim.files.imageio import file_sha256
 
 #: the repository: the folders capssim/, reconstruct/, eval/, scenes/
 REPO_ROOT = Path(__file__).resolve().parents[2]
@@ -55,7 +56,7 @@ def code_fingerprint(*parts: str) -> str:
     for part in parts:
         base = REPO_ROOT / part
         files = [base] if base.is_file() else sorted(
-            f for f in base.rglob("*") if f.suffix == ".py" or f.suffix in SHIPPED_MODEL_SUFFIXES and f.is_file()
+            f for f in base.rglob("*") if f.suffix in (".py", *SHIPPED_MODEL_SUFFIXES) and f.is_file()
         ) if base.is_dir() else []
         for f in files:
             rel = f.relative_to(REPO_ROOT).as_posix()
@@ -71,20 +72,17 @@ def option_file_hashes(options: dict | None) -> dict[str, str]:
     ``dictionary`` made by ``capssim train``), so that a file retrained in place reruns the cases that read it."""
     out = {}
     for key, value in sorted((options or {}).items()):
-        if isinstance(value, str) and value and Path(value).is_file():
-            stat = Path(value).stat()
-            out[key] = _file_hash(str(Path(value).resolve()), stat.st_size, stat.st_mtime_ns)
+        path = Path(value) if isinstance(value, str) and value else None
+        if path is not None and path.is_file():
+            stat = path.stat()
+            out[key] = _file_hash(str(path.resolve()), stat.st_size, stat.st_mtime_ns)
     return out
 
 
 @functools.lru_cache(maxsize=64)
 def _file_hash(path: str, size: int, mtime_ns: int) -> str:
-    """sha256 of a file's bytes (cached by path, size and modification time)."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
+    """sha256 (16 hex digits) of a file's bytes, cached by path, size and modification time."""
+    return file_sha256(path)[:16]
 
 
 def json_default(o):
