@@ -48,6 +48,7 @@ from capssim.camera.psf import DEFAULT_SIGMA_HR_PX
 from capssim.camera.rig import RigModel
 from capssim.conventions import POLARIZER_ANGLES_DEG
 from capssim.dataset.config_specs import (  # noqa: F401  (re-exported: the config's keys and limits)
+    COLOUR_AUGMENTS,
     DEFAULT_SCENE_SIZE,
     GT_ONLY_KEYS,
     GT_SOURCE_SPEC,
@@ -155,6 +156,7 @@ class DatasetConfig:
                 "crop_position": fields.get("crop_position", "center"),
                 "crop_uv": [float(uv[0]), float(uv[1])],
                 "rot90": int(augment.get("rot90", 0)), "flip": bool(augment.get("flip", False)),
+                **{name: float(augment[name]) for name in COLOUR_AUGMENTS if name in augment},
             }
             pose = {**PoseRanges().__dict__, **(drawn.get("pose") or {})}
             params["pose"] = {key: float(value) for key, value in pose.items()}

@@ -34,6 +34,9 @@ SETUP_KEYS_IN_DATASETS = tuple(k for k in SETUP_KEYS if k not in ("psf", "seed_r
 SHARED_KEYS = (*SETUP_KEYS_IN_DATASETS, "pose")
 #: shared keys that only ground-truth sources use (render draws its own aperture errors from geometry_params)
 GT_ONLY_KEYS = ("pose",)
+#: the photometric augmentations of a ground-truth source (:func:`capssim.dataset.augment.scale_colours`); a
+#: sample records them only when its source sets them, so configs without them keep their fingerprints
+COLOUR_AUGMENTS = ("gain_red", "gain_blue", "exposure")
 #: set-up keys a rendered-scene sample takes only when the config sets them (else the set-up's default)
 RENDER_OPTICS_KEYS = ("psf_sigma_hr_px", "extinction_ratio")
 
@@ -91,8 +94,10 @@ GT_SOURCE_SPEC = Mapping({
     "weight": Number(minimum=0),
     "size": _size_spec(nullable=True),
     "crop_position": Distribution(String(choices=["center", "random"])),
-    "augment": Mapping({"rot90": Distribution(Integer(minimum=0, maximum=3)), "flip": Distribution(Boolean())},
-                       what="augmentations (rot90: quarter turns 0..3, flip: true/false)"),
+    "augment": Mapping({"rot90": Distribution(Integer(minimum=0, maximum=3)), "flip": Distribution(Boolean()),
+                        **{name: Distribution(Number(minimum=0.1, maximum=10)) for name in COLOUR_AUGMENTS}},
+                       what="augmentations (rot90: quarter turns 0..3, flip: true/false; gain_red, gain_blue, "
+                            "exposure: multipliers 0.1..10, the exposure capped so that no value exceeds 1)"),
     **SHARED_SPECS,
 }, required=("gt",), what="a ground-truth source")
 

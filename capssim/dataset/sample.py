@@ -22,9 +22,9 @@ import torch
 
 from capssim.camera.camera_setup import CameraSetup
 from capssim.captures.capture import write_capture
-from capssim.dataset.augment import rotate_flip_twelve
+from capssim.dataset.augment import rotate_flip_twelve, scale_colours
 from capssim.dataset.config import rig_model
-from capssim.dataset.config_specs import SETUP_KEYS_IN_DATASETS
+from capssim.dataset.config_specs import COLOUR_AUGMENTS, SETUP_KEYS_IN_DATASETS
 from capssim.errors import InputError
 from capssim.files.imageio import file_sha256, read_gt_scene
 from capssim.render import render_capture
@@ -85,7 +85,8 @@ def crop_ground_truth(full: np.ndarray, source: dict) -> tuple[np.ndarray, dict]
 
     ``source`` holds ``size`` (None: whole image, trimmed to a multiple of 4 by simulate),
     ``crop_position`` (``center``/``random``), ``crop_uv`` (two numbers in [0, 1) that
-    place a random crop), ``rot90`` and ``flip``. Returns the image and what was done.
+    place a random crop), ``rot90`` and ``flip``, and where set ``gain_red``, ``gain_blue`` and ``exposure``
+    (:func:`~capssim.dataset.augment.scale_colours`). Returns the image and what was done.
     """
     h, w = full.shape[1:]
     size = source.get("size")
@@ -103,6 +104,10 @@ def crop_ground_truth(full: np.ndarray, source: dict) -> tuple[np.ndarray, dict]
     rot90, flip = int(source.get("rot90", 0)), bool(source.get("flip", False))
     gt = rotate_flip_twelve(full, rot90=rot90, flip=flip)
     info.update(rot90=rot90, flip=flip)
+    colour = {name: float(source[name]) for name in COLOUR_AUGMENTS if name in source}
+    if colour:
+        gt, applied = scale_colours(gt, **colour)
+        info.update(colour, exposure_applied=applied)
     return np.array(gt, dtype=np.float32, copy=True), info
 
 

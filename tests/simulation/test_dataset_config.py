@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from capssim.dataset import ConfigError, load_config, parse_config
-from capssim.dataset.augment import rotate_flip_twelve
+from capssim.dataset.augment import rotate_flip_twelve, scale_colours
 from capssim.dataset.distributions import key_rng
+from capssim.errors import InputError
 from capssim.stokes.polarization import angle_difference_deg, aop_deg, dolp, stokes_from_12
 
 REPO = Path(__file__).resolve().parents[2]
@@ -209,3 +210,33 @@ def test_parse_config_from_a_dict(gt_dir):
     assert spec["params"]["sensor"] == {"noise": "none"}
     with pytest.raises(IndexError):
         cfg.sample_spec(3)
+
+
+def test_colour_gains_and_exposure_keep_the_polarization_and_never_exceed_one(smooth_random_scene):
+    scene = smooth_random_scene(24, seed=4).astype(np.float64)
+    out, applied = scale_colours(scene, gain_red=1.5, gain_blue=0.6, exposure=3.0)
+    assert out.dtype == np.float32 and out.max() <= 1.0 + 1e-6
+    assert applied == pytest.approx(1.0 / (scene * np.tile([1.5, 1.0, 0.6], 4)[:, None, None]).max())
+    before, after = stokes_from_12(scene), stokes_from_12(out.astype(np.float64))
+    np.testing.assert_allclose(after[:, 0], before[:, 0] * 1.5 * applied, rtol=1e-5, atol=1e-6)  # red Stokes scaled
+    np.testing.assert_allclose(dolp(after[:, 2]), dolp(before[:, 2]), atol=1e-5)  # blue DoLP kept
+    assert np.abs(angle_difference_deg(aop_deg(after[:, 1]), aop_deg(before[:, 1]))).max() < 1e-3
+    quiet, kept = scale_colours(scene, exposure=0.5)
+    assert kept == 0.5 and np.allclose(quiet, scene * 0.5, atol=1e-6)
+    with pytest.raises(InputError, match="gain_red"):
+        scale_colours(scene, gain_red=0.0)
+
+
+def test_colour_augments_are_drawn_only_where_a_source_sets_them(tmp_path, gt_dir):
+    plain = load_config(write_config(tmp_path, GOOD)).sample_spec(0)["params"]["source"]
+    assert not {"gain_red", "gain_blue", "exposure"} & set(plain)
+    text = GOOD.replace("flip: {choice: [false, true], weights: [1, 1]}}",
+                        "flip: {choice: [false, true], weights: [1, 1]},\n"
+                        "              gain_red: {log_uniform: [0.7, 1.4]}, exposure: {uniform: [0.6, 1.3]}}")
+    cfg = load_config(write_config(tmp_path, text))
+    source = cfg.sample_spec(0)["params"]["source"]
+    assert 0.7 <= source["gain_red"] < 1.4 and 0.6 <= source["exposure"] < 1.3 and "gain_blue" not in source
+    bad = GOOD.replace("flip: {choice: [false, true], weights: [1, 1]}}",
+                       "flip: {choice: [false, true], weights: [1, 1]}, exposure: 0}")
+    with pytest.raises(ConfigError, match="exposure"):
+        load_config(write_config(tmp_path, bad))
