@@ -13,27 +13,42 @@ noise and demosaicking errors together. The network reads the noise std clamped 
 ``weights=PATH``: a model file from ``capssim train`` (default: the shipped ``weights/dofp-nafnet.pt``,
 trained by ``examples/train-dofp-nafnet.yaml`` on development data only: renders and the real scenes that
 the frozen test suite does not use).
+Option ``guard`` (default false): the discrepancy guard (:mod:`capssim.reconstruct.networks.discrepancy_guard`):
+where the network's output, sampled as the sensor samples it, departs from the mosaic by more than its noise
+explains (noise std at least :data:`TRAINED_NOISE_STD_MIN`), it is moved towards IGRI2. The share it takes, or
+would take, from IGRI2 is always computed: the record gives it (``discrepancy_share``) and a warning names it
+above :data:`DISCREPANCY_WARNING`. On development data the guard rescues a network on a scene unlike its training
+data (+1.6 dB on the Qiu scenes for weights trained without them) but costs the shipped weights 0.13 dB on their
+development suites (up to 1 dB on dense Siemens stars and noise-free captures), so it is off by default
+(docs/results/dofp-nafnet.md).
 Mosaics larger than :data:`TILE` px run in tiles with a :data:`HALO` px halo; the network's channel
 attention averages over its input, so a tiled result differs slightly from an untiled one.
 """
 
 from __future__ import annotations
 
+import logging
+from pathlib import Path
+
 import numpy as np
 import torch
 
 from capssim.camera.sensor import noise_std_map
 from capssim.captures.capture import Capture
+from capssim.errors import InputError
 
 from ..dofp.bilinear import dofp_unobserved
 from ..dofp.mosaic import check_mosaic
 from ..kernel_regression.steering import noise_sigma
 from ..networks import load_model, shipped_weights, weights_option
 from ..networks.cpdnet import sparse_channels
+from ..networks.discrepancy_guard import discrepancy_share
 from ..networks.tiling import apply_tiled
 from ..registry import MethodOutput, RunContext, register_method
 from ..run_context import stage_factory
 from .dofp_igri2 import demosaic_dofp_igri2
+
+log = logging.getLogger(__name__)
 
 REFERENCE = ("Chen, Chu, Zhang, Sun, 'Simple Baselines for Image Restoration', ECCV 2022 (NAFNet); over IGRI2 "
              "(Morimatsu et al., IEEE Sensors Journal 21(23) 2021); trained with capssim train")
@@ -46,8 +61,16 @@ TUNED_ON = ("dev", "quick", "ablation", "baselines", "calibration", "full", "lea
 #: 64 px natural scene against reading the true std: -0.12 dB at sigma 0.05, -0.43 at 0.1, +0.58 at 0.2 (IGRI2 is
 #: 2-3 dB lower at each)
 TRAINED_NOISE_STD_MAX = 0.02
+#: the smallest noise std of its training set: the discrepancy guard's floor (on a noise-free mosaic the output may
+#: depart from each sample by about this much before the guard acts)
+TRAINED_NOISE_STD_MIN = 0.002
 #: tiles of the network's input (px, a multiple of 16) and their halo (px)
 TILE, HALO = 1024, 64
+#: the mean share the discrepancy guard would take from IGRI2 above which the method warns (the shipped weights: at
+#: most 0.035 on the development captures other than the stars, 0.04-0.69 on the Siemens and polarization stars,
+#: 0.07-0.09 on two of the test suite's twelve real-scene cases, both with the imx250myr sensor)
+DISCREPANCY_WARNING = 0.05
+GUARD_WORDS = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
 
 
 def dofp_nafnet_input(mosaic: torch.Tensor, layout, noise_std: torch.Tensor,
@@ -61,14 +84,38 @@ def dofp_nafnet_input(mosaic: torch.Tensor, layout, noise_std: torch.Tensor,
     return sparse_channels(mosaic, layout), base, noise_std.to(mosaic)[:, None]
 
 
-def run_dofp_nafnet(model, mosaic: torch.Tensor, layout, noise_std: torch.Tensor, timer=None) -> torch.Tensor:
+def run_dofp_nafnet(model, mosaic: torch.Tensor, layout, noise_std: torch.Tensor, timer=None, *,
+                    guard: bool = False) -> tuple[torch.Tensor, float]:
     """``(H, W)`` mosaic and noise std tensors -> ``(12, H, W)`` float32 on the mosaic's device (the std read at
-    most :data:`TRAINED_NOISE_STD_MAX`)."""
+    most :data:`TRAINED_NOISE_STD_MAX`), with the discrepancy guard applied if ``guard``, and the mean share the
+    guard takes (or would take) from IGRI2."""
     stage = stage_factory(timer)
     inputs = dofp_nafnet_input(mosaic[None], layout, noise_std[None].clamp(max=TRAINED_NOISE_STD_MAX), timer)
     with stage("network"):
         image = apply_tiled(model, inputs, tile=TILE, halo=HALO, step=16)[0]
-    return image.clamp(0.0, max(1.0, float(mosaic.max())))
+    image = image.clamp(0.0, max(1.0, float(mosaic.max())))
+    with stage("guard"):
+        share = discrepancy_share(image, mosaic, noise_std, layout, noise_floor=TRAINED_NOISE_STD_MIN)
+        if guard:
+            image = image + share * (inputs[1][0] - image)
+    mean_share = float(share.mean())
+    if mean_share > DISCREPANCY_WARNING and not guard:
+        log.warning("dofp-nafnet: its output departs from the raw samples by more than their noise explains on "
+                    "about %.0f %% of the frame (a scene unlike its training data, or detail finer than the sensor "
+                    "samples, such as a dense star); -p guard=true moves it towards IGRI2 there", 100 * mean_share)
+    return image, mean_share
+
+
+def nafnet_options(options: dict) -> tuple[Path, bool]:
+    """The model file (``weights=PATH``, default the shipped one) and ``guard`` (default false) of ``options``."""
+    opts = dict(options)
+    guard = opts.pop("guard", False)
+    if isinstance(guard, str) and guard.strip().lower() in GUARD_WORDS:
+        guard = GUARD_WORDS[guard.strip().lower()]
+    if not isinstance(guard, bool):
+        raise InputError("option guard", repr(guard), "true or false",
+                         "Write -p guard=true to turn the discrepancy guard on, -p guard=false to leave it off.")
+    return weights_option(opts, SHIPPED, also=("guard",)), guard
 
 
 def mosaic_noise_std(mosaic: torch.Tensor) -> float:
@@ -79,32 +126,35 @@ def mosaic_noise_std(mosaic: torch.Tensor) -> float:
     return noise_sigma(subs)
 
 
-def demosaic_dofp_nafnet(mosaic, *, layout="sony", noise_std=None, device=None, timer=None, weights=None):
+def demosaic_dofp_nafnet(mosaic, *, layout="sony", noise_std=None, device=None, timer=None, weights=None,
+                         guard: bool = False):
     """The plain array form: ``(H, W)`` mosaic (numpy or tensor) -> ``(12, H, W)`` with the shipped weights.
 
     ``noise_std``: the noise std on [0, 1], a number or an ``(H, W)`` map (0: a noise-free mosaic; None:
     estimated from the mosaic, :func:`mosaic_noise_std`, as for a real raw frame without a noise model).
+    ``guard``: the discrepancy guard (module docstring).
     """
     x = check_mosaic(mosaic, device=device).to(torch.float32)
     noise_std = mosaic_noise_std(x) if noise_std is None else noise_std
     sigma = torch.as_tensor(np.asarray(noise_std, dtype=np.float32), device=x.device).expand(x.shape)
     model, _ = load_model(weights or shipped_weights(SHIPPED), device=x.device, expect=NETWORK)
-    image = run_dofp_nafnet(model, x, layout, sigma, timer)
+    image, _ = run_dofp_nafnet(model, x, layout, sigma, timer, guard=guard)
     return image.cpu().numpy() if isinstance(mosaic, np.ndarray) else image
 
 
 @register_method("dofp-nafnet", input_kind="dofp", array_function=demosaic_dofp_nafnet, reference=REFERENCE,
                  tuned_on=TUNED_ON,
                  description="NAFNet-style U-Net over IGRI2 with the sensor's noise map, trained with capssim train on "
-                             "development data; option weights=PATH (default: the shipped dofp-nafnet)")
+                             "development data; options weights=PATH (default: the shipped dofp-nafnet), guard=true|false (the "
+                             "discrepancy guard, default false)")
 def dofp_nafnet(capture: Capture, *, context: RunContext) -> MethodOutput:
-    path = weights_option(context.options, SHIPPED)
+    path, guard = nafnet_options(context.options)
     with context.timer.stage("load_model"):
         model, record = load_model(path, device=context.device, expect=NETWORK)
         mosaic = capture.dofp_float()
         noise_std = torch.from_numpy(noise_std_map(capture.sensor, mosaic)).to(context.device)
         mosaic = torch.from_numpy(mosaic).to(context.device)
-    image = run_dofp_nafnet(model, mosaic, capture.dofp_layout, noise_std, context.timer)
+    image, share = run_dofp_nafnet(model, mosaic, capture.dofp_layout, noise_std, context.timer, guard=guard)
     with context.timer.stage("to_host"):
         image = image.to("cpu", torch.float32).numpy()
     training = record.get("training", {})
@@ -112,6 +162,7 @@ def dofp_nafnet(capture: Capture, *, context: RunContext) -> MethodOutput:
                         params={"weights": str(path), "network": record["network"], "network_params": record["params"],
                                 "training_steps": training.get("steps"), "layout": [list(r) for r in capture.dofp_layout],
                                 "noise_model": capture.sensor.model,
-                                "noise_std_read_at_most": TRAINED_NOISE_STD_MAX},
+                                "noise_std_read_at_most": TRAINED_NOISE_STD_MAX, "guard": guard,
+                                "guard_noise_floor": TRAINED_NOISE_STD_MIN, "discrepancy_share": share},
                         extra={"training_validation_psnr_db": training.get("validation_psnr_db")},
                         unobserved=lambda: dofp_unobserved(capture.dofp_saturated(), capture.dofp_layout))

@@ -116,12 +116,13 @@ def load_model(path, *, device: torch.device | str = "cpu", expect: str | None =
     return model, {k: v for k, v in record.items() if k != "state_dict"}
 
 
-def weights_option(options: dict, shipped: str) -> Path:
-    """The model file of a learned method's only option, ``weights=PATH`` (default: the shipped ``shipped``); any
-    other option is an UnknownNameError."""
+def weights_option(options: dict, shipped: str, *, also: tuple[str, ...] = ()) -> Path:
+    """The model file of a learned method's option ``weights=PATH`` (default: the shipped ``shipped``); any
+    other option is an UnknownNameError, which lists ``weights`` and the method's other options ``also`` (already
+    taken out of ``options`` by the caller)."""
     opts = dict(options)
     weights = str(opts.pop("weights", "") or "").strip() or None
-    reject_unknown_options(opts, ["weights"])
+    reject_unknown_options(opts, ["weights", *also])
     return Path(weights) if weights else shipped_weights(shipped)
 
 
