@@ -44,6 +44,7 @@ from ..networks import load_model, shipped_weights, weights_option
 from ..networks.cpdnet import sparse_channels
 from ..networks.discrepancy_guard import discrepancy_share
 from ..networks.tiling import apply_tiled
+from ..pipeline.option_table import MethodOption
 from ..registry import MethodOutput, RunContext, register_method
 from ..run_context import stage_factory
 from .dofp_igri2 import demosaic_dofp_igri2
@@ -106,6 +107,14 @@ def run_dofp_nafnet(model, mosaic: torch.Tensor, layout, noise_std: torch.Tensor
     return image, mean_share
 
 
+def dofp_nafnet_options() -> list[MethodOption]:
+    """Every ``-p`` option of ``dofp-nafnet`` (``capssim reconstruct --options dofp-nafnet``)."""
+    return [MethodOption("weights", "(the shipped dofp-nafnet)", "a model file written by capssim train",
+                         "the network's weights"),
+            MethodOption("guard", False, "true or false",
+                         "the discrepancy guard: move the output towards IGRI2 where it contradicts the raw samples")]
+
+
 def nafnet_options(options: dict) -> tuple[Path, bool]:
     """The model file (``weights=PATH``, default the shipped one) and ``guard`` (default false) of ``options``."""
     opts = dict(options)
@@ -143,7 +152,7 @@ def demosaic_dofp_nafnet(mosaic, *, layout="sony", noise_std=None, device=None, 
 
 
 @register_method("dofp-nafnet", input_kind="dofp", array_function=demosaic_dofp_nafnet, reference=REFERENCE,
-                 tuned_on=TUNED_ON,
+                 tuned_on=TUNED_ON, options=dofp_nafnet_options,
                  description="NAFNet-style U-Net over IGRI2 with the sensor's noise map, trained with capssim train on "
                              "development data; options weights=PATH (default: the shipped dofp-nafnet), guard=true|false (the "
                              "discrepancy guard, default false)")

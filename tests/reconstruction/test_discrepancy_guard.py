@@ -94,3 +94,14 @@ def test_the_method_option_record_and_warning(smooth_random_scene, caplog):
     assert "guard=true" in str(info.value)
     with pytest.raises(UnknownNameError, match="guard, weights"):  # the unknown-option error lists it
         reconstruct(capture, "dofp-nafnet", gaurd="false")
+
+
+def test_the_options_listing_names_both_options_and_the_method_takes_them(smooth_random_scene):
+    from capssim.reconstruct.methods.dofp_nafnet import dofp_nafnet_options
+    from capssim.reconstruct.networks import WEIGHTS_DIR
+
+    listed = {option.name: option for option in dofp_nafnet_options()}
+    assert set(listed) == {"weights", "guard"} and listed["guard"].default is False
+    capture = simulate_capture(smooth_random_scene(24, seed=6), make_sensor("gaussian", sigma=SIGMA), seed=1)
+    _, record = reconstruct(capture, "dofp-nafnet", weights=str(WEIGHTS_DIR / "dofp-nafnet.pt"), guard=True)
+    assert record["params"]["guard"] is True
