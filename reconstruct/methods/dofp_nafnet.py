@@ -42,8 +42,9 @@ from ..dofp.mosaic import check_mosaic
 from ..kernel_regression.steering import noise_sigma
 from ..networks import load_model, shipped_weights, weights_option
 from ..networks.cpdnet import sparse_channels
-from ..networks.discrepancy_guard import discrepancy_share
+from ..networks.discrepancy_guard import discrepancy_guard, discrepancy_share
 from ..networks.tiling import apply_tiled
+from ..pipeline import coerce_option
 from ..pipeline.option_table import MethodOption
 from ..registry import MethodOutput, RunContext, register_method
 from ..run_context import stage_factory
@@ -71,7 +72,6 @@ TILE, HALO = 1024, 64
 #: most 0.035 on the development captures other than the stars, 0.04-0.69 on the Siemens and polarization stars,
 #: 0.07-0.09 on two of the test suite's twelve real-scene cases, both with the imx250myr sensor)
 DISCREPANCY_WARNING = 0.05
-GUARD_WORDS = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
 
 
 def dofp_nafnet_input(mosaic: torch.Tensor, layout, noise_std: torch.Tensor,
@@ -96,9 +96,11 @@ def run_dofp_nafnet(model, mosaic: torch.Tensor, layout, noise_std: torch.Tensor
         image = apply_tiled(model, inputs, tile=TILE, halo=HALO, step=16)[0]
     image = image.clamp(0.0, max(1.0, float(mosaic.max())))
     with stage("guard"):
-        share = discrepancy_share(image, mosaic, noise_std, layout, noise_floor=TRAINED_NOISE_STD_MIN)
         if guard:
-            image = image + share * (inputs[1][0] - image)
+            image, share = discrepancy_guard(image, inputs[1][0], mosaic, noise_std, layout,
+                                             noise_floor=TRAINED_NOISE_STD_MIN)
+        else:
+            share = discrepancy_share(image, mosaic, noise_std, layout, noise_floor=TRAINED_NOISE_STD_MIN)
     mean_share = float(share.mean())
     if mean_share > DISCREPANCY_WARNING and not guard:
         log.warning("dofp-nafnet: its output departs from the raw samples by more than their noise explains on "
@@ -118,12 +120,12 @@ def dofp_nafnet_options() -> list[MethodOption]:
 def nafnet_options(options: dict) -> tuple[Path, bool]:
     """The model file (``weights=PATH``, default the shipped one) and ``guard`` (default false) of ``options``."""
     opts = dict(options)
-    guard = opts.pop("guard", False)
-    if isinstance(guard, str) and guard.strip().lower() in GUARD_WORDS:
-        guard = GUARD_WORDS[guard.strip().lower()]
-    if not isinstance(guard, bool):
-        raise InputError("option guard", repr(guard), "true or false",
-                         "Write -p guard=true to turn the discrepancy guard on, -p guard=false to leave it off.")
+    raw = opts.pop("guard", False)
+    try:
+        guard = coerce_option("guard", raw, bool)
+    except InputError:
+        raise InputError("option guard", repr(raw), "true or false",
+                         "Write -p guard=true to turn the discrepancy guard on, -p guard=false to leave it off.") from None
     return weights_option(opts, SHIPPED, also=("guard",)), guard
 
 
