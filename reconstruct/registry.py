@@ -41,6 +41,8 @@ log = logging.getLogger(__name__)
 METHODS_PACKAGE = "capssim.reconstruct.methods"
 #: the module that runs ``uncertainty=N`` (found by name: it runs the methods again through this dispatcher)
 UNCERTAINTY_MODULE = "capssim.reconstruct.uncertainty.estimate"
+#: the registration mode of a method that names none (:class:`MethodSpec`), and of a name no method has
+DEFAULT_REGISTRATION = "local-correlation"
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,10 @@ class MethodSpec:
     options: Callable | None = None
     #: where a plug-in method comes from (:class:`capssim.reconstruct.plugins.Plugin`); None: built in
     plugin: object | None = None
+    #: the registration mode (:data:`~capssim.reconstruct.registration.REGISTRATION_MODES`) the method estimates its
+    #: warps with when the run names none (``--registration``): :data:`DEFAULT_REGISTRATION`, or ``fast`` for a method
+    #: whose time the registration would otherwise decide (``array-kr``)
+    registration: str = DEFAULT_REGISTRATION
 
 
 _METHODS: dict[str, MethodSpec] = {}
@@ -73,12 +79,14 @@ _LOADED = False
 
 def register_method(name: str, *, input_kind: str, description: str, reference: str,
                     array_function: Callable | None = None, frame_options: Callable | None = None,
-                    tuned_on: tuple[str, ...] = (), options: Callable | None = None):
+                    tuned_on: tuple[str, ...] = (), options: Callable | None = None,
+                    registration: str = DEFAULT_REGISTRATION):
     """Decorator registering a reconstruction function under ``name``.
 
     ``array_function``: the method's plain array form, for ``capssim demosaic`` (DoFP mosaics).
     ``frame_options``: see :class:`MethodSpec` (options a tiled run fixes over the whole frame).
-    ``tuned_on``: the suites or data its defaults were chosen on; ``options``: its option list (:class:`MethodSpec`).
+    ``tuned_on``: the suites or data its defaults were chosen on; ``options``: its option list (:class:`MethodSpec`);
+    ``registration``: its registration mode when a run names none (:class:`MethodSpec`).
     """
     if input_kind not in ("caps", "dofp"):
         raise ValueError(f"input_kind must be 'caps' or 'dofp', got {input_kind!r}")
@@ -87,7 +95,7 @@ def register_method(name: str, *, input_kind: str, description: str, reference: 
         if name in _METHODS and _METHODS[name].function is not fn:
             raise ValueError(f"method {name!r} is registered twice ({_METHODS[name].module} and {fn.__module__})")
         _METHODS[name] = MethodSpec(name, fn, input_kind, description, reference, fn.__module__, array_function,
-                                    frame_options, tuple(tuned_on), options)
+                                    frame_options, tuple(tuned_on), options, registration=registration)
         return fn
 
     return wrap
@@ -213,8 +221,16 @@ def run_on_rggb(spec: MethodSpec, capture: Capture, context: RunContext) -> Meth
     return out
 
 
+def default_registration(method: str) -> str:
+    """The registration mode ``method`` estimates its warps with when a run names none (:attr:`MethodSpec.registration`);
+    :data:`DEFAULT_REGISTRATION` for a name no method has (its own error comes where the method is run)."""
+    _load_methods()
+    spec = _METHODS.get(method)
+    return DEFAULT_REGISTRATION if spec is None else spec.registration
+
+
 def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "cpu", true_warps: bool = False,
-                registration: str = "local-correlation", progress: Callable[[int, int, str], None] | None = None,
+                registration: str | None = None, progress: Callable[[int, int, str], None] | None = None,
                 physical_projection: bool = True, reuse_registration: bool = True, calibration=None,
                 start: np.ndarray | None = None, uncertainty: int = 0, uncertainty_options: dict | None = None,
                 **options) -> tuple[MethodOutput, dict]:
@@ -225,7 +241,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
     capture, method : Capture, str
         Raw frames ``(4, H, W)`` (CAPS) or ``(2H, 2W)`` (DoFP) with their ``meta.json``; a method name.
     device, true_warps, registration, progress, reuse_registration : optional, default: see signature
-        Torch device; use the capture's true warps; the registration mode; ``progress(i, n, stage)``; reuse warps.
+        Torch device; true warps; registration mode (None: :func:`default_registration`); progress(i, n, stage); reuse.
     physical_projection, calibration, **options : optional, default: see signature
         Project onto ``I >= 0``, ``I0 + I90 = I45 + I135``, DoLP <= 1 where all four angles are observed;
         the CAPS array model (None: the capture's calibration file if it names one, ``"ideal"``, ``"truth"``
@@ -244,6 +260,7 @@ def reconstruct(capture: Capture, method: str, *, device: str | torch.device = "
         ``output.image`` ``(12, 2H, 2W)`` float32; the record of ``recon/NAME.json`` (``wall_time_s``, ``stages_s``).
     """
     spec = get_method(method)
+    registration = spec.registration if registration is None else registration
     dev = resolve_device(device)
     _check_run(spec, capture, true_warps=true_warps, registration=registration, uncertainty=uncertainty,
                uncertainty_options=uncertainty_options)
@@ -352,45 +369,3 @@ def run_method(capture_path: str | Path, method: str, **kwargs) -> dict:
     out, record = reconstruct(capture, method, **kwargs)
     write_reconstruction(capture_path, method, out.image, record, companions=out.companions())
     return record
-
-
-class _OptionsParsed(BaseException):
-    """Raised by :class:`_ProbeCapture` at a method's first look at the capture: its options are parsed by then.
-    A BaseException, so that no ``except Exception`` of a method swallows it."""
-
-
-class _ProbeCapture:
-    """A capture with no data: any attribute stops the method (:class:`_OptionsParsed`)."""
-
-    def __getattr__(self, name):
-        raise _OptionsParsed(name)
-
-
-def check_method_options(name: str, options: dict) -> bool:
-    """Run method ``name`` with ``options`` up to its first look at the capture, on a capture with no data: every
-    method has parsed and checked its options by then, so an option it refuses is raised here, before any work
-    (``capssim reconstruct`` and a suite's per-method ``options`` are checked so before the first case).
-
-    Returns
-    -------
-    bool
-        True when the options were checked; False for a method that looks at the capture before its options (it
-        reports them when it runs).
-
-    Raises
-    ------
-    CapssimError
-        The method's own one-line error (an unknown option, a value out of range).
-    """
-    cpu = torch.device("cpu")
-    context = RunContext(device=cpu, timer=StageTimer(cpu), options=dict(options or {}))
-    try:
-        with torch.no_grad():
-            get_method(name).function(_ProbeCapture(), context=context)
-    except _OptionsParsed:
-        return True
-    except CapssimError:
-        raise
-    except Exception:  # noqa: BLE001 - not an option error: the method reports it when it runs
-        log.debug("options of %s not checked ahead", name, exc_info=True)
-    return False

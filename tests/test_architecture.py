@@ -146,7 +146,7 @@ RECONSTRUCT_ROOMS = (
     ("priors",),
     ("pipeline",),
     ("selection",),  # a method's data-driven choices, made once per frame before its solve
-    ("registry",),
+    ("registry", "option_probe"),  # option_probe: a method run up to its options, before any work
     ("uncertainty",),  # error bars: a bootstrap that runs any registered method again (above the registry)
     ("methods", "plugins"),  # plug-in methods and priors from other packages, registered beside the built-ins
     ("training",),

@@ -33,11 +33,13 @@ COMMAND_FLAGS = {"device": "--device", "true_warps": "--true-warps", "registrati
 
 
 RegistrationOption = typer.Option(
-    "local-correlation", "--registration",
-    help="Registration mode when warps are estimated: local-correlation (default; of the binomial and the demosaicked "
-         "luminance, keeps the one whose registered images are more Stokes-consistent) | binomial-luminance | "
-         "ri-luminance (one of the two only: faster) | stokes-subspace (Stokes-consistent data whose polarization "
-         "texture biases the default); see the docs, guides/reconstruction.md.")
+    None, "--registration", show_default=False,
+    help="Registration mode when warps are estimated (default: the method's own, local-correlation for every method "
+         "but array-kr, which uses fast): local-correlation (of the binomial and the demosaicked luminance, keeps the "
+         "one whose registered images are more Stokes-consistent) | binomial-luminance | ri-luminance (one of the "
+         "two only: faster) | stokes-subspace (Stokes-consistent data whose polarization texture biases the default) "
+         "| fast (binomial, fitted at half resolution on frames of 512 HR px and more); see the docs, "
+         "guides/reconstruction.md.")
 UncertaintyOption = typer.Option(
     None, "--uncertainty", metavar="N",
     help="Also write error bars from an N-replicate bootstrap (e.g. 8): recon/METHOD.std.tiff, .interval90.tiff and "
@@ -96,7 +98,7 @@ def reconstruct(
                                              callback=check_iterations),
     true_warps: bool = typer.Option(False, "--true-warps",
                                     help="Use the homographies stored in meta.json instead of estimating them."),
-    registration: str = RegistrationOption,
+    registration: Optional[str] = RegistrationOption,
     param: List[str] = typer.Option([], "--param", "-p", metavar="KEY=VALUE",
                                     help="Method option KEY=VALUE (repeatable), e.g. -p c1=0.002."),
     list_methods: bool = typer.Option(False, "--list", help="List the registered methods and exit."),

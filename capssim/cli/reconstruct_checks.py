@@ -18,7 +18,7 @@ log = logging.getLogger("capssim.reconstruct")
 
 def check_method_options(name: str, options: dict, *, shared: bool = False) -> None:
     """Method ``name`` parses and checks ``options`` before any method runs
-    (:func:`capssim.reconstruct.registry.check_method_options`).
+    (:func:`capssim.reconstruct.option_probe.check_method_options`).
 
     Raises
     ------
@@ -26,7 +26,7 @@ def check_method_options(name: str, options: dict, *, shared: bool = False) -> N
         The method's own one-line error (an unknown option, a value out of range); an unknown option names
         ``-m NAME`` when several methods share the ``-p`` options (``shared``).
     """
-    from capssim.reconstruct.registry import check_method_options as probe  # start-up time
+    from capssim.reconstruct.option_probe import check_method_options as probe  # start-up time
 
     try:
         probe(name, options)

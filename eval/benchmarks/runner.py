@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from capssim.reconstruct.registry import available_methods, resolve_device
+from capssim.reconstruct.registry import available_methods, default_registration, resolve_device
 
 from ..metrics import get_convention
 from .cases import capture_task, forget_captures
@@ -224,7 +224,7 @@ class CaseRun:
             else:
                 self.pending[index] = rec
                 self.labels[("case", index)] = key
-                mode = m.get("registration", "local-correlation")
+                mode = m.get("registration") or default_registration(m["name"])
                 registrar = registering.get(mode) if self.registers(m) else None
                 handle = executor.submit(self.task.fn, rec, m, str(entry.path), entry.key, entry.info,
                                          device=self.device, convention=self.convention, **self.task.options,

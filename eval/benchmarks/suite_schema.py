@@ -39,8 +39,9 @@ from capssim.files.schema import (
     join,
     show,
 )
+from capssim.reconstruct.option_probe import check_method_options
 from capssim.reconstruct.registration.parameters import REGISTRATION_MODES
-from capssim.reconstruct.registry import available_methods, check_method_options
+from capssim.reconstruct.registry import available_methods, default_registration
 from capssim.runtime.resources import check_scene_size
 from capssim.simulate import MIN_HR_SIZE
 
@@ -161,8 +162,8 @@ class NoiseSpec(Spec):
 
 class MethodEntrySpec(Spec):
     """A method entry: a registered name, or a mapping (:data:`METHOD_SPEC`), normalised to the mapping
-    with its defaults (``label`` the name, ``options`` {}, ``true_warps`` false, ``registration``
-    local-correlation)."""
+    with its defaults (``label`` the name, ``options`` {}, ``true_warps`` false, ``registration`` the method's own:
+    local-correlation, or fast for ``array-kr``)."""
 
     description = METHOD_SPEC.description
 
@@ -173,7 +174,7 @@ class MethodEntrySpec(Spec):
         entry.setdefault("label", entry["name"])
         entry.setdefault("options", {})
         entry.setdefault("true_warps", False)
-        entry.setdefault("registration", "local-correlation")
+        entry.setdefault("registration", default_registration(entry["name"]))
         if any(not isinstance(k, str) for k in entry["options"]):
             raise ConfigError(join(path, "options"), show(entry["options"]), "option names that are strings")
         return entry
@@ -305,7 +306,7 @@ def check_suite(spec: dict) -> dict:
 
 def _check_method_entry_options(method: dict, path: str) -> None:
     """A method entry's ``options`` parsed and checked by the method itself before the first case
-    (:func:`capssim.reconstruct.registry.check_method_options`), so that a typo fails at load, not in every case."""
+    (:func:`capssim.reconstruct.option_probe.check_method_options`), so that a typo fails at load, not in every case."""
     options = dict(method.get("options") or {})
     if not options:
         return

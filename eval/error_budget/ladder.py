@@ -69,7 +69,7 @@ def _scores(scorer, image) -> dict:
 def _run(capture, method: dict, scorer, *, true_warps: bool, device: str, options: dict | None = None) -> dict:
     t0 = time.perf_counter()
     out, record = reconstruct(capture, method["name"], device=device, true_warps=true_warps,
-                              registration=method.get("registration", "local-correlation"),
+                              registration=method.get("registration"),
                               **{**(method.get("options") or {}), **(options or {})})
     result = {"scores": _scores(scorer, out.image), "wall_time_s": time.perf_counter() - t0,
               "iterations": (record.get("params") or {}).get("iterations")}

@@ -20,7 +20,7 @@ from typing import Callable
 
 from capssim.captures.capture import read_capture
 from capssim.errors import InputError, UnknownNameError
-from capssim.reconstruct.registry import available_methods, resolve_device
+from capssim.reconstruct.registry import available_methods, default_registration, resolve_device
 
 from ..benchmarks.executors import check_execution
 from ..benchmarks.output_claim import BUDGET_OUTPUT
@@ -72,7 +72,7 @@ def budget_methods(spec: dict, names=None) -> list[dict]:
         if found:
             entries.append(found[0])
         elif name in registered:
-            entries.append({"name": name, "label": name, "options": {}, "registration": "local-correlation",
+            entries.append({"name": name, "label": name, "options": {}, "registration": default_registration(name),
                             "true_warps": False})
         else:
             raise UnknownNameError("--method", name, sorted(registered))

@@ -150,6 +150,7 @@ def reconstruct_raw(raw, saturated, raw_homographies, hr_shape, *, cfa: str = "R
 
 
 @register_method("array-kr", input_kind="caps", reference=REFERENCE, tuned_on=TUNED_ON, options=array_kr_options,
+                 registration="fast",
                  description="Fast camera-array method, no iterations: the apertures demosaicked and registered as "
                              "caps-naive, their mean as the intensity, each analyzer's own detail where the intensity "
                              "does not explain it (samples=raw: steered kernel regression of the raw samples)")

@@ -213,7 +213,8 @@ def _register_apertures(raw: torch.Tensor, lum: torch.Tensor, valid: torch.Tenso
                               robust_power=parameters.robust_power, robust_levels=parameters.robust_levels,
                               robust_passes=parameters.robust_passes,
                               stokes_subspace_std=parameters.stokes_subspace_std,
-                              robust_window_radius=parameters.robust_window_radius, **kwargs)
+                              robust_window_radius=parameters.robust_window_radius,
+                              half_resolution_min_size=parameters.half_resolution_min_size, **kwargs)
 
     reg = register(lum)
     if parameters.luminance != "auto" or len(active) != 3:

@@ -58,13 +58,16 @@ class LevelCriteria:
     one registration problem: ``moving`` ``(B, H, W)`` against ``ref`` ``(H, W)``.
 
     Reference pixels within ``border`` full-resolution pixels of the edge are left out; the
-    windows' regularising ``eps`` is set by the largest noise std of the images.
+    windows' regularising ``eps`` is set by the largest noise std of the images. ``finest`` is the finest level
+    the warps are fitted on (0: full resolution; 1: half resolution, the ``fast`` registration mode); the
+    parameters are in full-resolution pixels whatever the level.
     """
 
     def __init__(self, ref: torch.Tensor, moving: torch.Tensor, ref_valid: torch.Tensor, moving_valid: torch.Tensor,
-                 *, model: str, window_radius: int, border: int, levels: int):
+                 *, model: str, window_radius: int, border: int, levels: int, finest: int = 0):
         hh, ww = ref.shape
         self.model, self.window_radius, self.border, self.levels = model, window_radius, border, levels
+        self.finest = min(max(int(finest), 0), levels - 1)
         self.centre = ((ww - 1) / 2.0, (hh - 1) / 2.0)
         self.radius = max(hh, ww) / 2.0
         self.ref, self.ref_valid = pyramid(ref[None], ref_valid[None], levels)
@@ -132,21 +135,24 @@ def refine_levels(p: torch.Tensor, criteria: LevelCriteria, *, first_level: int,
                   stokes_levels: int, max_iterations: int, full_model_levels: int, robust_power: float,
                   robust_levels: int, robust_passes: int, robust_window_radius: int | None,
                   info: dict) -> torch.Tensor:
-    """Coarse-to-fine L-BFGS refinement of the parameters ``p`` ``(B, P)`` from ``first_level`` down to 0.
+    """Coarse-to-fine L-BFGS refinement of the parameters ``p`` ``(B, P)`` from ``first_level`` down to the
+    finest level fitted, ``criteria.finest`` (0 unless the registration stops at half resolution).
 
     The Stokes term (``stokes_weight``) is used on the ``stokes_levels`` finest levels, the full
     motion model on the ``full_model_levels`` finest (translation only above them), and
-    ``robust_passes`` IRLS passes on the ``robust_levels`` finest. One record per level is appended
-    to ``info["levels"]``.
+    ``robust_passes`` IRLS passes on the ``robust_levels`` finest, each counted from ``criteria.finest``.
+    One record per level is appended to ``info["levels"]``.
     """
     model = criteria.model
     # L-BFGS curvature carried from one full-model level to the next, and from one IRLS pass to the next
     # (same parameters, finer data or slightly other weights): 40 % fewer evaluations on the finest level
     memory, robust_memory = Memory(), Memory()
-    for level in range(first_level, -1, -1):
-        stokes = stokes_weight if level < stokes_levels else 0.0
+    finest = criteria.finest
+    for level in range(max(first_level, finest), finest - 1, -1):
+        rank = level - finest  # 0 on the finest level fitted
+        stokes = stokes_weight if rank < stokes_levels else 0.0
         t1 = time.perf_counter()
-        if level >= full_model_levels and model != "translation":
+        if rank >= full_model_levels and model != "translation":
             # coarse levels: translation only (a Siemens star is nearly invariant to scale and
             # rotation about its centre; the full model from the start drifts along that valley)
             crit = criteria(level, stokes, "translation")
@@ -159,7 +165,7 @@ def refine_levels(p: torch.Tensor, criteria: LevelCriteria, *, first_level: int,
             p = p_new
         else:
             log.warning("registration: non-finite parameters at pyramid level %d; kept the previous estimate", level)
-        if robust_power > 0 and level < robust_levels:
+        if robust_power > 0 and rank < robust_levels:
             rcrit = criteria(level, stokes, robust_power=robust_power, window_radius=robust_window_radius)
             for _ in range(robust_passes):  # IRLS: window weights R^2^k frozen at the current estimate
                 p_new, it2, ev2 = minimize(rcrit, p, max_iterations=max_iterations, memory=robust_memory)

@@ -184,7 +184,7 @@ def job_key(capture: Capture, method: str, layout: TileLayout, homographies: np.
 
 def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None, memory_gb: float | None = None,
                       workers: int = 1, margin: int | None = None, device: str = "cpu", true_warps: bool = False,
-                      registration: str = "local-correlation", reuse_registration: bool = True, calibration=None,
+                      registration: str | None = None, reuse_registration: bool = True, calibration=None,
                       physical_projection: bool = True, progress: Callable[[int, int, str], None] | None = None,
                       parts: str | Path | None = None, runner: Runner = serial_runner, **options
                       ) -> tuple[MethodOutput, dict] | None:
@@ -200,7 +200,8 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
         Core side (HR pixels); memory budget (GiB; default the machine's limit); tiles run side by side;
         margin (HR pixels; default :func:`tile_margin`). See :func:`choose_layout`.
     device, true_warps, registration, reuse_registration, calibration, physical_projection : optional
-        As :func:`capssim.reconstruct.reconstruct` (calibration: the ideal array only).
+        As :func:`capssim.reconstruct.reconstruct` (registration None: the method's own; calibration: the ideal
+        array only).
     progress : callable, optional
         ``progress(done, total, message)`` per finished tile.
     parts : path, optional
@@ -219,6 +220,7 @@ def reconstruct_tiled(capture: Capture, method: str, *, tile: int | None = None,
     if spec.input_kind != "caps":
         raise InputError("--tile", f"method {method}", "a CAPS-input method (DoFP methods run untiled)",
                          "Leave --tile and --memory-gb out for DoFP methods.")
+    registration = spec.registration if registration is None else registration
     if not check_tiling(capture, options, tile=tile, memory_gb=memory_gb, workers=workers, margin=margin):
         return None  # the whole frame fits: the untiled run
     budget, _ = memory_budget(memory_gb)

@@ -66,7 +66,7 @@ def test_registration_mode_option(capture_dir):
     record = json.loads((capture_dir / "recon" / "caps-no-nlstr.json").read_text())
     assert record["registration"]["mode"] == "stokes-subspace"
     assert np.isfinite(record["registration"]["error_hr_px_median"])
-    res = runner.invoke(app, ["reconstruct", str(capture_dir), "-m", "caps", "--registration", "fast"])
+    res = runner.invoke(app, ["reconstruct", str(capture_dir), "-m", "caps", "--registration", "fastest"])
     assert res.exit_code != 0 and "stokes-subspace" in str(res.exception)
 
 
