@@ -86,9 +86,8 @@ def register_stack(ref: torch.Tensor, moving: torch.Tensor, *, ref_valid: torch.
     ``stokes_subspace_std > 0`` (needs ``B == 3``) ends with
     :func:`~capssim.reconstruct.registration.rescue.stokes_subspace_refine`.
     ``half_resolution_min_size > 0``: the warps are fitted down to the half-resolution pyramid level only wherever
-    that level's shorter side has at least this many pixels (the ``fast`` registration mode; 4x fewer pixels per
-    evaluation on the costliest level). The restart from more peaks still finishes at full resolution (refined
-    at half resolution it took a wrong basin on a polarization star), and the final local R^2 is measured there.
+    that level's shorter side has at least this many pixels (the ``fast`` mode; 4x fewer pixels per evaluation);
+    the restarts and the final local R^2 stay at full resolution (:func:`~.rescue.rescue_from_more_peaks`).
     """
     t0 = time.perf_counter()
     dev, dtype = ref.device, ref.dtype

@@ -73,7 +73,8 @@ class RegistrationParameters:
         (:mod:`~capssim.reconstruct.registration.polarization_cue`; 0: off, a warning only).
     half_resolution_min_size
         > 0: fit the warps down to the half-resolution pyramid level only wherever that level's shorter side has
-        at least this many pixels (0: always down to full resolution; the restarts finish at full resolution). Mode
+        at least this many pixels (0: always down to full resolution). The restart from more peaks then refines
+        at full resolution only the starts that beat the current estimate at half resolution. Mode
         ``fast``: 128, so 512 px frames and larger register at half resolution, about 2-4x faster, at a
         measured cost in warp accuracy (docs: notes/registration.md).
     """

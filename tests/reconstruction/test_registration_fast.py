@@ -92,3 +92,57 @@ def test_a_suite_entry_takes_the_methods_own_registration():
     assert spec.check({"name": "caps"}, "methods[1]")["registration"] == DEFAULT_REGISTRATION
     given = spec.check({"name": "array-kr", "registration": "local-correlation"}, "methods[2]")
     assert given["registration"] == "local-correlation"
+
+
+
+def _restart_problem(finest: int):
+    """Three noisy shifted copies of a smooth 128 px texture, their :class:`LevelCriteria` (fitted down to level
+    ``finest``) and the right warps, found from the identity."""
+    import torch
+    from scipy.ndimage import shift as nd_shift
+
+    from capssim.reconstruct.registration.criterion import minimize
+    from capssim.reconstruct.registration.levels import LevelCriteria
+
+    rng = np.random.default_rng(5)
+    base = gaussian_filter(rng.random((128, 128)), 2.0)
+    base = (base - base.mean()) / base.std()
+    moving = np.stack([nd_shift(base, s, order=3, mode="nearest") for s in ((0.7, -0.4), (-1.1, 0.5), (0.3, 1.2))])
+    ref, mov = torch.as_tensor(base), torch.as_tensor(moving + rng.normal(0.0, 0.6, moving.shape))
+    criteria = LevelCriteria(ref, mov, torch.ones_like(ref), torch.ones_like(mov), model="similarity",
+                             window_radius=3, border=3, levels=3, finest=finest)
+    right, _, _ = minimize(criteria(0, 0.0), torch.zeros(3, 4, dtype=torch.float64), max_iterations=60)
+    return ref, mov, criteria, right
+
+
+@pytest.mark.parametrize("finest", [0, 1])
+def test_in_fast_mode_the_restart_refines_at_full_resolution_only_what_can_gain(finest, monkeypatch):
+    """Every image is restarted (threshold 0.9). From the right warps no start beats them: the fast mode (finest
+    level 1) then refines nothing at full resolution, the default still refines each image's best start; from a
+    wrong basin for image 0 both modes refine it and keep the restart."""
+    import capssim.reconstruct.registration.rescue as rescue
+
+    ref, mov, criteria, right = _restart_problem(finest)
+    wrong = right.clone()
+    wrong[0, :2] += 7.0
+    real, sizes = rescue.minimize, []
+
+    def counted(crit, p, **kwargs):
+        sizes.append(tuple(crit.shape))
+        return real(crit, p, **kwargs)
+
+    monkeypatch.setattr(rescue, "minimize", counted)
+    for start in (right, wrong):
+        sizes.clear()
+        info: dict = {}
+        out = rescue.rescue_from_more_peaks(start, ref, mov, criteria, threshold=0.9, peaks=4, max_iterations=60,
+                                            info=info)
+        record, full = info["rescue"], sizes.count((128, 128))
+        assert max(record["r2_before"]) < 0.9  # all three restarted
+        if start is wrong:
+            assert record["rescued"] == [0] and full == 1
+            assert finest == 0 or record["promising"] == [0]
+        elif finest:
+            assert record["promising"] == [] and record["rescued"] == [] and full == 0 and bool((out == start).all())
+        else:
+            assert "promising" not in record and record["rescued"] == [] and full == 1
