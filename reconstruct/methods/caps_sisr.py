@@ -95,7 +95,7 @@ def load_upsampler(path: str | None, device: torch.device, *, scale: float = 1.0
                  description="Camera-array baseline: demosaic each aperture, x2 SR network (the shipped EDSR, or "
                              "model=PATH: capssim train / TorchScript / ONNX; model=bicubic), register")
 def caps_sisr(capture, *, context: RunContext) -> MethodOutput:
-    with context.timer.stage("setup"):  # option parsing; the first call imports colour-demosaicing (~1 s)
+    with context.timer.stage("setup"):  # option parsing
         opts, rest = NaiveOptions.from_options(context.options, extra=("model", "model_channels", "model_scale"))
     channels = coerce_option("model_channels", rest.get("model_channels", 1), int)
     if channels not in (1, 3):
