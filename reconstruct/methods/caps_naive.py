@@ -4,10 +4,11 @@ Reference: the "demosaic, register, upsample" camera-array baseline of "Joint co
 guided filtering based confidence and nonlocal sparse tensor for color polarization
 super-resolution imaging", Optics Express 32(2), 2364 (2024), section 5.2, with the Bayer
 demosaicking of Menon, Andriani, Calvagno, "Demosaicing with directional filtering and a
-posteriori decision", IEEE TIP 16(1), 2007 (``colour-demosaicing``).
+posteriori decision", IEEE TIP 16(1), 2007 (:mod:`capssim.reconstruct.dofp.menon2007`, colour-demosaicing's
+result to the bit).
 
 1. Demosaick each aperture's RGGB raw frame ``(H, W)`` on its own (``bayer_method``:
-   ``menon2007`` (default), ``malvar2004`` or ``bilinear``, from ``colour-demosaicing``, or
+   ``menon2007`` (default, capssim's torch port), ``malvar2004`` or ``bilinear`` (from ``colour-demosaicing``), or
    ``ri``, the residual interpolation of :func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic`),
    clipped to [0, 1] -> ``(4, 3, H, W)``; each frame is mirror-padded by 6 pixels with its
    Bayer phase kept (:func:`demosaic_apertures`), so constant images stay exact at the border.
@@ -68,7 +69,7 @@ from .caps import REFERENCE as CAPS_REFERENCE
 log = logging.getLogger(__name__)
 
 REFERENCE = (CAPS_REFERENCE + " (camera-array baseline, 5.2); Bayer demosaicking: Menon, Andriani, Calvagno, "
-             "IEEE TIP 16(1) 2007 (colour-demosaicing)")
+             "IEEE TIP 16(1) 2007")
 
 @dataclass
 class NaiveOptions:
@@ -145,7 +146,7 @@ def finish(capture, image: torch.Tensor, opts: NaiveOptions, context: RunContext
                  description="Camera-array baseline: Menon 2007 demosaicking per aperture, CAPS registration, "
                              "bicubic x2 resampling onto the reference grid (one resampling per aperture)")
 def caps_naive(capture, *, context: RunContext) -> MethodOutput:
-    with context.timer.stage("setup"):  # option parsing; the first call imports colour-demosaicing (~1 s)
+    with context.timer.stage("setup"):  # option parsing
         opts, _ = NaiveOptions.from_options(context.options)
     rgb, geometry, reg_record = demosaic_and_register(capture, context, opts)
     with context.timer.stage("resample"):
