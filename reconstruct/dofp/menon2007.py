@@ -28,6 +28,8 @@ from __future__ import annotations
 
 import torch
 
+from capssim.errors import InputError
+
 from ..filters import mirror_index
 
 __all__ = ["CLASSIFIER", "menon2007_demosaic"]
@@ -158,7 +160,8 @@ def menon2007_demosaic(raw: torch.Tensor, *, refine: bool = True) -> torch.Tenso
     2007, module docstring), unclipped, in ``raw``'s dtype and on its device; ``refine=False`` skips step 4."""
     x = torch.as_tensor(raw)
     if x.ndim != 3 or x.shape[-1] < 1 or x.shape[-2] < 1:
-        raise ValueError(f"raw must be (N, H, W) RGGB frames, got shape {tuple(x.shape)}")
+        raise InputError("raw", f"shape {tuple(x.shape)}", "(N, H, W) RGGB frames with H, W >= 1",
+                         "Stack the frames along a first axis, e.g. raw[None] for one frame.")
     if not x.is_floating_point():
         x = x.to(torch.float64)
     h, w = x.shape[-2:]
