@@ -41,6 +41,12 @@ CLASSIFIER = ((0.0, 0.0, 1.0, 0.0, 1.0),
               (0.0, 0.0, 3.0, 0.0, 3.0),
               (0.0, 0.0, 0.0, 1.0, 0.0),
               (0.0, 0.0, 1.0, 0.0, 1.0))
+#: symmetric 1-D filters as (centre, offset 1, offset 2, ...): the green estimate's ``h_0`` (bilinear) and ``h_1``
+#: (the Laplacian of the site's own colour), the red/blue step's mean of the two neighbours, the refining mean of three
+H0 = (0.0, 0.5, 0.0)
+H1 = (0.5, 0.0, -0.25)
+HALVES = (0.0, 0.5)
+THIRDS = (1.0 / 3.0, 1.0 / 3.0)
 
 
 def _symmetric_filter(x: torch.Tensor, taps: tuple[float, ...], dim: int) -> torch.Tensor:
@@ -60,7 +66,9 @@ def _symmetric_filter(x: torch.Tensor, taps: tuple[float, ...], dim: int) -> tor
 
 def _classify(gradient: torch.Tensor, weights: tuple[tuple[float, ...], ...]) -> torch.Tensor:
     """The 2-D convolution of ``gradient`` ``(N, H, W)`` with ``weights`` (5x5), zero padding; the taps summed in
-    the raster order of the flipped kernel."""
+    the raster order of the flipped kernel, each product rounded before it is added (not
+    :func:`capssim.reconstruct.filters.correlate`, whose fused ``add_(alpha=)`` rounds once: it flips the
+    direction decision at rare near-ties, about 2e-5 of the pixels of 8-bit frames, and the reproduction is lost)."""
     size = len(weights)
     radius = size // 2
     h, w = gradient.shape[-2:]
@@ -73,11 +81,6 @@ def _classify(gradient: torch.Tensor, weights: tuple[tuple[float, ...], ...]) ->
                 out = out + padded[:, a:a + h, b:b + w] * weight
     return out
 
-
-H0 = (0.0, 0.5, 0.0)
-H1 = (0.5, 0.0, -0.25)
-HALVES = (0.0, 0.5)
-THIRDS = (1.0 / 3.0, 1.0 / 3.0)
 
 
 def _rows(x, taps):
@@ -135,23 +138,17 @@ def _refine(red, green, blue, horizontal, masks, columns):
     """Step 4: the refining step (green, then red and blue at green sites, then red (blue) at blue (red) sites)."""
     red_site, green_site, blue_site, red_row, blue_row = masks
     red_col, blue_col = columns
-    zero = torch.zeros_like(green)
-    blue_green = torch.where(blue_site, _along(blue - green, horizontal, THIRDS), zero)
-    red_green = torch.where(red_site, _along(red - green, horizontal, THIRDS), zero)
-    green = torch.where(red_site, red - red_green, green)
-    green = torch.where(blue_site, blue - blue_green, green)
+    red_green = _along(red - green, horizontal, THIRDS)
+    blue_green = _along(blue - green, horizontal, THIRDS)
+    green = torch.where(red_site, red - red_green, torch.where(blue_site, blue - blue_green, green))
     red_diff, blue_diff = red - green, blue - green
-    red_green = torch.where(green_site & blue_row, _cols(red_diff, HALVES), red_green)
-    red = torch.where(green_site & blue_row, green + red_green, red)
-    red_green = torch.where(green_site & blue_col, _rows(red_diff, HALVES), red_green)
-    red = torch.where(green_site & blue_col, green + red_green, red)
-    blue_green = torch.where(green_site & red_row, _cols(blue_diff, HALVES), blue_green)
-    blue = torch.where(green_site & red_row, green + blue_green, blue)
-    blue_green = torch.where(green_site & red_col, _rows(blue_diff, HALVES), blue_green)
-    blue = torch.where(green_site & red_col, green + blue_green, blue)
-    red_blue = red - blue
-    red = torch.where(blue_site, blue + torch.where(blue_site, _along(red_blue, horizontal, THIRDS), zero), red)
-    blue = torch.where(red_site, red - torch.where(red_site, _along(red_blue, horizontal, THIRDS), zero), blue)
+    red = torch.where(green_site & blue_row, green + _cols(red_diff, HALVES), red)
+    red = torch.where(green_site & blue_col, green + _rows(red_diff, HALVES), red)
+    blue = torch.where(green_site & red_row, green + _cols(blue_diff, HALVES), blue)
+    blue = torch.where(green_site & red_col, green + _rows(blue_diff, HALVES), blue)
+    red_blue = _along(red - blue, horizontal, THIRDS)
+    red = torch.where(blue_site, blue + red_blue, red)
+    blue = torch.where(red_site, red - red_blue, blue)
     return red, green, blue
 
 

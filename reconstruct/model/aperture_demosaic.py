@@ -25,8 +25,7 @@ from ..dofp.residual_interpolation import ri_bayer_demosaic_frames
 from ..run_context import RunContext
 
 __all__ = ["BAYER_METHODS", "BAYER_PAD", "bayer_demosaic_function", "bicubic_warp", "demosaic_apertures",
-           "demosaicked_frames", "fill_held_out", "flat_corrected_raw", "menon2007_frame", "ri_demosaic_frame",
-           "sampling_grid"]
+           "demosaicked_frames", "fill_held_out", "flat_corrected_raw", "ri_demosaic_frame", "sampling_grid"]
 
 #: the selectable Bayer demosaicking algorithms: residual interpolation (``ri``, Kiku et al. 2016, the
 #: colour stage of EARI [15]; :func:`capssim.reconstruct.dofp.residual_interpolation.ri_bayer_demosaic`), Menon 2007
@@ -44,32 +43,37 @@ def ri_demosaic_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
     return rgb.permute(1, 2, 0).numpy()
 
 
-def menon2007_frame(cfa: np.ndarray, pattern: str = "RGGB") -> np.ndarray:
-    """``(H, W)`` RGGB frame -> ``(H, W, 3)`` RGB by Menon 2007 (colour-demosaicing's signature and result):
-    :func:`capssim.reconstruct.dofp.menon2007.menon2007_demosaic`."""
-    if pattern != "RGGB":
-        raise InputError("pattern", pattern, "'RGGB' (the CAPS sensors' Bayer layout)")
-    rgb = menon2007_demosaic(torch.from_numpy(np.ascontiguousarray(cfa, dtype=np.float64))[None])[0]
-    return rgb.permute(1, 2, 0).numpy()
+def _frame_by_frame(frame_function):
+    """A colour-demosaicing-style function (one ``(H, W)`` RGGB frame -> ``(H, W, 3)``) applied to each of
+    ``(N, H, W)`` frames -> ``(N, 3, H, W)``."""
+    def demosaic(frames: np.ndarray) -> np.ndarray:
+        return np.stack([np.moveaxis(np.asarray(frame_function(frame, "RGGB")), -1, 0) for frame in frames])
+    return demosaic
+
+
+def _menon2007(frames: np.ndarray) -> np.ndarray:
+    """``(N, H, W)`` float64 RGGB frames -> ``(N, 3, H, W)``, all frames in one batch."""
+    return menon2007_demosaic(torch.from_numpy(frames)).numpy()
 
 
 def bayer_demosaic_function(name: str):
     """``(canonical name, function)`` of the Bayer demosaicking ``name`` (one of ``BAYER_METHODS``).
 
-    The function takes an ``(H, W)`` RGGB mosaic and returns ``(H, W, 3)``; an unknown name
-    raises ``UnknownNameError`` listing the valid ones. Only ``malvar2004`` and ``bilinear`` import
-    colour-demosaicing (and with it colour-science, about a second).
+    The function takes ``(N, H, W)`` float64 RGGB frames and returns ``(N, 3, H, W)`` (each frame demosaicked on
+    its own); an unknown name raises ``UnknownNameError`` listing the valid ones. Only ``malvar2004`` and
+    ``bilinear`` import colour-demosaicing (and with it colour-science, about a second).
     """
     key = str(name).strip().lower().replace("-", "").replace("_", "")
     if key not in BAYER_METHODS:
         raise UnknownNameError("bayer_method", name, list(BAYER_METHODS))
     if key == "ri":
-        return key, ri_demosaic_frame
+        return key, _frame_by_frame(ri_demosaic_frame)  # per frame: its clip level is each frame's own maximum
     if key == "menon2007":
-        return key, menon2007_frame
+        return key, _menon2007
     import colour_demosaicing as cd
 
-    return key, {"malvar2004": cd.demosaicing_CFA_Bayer_Malvar2004, "bilinear": cd.demosaicing_CFA_Bayer_bilinear}[key]
+    table = {"malvar2004": cd.demosaicing_CFA_Bayer_Malvar2004, "bilinear": cd.demosaicing_CFA_Bayer_bilinear}
+    return key, _frame_by_frame(table[key])
 
 
 #: mirror padding (raw pixels, even) around each frame before demosaicking
@@ -97,10 +101,7 @@ def demosaic_apertures(raw: np.ndarray, *, bayer_method: str = "menon2007", clip
     # even: keeps the RGGB phase; ``ri`` mirror-pads by itself (any frame size)
     pad = 0 if key == "ri" else min(BAYER_PAD, raw.shape[1] - 1, raw.shape[2] - 1) // 2 * 2
     padded = np.pad(raw.astype(np.float64), ((0, 0), (pad, pad), (pad, pad)), mode="reflect")
-    if key == "menon2007":  # batched over the frames
-        rgb = menon2007_demosaic(torch.from_numpy(padded)).numpy()
-    else:
-        rgb = np.stack([np.moveaxis(np.asarray(fn(padded[n], "RGGB")), -1, 0) for n in range(raw.shape[0])])
+    rgb = fn(padded)
     rgb = rgb[..., pad:pad + raw.shape[1], pad:pad + raw.shape[2]]
     return flip_to_rggb(np.clip(np.nan_to_num(rgb, nan=0.0), 0.0, clip_max).astype(np.float32), cfa)
 

@@ -88,5 +88,5 @@ def test_demosaic_apertures_matches_the_per_frame_function():
     pad = 6
     for frame, rgb in zip(raw, batched):
         padded = np.pad(frame.astype(np.float64), pad, mode="reflect")
-        single = np.moveaxis(frame_fn(padded), -1, 0)[:, pad:-pad, pad:-pad]
+        single = frame_fn(padded[None])[0][:, pad:-pad, pad:-pad]
         np.testing.assert_array_equal(rgb, np.clip(single, 0, 1).astype(np.float32))
