@@ -6,6 +6,8 @@ fix it, so a user never has to read the source to understand a failure.
 
 from __future__ import annotations
 
+import difflib
+
 
 class CapssimError(Exception):
     """Base class of every error capssim raises on purpose."""
@@ -36,7 +38,9 @@ class UnknownNameError(CapssimError, KeyError):
         self.kind = kind
         self.name = name
         self.known = sorted(known)
-        super().__init__(f"unknown {kind} {name!r}; valid names are: {', '.join(self.known)}.")
+        close = difflib.get_close_matches(str(name), self.known, n=1)
+        hint = f" Did you mean {close[0]!r}?" if close else ""
+        super().__init__(f"unknown {kind} {name!r}; valid names are: {', '.join(self.known)}.{hint}")
 
     def __str__(self) -> str:  # KeyError would otherwise quote the message
         return self.args[0]

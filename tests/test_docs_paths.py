@@ -10,6 +10,7 @@ the API reference, are checked against their sources), and its ``#anchor`` must 
 from __future__ import annotations
 
 import re
+import unicodedata
 from pathlib import Path
 
 import pytest
@@ -45,6 +46,7 @@ def exists(path: str) -> bool:
 def slug(heading: str) -> str:
     """The anchor MkDocs (Python-Markdown's toc) gives a heading."""
     text = re.sub(r"`|\*\*|\[([^\]]*)\]\([^)]*\)", r"\1", heading).strip().lower()
+    text = unicodedata.normalize("NFKD", text).encode("ascii", "ignore").decode("ascii")  # "512²" -> "5122"
     text = re.sub(r"[^\w\s-]", "", text)
     return re.sub(r"[-\s]+", "-", text).strip("-")
 

@@ -45,6 +45,7 @@ def compare(
     """
     from capssim.eval.benchmarks.compare import (
         DEFAULT_METRICS,
+        check_metrics,
         comparison_markdown,
         load_run_records,
         paired_rows,
@@ -57,7 +58,7 @@ def compare(
     records_a = select_scenes(load_run_records(run_a, argument="RUN_A"), **chosen)
     records_b = records_a if run_b is None else select_scenes(load_run_records(run_b, argument="RUN_B"), **chosen)
     wanted = _labels_to_compare(records_a, records_b, methods, against, two_runs=run_b is not None)
-    keys = list(metrics or DEFAULT_METRICS)
+    keys = check_metrics(records_a + records_b, metrics) if metrics else list(DEFAULT_METRICS)
     comparisons, details = [], []
     for label in wanted:
         other = against or label

@@ -27,8 +27,8 @@ from capssim.errors import InputError
 
 from .results import read_results
 
-__all__ = ["DEFAULT_METRICS", "PairedSummary", "comparison_markdown", "load_run_records", "paired_rows",
-           "summarize"]
+__all__ = ["DEFAULT_METRICS", "PairedSummary", "check_metrics", "comparison_markdown", "load_run_records",
+           "paired_rows", "summarize"]
 
 #: the metrics compared by default: the 12-channel PSNR and the DoLP PSNR (dB; higher is better)
 DEFAULT_METRICS = ("psnr_mean", "dolp_psnr")
@@ -94,6 +94,18 @@ def select_scenes(records: list[dict], *, scenes: list[str] | tuple = (), exclud
         raise InputError(argument, given, f"patterns that keep at least one scene of the run ({shown})",
                          "Match a scene name above, e.g. --scene 'qiu-*', or exclude fewer.")
     return kept
+
+
+def check_metrics(records: list[dict], metrics, *, argument: str = "--metric") -> list[str]:
+    """``metrics`` as a list, each checked to be a numeric metric of at least one of ``records``; an
+    :class:`InputError` naming ``argument`` (and listing the run's metrics) otherwise."""
+    known = sorted({k for r in records for k, v in (r.get("metrics") or {}).items() if isinstance(v, (int, float))})
+    for metric in metrics:
+        if metric not in known:
+            shown = ", ".join(known[:16]) + (f", ... ({len(known)} in all)" if len(known) > 16 else "")
+            raise InputError(argument, metric, f"a metric of the runs' records ({shown})",
+                             "Give a key of a record's 'metrics', e.g. --metric psnr_mean.")
+    return list(metrics)
 
 
 def _case(record: dict) -> tuple:

@@ -77,6 +77,7 @@ def test_the_command_compares_two_methods_of_one_run_and_two_runs(tmp_path):
 @pytest.mark.parametrize("args, argument", [
     (["-m", "zz", "--against", "b"], "--method"),
     (["-m", "a", "--against", "zz"], "--against"),
+    (["-m", "a", "--against", "b", "--metric", "psnr_men"], "--metric"),  # a typo: not an empty table
     ([], "--method"),  # one run and nothing to compare it with
 ])
 def test_bad_labels_are_refused_in_one_line(tmp_path, args, argument, capsys, monkeypatch):

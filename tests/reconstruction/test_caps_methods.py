@@ -84,8 +84,12 @@ def test_options_are_checked():
     cap = capture(scene(), sigma=0.0)
     with pytest.raises(UnknownNameError):
         reconstruct(cap, "caps", true_warps=True, not_an_option=1)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="option iterations: got 'many'; expected an integer. Give -p iterations="):
         reconstruct(cap, "caps", true_warps=True, iterations="many")
+    with pytest.raises(InputError, match="option mu0: got 'nan'; expected a finite number"):
+        reconstruct(cap, "caps", true_warps=True, mu0="nan")
+    with pytest.raises(UnknownNameError, match="Did you mean 'caps-plus'"):
+        reconstruct(cap, "caps-plu", true_warps=True)
     with pytest.raises(InputError):
         reconstruct(cap, "caps", true_warps=True, c1=-1)
     out, rec = reconstruct(cap, "caps", true_warps=True, iterations="2", adaptive="block", stride="8")
