@@ -89,8 +89,8 @@ def coerce_option(name: str, raw, kind: type):
         expected = {bool: "a boolean (true/false, yes/no, 1/0)", int: "an integer",
                     float: "a finite number"}.get(kind, f"a value of type {kind.__name__}")
         raise InputError(f"option {name}", repr(raw), expected,
-                         f"Give -p {name}=VALUE with {expected}; 'capssim reconstruct --options METHOD' lists "
-                         "every option with its default and range.") from None
+                         f"Give {name} as {expected} (-p {name}=VALUE on the command line; 'capssim reconstruct "
+                         "--options METHOD' lists every option with its default and range).") from None
 
 
 def wants_ground_truth(options: dict) -> bool:

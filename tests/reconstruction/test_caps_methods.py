@@ -84,7 +84,7 @@ def test_options_are_checked():
     cap = capture(scene(), sigma=0.0)
     with pytest.raises(UnknownNameError):
         reconstruct(cap, "caps", true_warps=True, not_an_option=1)
-    with pytest.raises(InputError, match="option iterations: got 'many'; expected an integer. Give -p iterations="):
+    with pytest.raises(InputError, match="option iterations: got 'many'; expected an integer. Give iterations as an integer"):
         reconstruct(cap, "caps", true_warps=True, iterations="many")
     with pytest.raises(InputError, match="option mu0: got 'nan'; expected a finite number"):
         reconstruct(cap, "caps", true_warps=True, mu0="nan")
