@@ -82,7 +82,6 @@ def _classify(gradient: torch.Tensor, weights: tuple[tuple[float, ...], ...]) ->
     return out
 
 
-
 def _rows(x, taps):
     return _symmetric_filter(x, taps, -1)
 

@@ -17,8 +17,9 @@ Not the paper's method: capssim's own model beside it (docs: notes/caps-plus-mod
    agree, each aperture demosaicked on its own where they disagree (the polarization part only).
 3. **the count of the frame** (:mod:`capssim.reconstruct.selection`): ADMM from ``mu0 = 0.25`` with ``c2 = 0.01``
    (``caps``: 0.5, 0.02) runs for the count ``K`` whose prediction of 5 % held-out raw pixels is best, on the
-   central 256 px window, never more than the paper's 25 iterations. The final image's polarization part is also guided-filtered by its intensity where the
-   held-out pixels, or the absence of polarization structure (the Stokes-consistency test), ask for it
+   central 256 px window, never more than the paper's 25 iterations. The final image's polarization part is also
+   guided-filtered by its intensity where the held-out pixels, or the absence of polarization structure (the
+   Stokes-consistency test), ask for it
    (``polarization_filter=auto``; the default since 2026-11-29, when the development suites together chose it:
    docs/results/caps-plus.md).
 
